@@ -1,0 +1,261 @@
+"""Load path and Newton's method with line search and automatic step cutting.
+
+A load path is a sequence of :class:`Stage`. Within a stage the load factor t runs
+from 0 to 1: prescribed displacements and term params are interpolated linearly from
+their values at the stage start to the stage's targets. Each step is solved by Newton
+on the reduced saddle-point system; a step that diverges, inverts an element or
+produces non-finite values is cut in half and retried; after ``max_cuts`` cuts the
+solve stops with :class:`ConvergenceError`, which carries the last converged state.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from typing import Any, Callable, Sequence
+
+import jax
+import numpy as np
+
+from .assembly import Assembler
+from .linsolve import LinearSolveError
+from .model import Model, check_x64
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class NewtonOptions:
+    """Settings of the Newton solver.
+
+    Attributes:
+      rtol: force residual tolerance relative to the step's reference force.
+      vtol: constraint (volume) residual tolerance relative to the solid volume.
+      atol: absolute force tolerance, N.
+      max_iter: Newton iterations per step before the step is cut.
+      max_cuts: successive halvings of a step before giving up.
+      line_search: backtrack on the residual norm when a full step does not reduce it.
+      backend: linear solver backend (None: the default, see linsolve).
+      beta: strength of the element-wise augmentation of the saddle-point solve.
+    """
+
+    rtol: float = 1e-8
+    vtol: float = 1e-10
+    atol: float = 1e-11
+    max_iter: int = 25
+    max_cuts: int = 8
+    line_search: bool = True
+    backend: str | None = None
+    beta: float = 1e3
+
+    def __post_init__(self):
+        for f in ("rtol", "vtol", "atol", "beta"):
+            if not getattr(self, f) > 0:
+                raise ValueError(f"NewtonOptions.{f} = {getattr(self, f)}; must be > 0")
+        if self.max_iter < 1 or self.max_cuts < 0:
+            raise ValueError("NewtonOptions: max_iter must be >= 1 and max_cuts >= 0")
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One stage of a load path.
+
+    Attributes:
+      name: stage name (logs, outputs).
+      n_steps: nominal number of load steps.
+      prescribed: (dofs (n,), targets (n,)): displacement dofs prescribed during the
+        stage and their values (mm) at its end, reached linearly from the start values.
+      params: term name -> params at the end of the stage (linear ramp); others held.
+      active: names of the terms in the energy (None: all).
+      before: optional host-side hook ``f(model, q, theta) -> (model, q, theta)`` run at
+        the stage start (closing a cavity, switching contact on...).
+    """
+
+    name: str
+    n_steps: int
+    prescribed: tuple[np.ndarray, np.ndarray]
+    params: dict = dataclasses.field(default_factory=dict)
+    active: tuple[str, ...] | None = None
+    before: Callable | None = None
+
+    def __post_init__(self):
+        if self.n_steps < 1:
+            raise ValueError(f"stage '{self.name}': n_steps = {self.n_steps}; must be >= 1")
+        d, v = self.prescribed
+        d = np.asarray(d, np.int64).ravel()
+        v = np.broadcast_to(np.asarray(v, np.float64), d.shape).copy()
+        if len(np.unique(d)) != len(d):
+            raise ValueError(f"stage '{self.name}': a dof is prescribed twice")
+        object.__setattr__(self, "prescribed", (d, v))
+
+
+@dataclasses.dataclass
+class StepRecord:
+    """Log of one converged step."""
+
+    stage: str
+    step: int
+    t: float
+    iterations: int
+    residual: float
+    wall: float
+    info: dict = dataclasses.field(default_factory=dict)
+
+
+class ConvergenceError(RuntimeError):
+    """Newton failed after all step cuts; ``.q``/``.theta`` hold the last converged state."""
+
+    def __init__(self, msg, q, theta, history):
+        super().__init__(msg)
+        self.q, self.theta, self.history = q, theta, history
+
+
+@dataclasses.dataclass
+class Solution:
+    """Result of a load path: final state and per-step history."""
+
+    model: Model
+    q: np.ndarray
+    theta: Any
+    history: list[StepRecord]
+
+
+def _lerp(a, b, t):
+    return jax.tree_util.tree_map(lambda x, y: (1.0 - t) * np.asarray(x) + t * np.asarray(y), a, b)
+
+
+class _StepFailed(Exception):
+    pass
+
+
+def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOptions,
+           active=None, vref=1.0):
+    """Solve one step. Returns (model, q, iterations, residual, solver).
+
+    The model is returned because dynamic terms (contact) are re-paired every iteration.
+
+    q is the state at the previous step; dq_prescribed (n_dof,) the increment of the
+    prescribed dofs (zero elsewhere), taken with a consistent linear predictor.
+    """
+    free = asm.free_primal
+    mult = asm.mult
+    fref = 0.0
+    solver = None
+    q = q.copy()
+    if np.any(dq_prescribed):
+        r, K, B, D, lr = asm.assemble(q, theta, active)
+        hv = model.hvp(q, dq_prescribed, theta, active)
+        solver = asm.solver(K, B, D, lr, opts.backend)
+        rhs = r + hv
+        x, y = solver.solve(-rhs[free], -rhs[mult])
+        q = q + dq_prescribed + asm.expand(x, y)
+        fref = np.linalg.norm(rhs[free])
+    for it in range(opts.max_iter + 1):
+        model = model.update(q)
+        asm.model = model
+        r = model.gradient(q, theta, active)
+        if not np.all(np.isfinite(r)):
+            raise _StepFailed("non-finite residual (an element inverted?)")
+        rf, rm = r[free], r[mult]
+        react = np.linalg.norm(r[asm.prescribed])
+        nf = np.linalg.norm(rf)
+        fref = max(fref, nf if it == 0 else 0.0, react)
+        nm = np.linalg.norm(rm) / vref if len(rm) else 0.0
+        log.debug("  iter %d |r_u| %.3e (ref %.3e) |r_vol| %.3e", it, nf, fref, nm)
+        if nf <= opts.rtol * fref + opts.atol and nm <= opts.vtol:
+            return model, q, it, nf, solver
+        if it == opts.max_iter:
+            break
+        _, K, B, D, lr = asm.assemble(q, theta, active)
+        try:
+            solver = asm.solver(K, B, D, lr, opts.backend)
+            x, y = solver.solve(-rf, -rm)
+        except LinearSolveError as exc:
+            raise _StepFailed(str(exc)) from exc
+        dq = asm.expand(x, y)
+        q = _line_search(model, q, dq, theta, active, asm, np.hypot(nf / max(fref, 1e-300), nm), fref,
+                         vref, opts.line_search)
+    raise _StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
+                      f"reference {fref:.3e} N, volume residual {nm:.2e})")
+
+
+def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, enabled):
+    best = None
+    for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625) if enabled else (1.0,):
+        qa = q + alpha * dq
+        r = model.gradient(qa, theta, active)
+        if not np.all(np.isfinite(r)):
+            continue
+        m = np.hypot(np.linalg.norm(r[asm.free_primal]) / max(fref, 1e-300),
+                     np.linalg.norm(r[asm.mult]) / vref if len(asm.mult) else 0.0)
+        if m < m0:
+            return qa
+        if best is None or m < best[0]:
+            best = (m, qa)
+    if best is None:
+        raise _StepFailed("every line-search trial gave non-finite values (inverted elements)")
+    return best[1]
+
+
+def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
+          options: NewtonOptions = NewtonOptions(),
+          on_step: Callable[[StepRecord, Model, np.ndarray, Any], None] | None = None) -> Solution:
+    """Run a load path from q0 (default zero) with design theta (default model.theta0()).
+
+    ``on_step(record, model, q, theta)`` is called after every converged step (outputs,
+    progress). Raises ConvergenceError with the last converged state on failure.
+    """
+    check_x64()
+    q = np.zeros(model.n_dof) if q0 is None else np.array(q0, dtype=np.float64)
+    theta = model.theta0() if theta is None else theta
+    history: list[StepRecord] = []
+    vref = float(sum(np.sum(t.data["dv"]) for t in model.terms if "dv" in t.data)) or 1.0
+    for stage in stages:
+        if stage.before is not None:
+            model, q, theta = stage.before(model, q, theta)
+        dofs, targets = stage.prescribed
+        prescribed = np.zeros(model.n_dof, bool)
+        prescribed[dofs] = True
+        asm = Assembler(model, prescribed, beta=options.beta)
+        start_vals = q[dofs].copy()
+        theta_start = theta
+        theta_end = dict(theta)
+        for name, p in stage.params.items():
+            model.term(name)
+            theta_end[name] = {**theta[name], **p}
+        t, dt, step, cuts = 0.0, 1.0 / stage.n_steps, 0, 0
+        while t < 1.0 - 1e-12:
+            t_new = min(1.0, t + dt)
+            th = _lerp(theta_start, theta_end, t_new)
+            dqp = np.zeros(model.n_dof)
+            dqp[dofs] = start_vals + t_new * (targets - start_vals) - q[dofs]
+            tic = time.perf_counter()
+            try:
+                model_new, q_new, its, res, _ = newton(model, asm, q, th, dqp, options,
+                                                       stage.active, vref)
+            except _StepFailed as exc:
+                cuts += 1
+                if cuts > options.max_cuts:
+                    msg = (f"stage '{stage.name}': step to t = {t_new:.4g} failed after {cuts - 1} "
+                           f"cuts (last increment {dt:.3g}): {exc}. The last converged state "
+                           f"(t = {t:.4g}) is kept")
+                    log.error(msg)
+                    raise ConvergenceError(msg, q, _lerp(theta_start, theta_end, t), history) from None
+                dt *= 0.5
+                log.warning("stage '%s': step to t = %.4g failed (%s); cutting the increment to %.3g",
+                            stage.name, t_new, exc, dt)
+                continue
+            step += 1
+            t, q, theta, model = t_new, q_new, th, model_new
+            rec = StepRecord(stage.name, step, t, its, res, time.perf_counter() - tic)
+            history.append(rec)
+            log.info("stage %-12s step %3d  t = %.4f  iterations %2d  |r| = %.2e N  (%.2f s)",
+                     stage.name, step, t, its, res, rec.wall)
+            if on_step is not None:
+                on_step(rec, model, q, theta)
+            if cuts and its <= 6:
+                dt = min(1.0 / stage.n_steps, dt * 2.0)
+                cuts = max(cuts - 1, 0)
+        theta = theta_end
+    return Solution(model, q, theta, history)

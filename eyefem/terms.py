@@ -1,0 +1,122 @@
+"""Energy terms: the pieces the total potential energy is summed from.
+
+A term is a sum of local energies ``e_i(q[dofs[i]], params, data_i)``: one per element,
+face, bar or contact pair. JAX differentiates the local energy; the assembler
+scatters local gradients (n_items, k) and Hessians (n_items, k, k) into the global
+residual and sparse tangent through the term's ``dofs`` (n_items, k).
+
+``params`` is the term's slice of the design pytree ``theta`` (differentiable:
+material constants, load magnitudes, suture geometry...); ``data`` holds fixed arrays
+(reference geometry, quadrature). Both are passed as arguments, never closed over, so
+a compiled kernel is reused for every value.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+class Term(abc.ABC):
+    """Base class of every energy term.
+
+    Attributes (set by subclasses):
+      name: unique name; the key of this term's params in ``theta``.
+      dofs: (n_items, k) global dof indices each local energy touches.
+      params: default parameter pytree (MPa, mm, N...).
+      data: dict of fixed arrays with leading axis n_items (or global).
+      multiplier_slots: local positions (within k) that hold Lagrange multipliers
+        (zero diagonal block; condensed by the saddle-point solver).
+      dynamic: see below.
+
+    Terms whose energy is not a sum of independent local energies (a fluid cavity:
+    the pressure depends on the whole enclosed volume) override ``energy`` and
+    ``grad_hess`` (which see the global q) and put the coupling in ``low_rank``.
+    """
+
+    name: str
+    dofs: np.ndarray
+    params: Any
+    data: dict
+    multiplier_slots: tuple[int, ...] = ()
+    dynamic: bool = False
+    """True if ``dofs`` change between Newton iterations (contact pairing): assembled
+    without a precomputed pattern."""
+
+    @abc.abstractmethod
+    def local_energy(self, q_loc, params, data):
+        """Local energies (n_items,) from local dof values q_loc (n_items, k)."""
+
+    def local_grad_hess(self, q_loc, params, data):
+        """Local gradients (n_items, k) and Hessians (n_items, k, k).
+
+        The default differentiates ``local_energy``: items are independent, so one
+        forward-over-reverse product per local direction gives column j of every
+        item's Hessian at once (k products, no per-item parameter slicing).
+        """
+        def grad(x):
+            return jax.grad(lambda y: jnp.sum(self.local_energy(y, params, data)))(x)
+
+        g = grad(q_loc)
+        k = q_loc.shape[1]
+        basis = jnp.broadcast_to(jnp.eye(k, dtype=q_loc.dtype)[:, None, :], (k,) + q_loc.shape)
+        cols = jax.vmap(lambda v: jax.jvp(grad, (q_loc,), (v,))[1])(basis)  # (k, n, k)
+        return g, jnp.transpose(cols, (1, 2, 0))
+
+    def energy(self, q, params, data, dofs):
+        """Total energy of the term (scalar) from the global dof vector q (n_dof,)."""
+        return jnp.sum(self.local_energy(q[dofs], params, data))
+
+    def grad_hess(self, q, params, data, dofs):
+        """Local gradients and Hessians from the global dof vector q (n_dof,)."""
+        return self.local_grad_hess(q[dofs], params, data)
+
+    def low_rank(self, q, params, data, dofs):
+        """Rank-k parts of the Hessian not in the local blocks: list of (alpha, vector (n_dof,)).
+
+        The tangent is sum(local blocks) + sum alpha_j v_j v_j^T. Default: none.
+        """
+        return []
+
+    def report(self, q: np.ndarray, params) -> dict:
+        """Scalar outputs logged and written to CSV every step (e.g. cavity pressure)."""
+        return {}
+
+    def point_fields(self, q: np.ndarray, params, n_nodes: int) -> dict:
+        """Nodal fields (n_nodes, ...) for the VTU output (e.g. contact pressure)."""
+        return {}
+
+    def static_key(self) -> tuple:
+        """Hashable configuration that changes the compiled code (not the arrays)."""
+        return ()
+
+    def update(self, q: np.ndarray) -> "Term":
+        """Host-side update between Newton iterations (contact search); default: self."""
+        return self
+
+
+@dataclasses.dataclass(frozen=True)
+class NodalForce(Term):
+    """Dead nodal loads: energy -sum f . u over the loaded dofs.
+
+    Args:
+      name: term name.
+      dofs: (n,) global dof indices.
+      params: {"f": (n,) force per dof, N}.
+    """
+
+    name: str
+    dofs: np.ndarray
+    params: dict
+    data: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "dofs", np.asarray(self.dofs, dtype=np.int64).reshape(-1, 1))
+
+    def local_energy(self, q_loc, params, data):
+        return -q_loc[:, 0] * params["f"]
