@@ -143,3 +143,31 @@ class Model:
         if active is None:
             return self.terms
         return [t for t in self.terms if t.name in active]
+
+
+def node_dofs(node_ids, components="xyz") -> np.ndarray:
+    """Displacement dof indices (n * len(components),) of nodes for components among 'xyz'."""
+    comp = ["xyz".index(c) for c in components]
+    return (3 * np.asarray(node_ids, np.int64)[:, None] + np.asarray(comp)).ravel()
+
+
+def solid_model(mesh: Mesh, materials: dict, extra_terms=(), n_extra_dofs: int = 0,
+                name: str = "solid") -> Model:
+    """A model of the mesh's Q1P0 solid plus further terms.
+
+    Args:
+      mesh: the mesh; every name in ``mesh.materials`` must be a key of ``materials``.
+      materials: name -> MooneyRivlin.
+      extra_terms: further Term objects (their dofs index the same q).
+      n_extra_dofs: unknowns beyond displacements and multipliers.
+    """
+    from .solid import SolidQ1P0
+
+    missing = [m for m in mesh.materials if m not in materials]
+    if missing:
+        raise ValueError(f"materials {missing} are used by the mesh but not defined; "
+                         f"defined: {sorted(materials)}")
+    coeffs = np.stack([materials[m].coeffs for m in mesh.materials])
+    n_u = 3 * mesh.n_nodes
+    solid = SolidQ1P0(name, mesh, coeffs, multiplier_offset=n_u)
+    return Model(mesh, (solid, *extra_terms), n_u + mesh.n_elem + n_extra_dofs)

@@ -1,0 +1,122 @@
+"""Command line: ``eyefem run CASE``, ``eyefem verify-tangents``, ``eyefem cases``.
+
+The entry point switches JAX to float64 and sets up logging (one line per load step);
+the library itself never prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+
+def _setup(verbose: int):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    level = logging.WARNING if verbose < 0 else logging.DEBUG if verbose > 1 else logging.INFO
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(message)s",
+                        datefmt="%H:%M:%S", stream=sys.stderr)
+    logging.getLogger("jax").setLevel(logging.WARNING)
+
+
+def _schemas():
+    from .problems import PROBLEMS
+
+    return {k: v[0] for k, v in PROBLEMS.items()}
+
+
+def cmd_run(args) -> int:
+    from .casefile import CaseError, load_case
+    from .problems import PROBLEMS
+    from .problems.base import run_setup
+    from .solver import ConvergenceError
+
+    try:
+        case = load_case(args.case, _schemas())
+        out = Path(args.out or case.output["directory"])
+        setup = PROBLEMS[case.problem][1](case.parameters, case.materials)
+    except (CaseError, ValueError, KeyError) as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2
+    logging.getLogger(__name__).info("case %s (%s): %d elements, %d dofs -> %s", case.path,
+                                     case.problem, setup.model.mesh.n_elem, setup.model.n_dof, out)
+    try:
+        res = run_setup(setup, out, case.solver, vtu=case.output["vtu"] and not args.no_vtu,
+                        plots=case.output["plots"])
+    except ConvergenceError as exc:
+        print(f"eyefem: {exc}\nOutputs of the converged steps are in {out}", file=sys.stderr)
+        return 3
+    summary = {"case": str(case.path), "title": case.title, **res.summary}
+    from .output import write_text
+
+    write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    print(f"\n{case.title}")
+    for k, v in summary.items():
+        if k not in ("case", "title"):
+            print(f"  {k:<32} {v:.6g}" if isinstance(v, float) else f"  {k:<32} {v}")
+    print(f"  results in {out}/")
+    return 0
+
+
+def cmd_verify(args) -> int:
+    from .verify import format_table, verify_tangents
+
+    checks = verify_tangents(seed=args.seed)
+    print(format_table(checks))
+    return 0 if all(c.passed for c in checks) else 1
+
+
+def cmd_cases(args) -> int:
+    from .problems import PROBLEMS
+
+    root = Path(args.dir)
+    for f in sorted(root.rglob("*.toml")):
+        print(f)
+    print("\nproblems:", ", ".join(sorted(PROBLEMS)))
+    return 0
+
+
+def cmd_describe(args) -> int:
+    from .casefile import describe
+    from .problems import PROBLEMS
+
+    if args.problem not in PROBLEMS:
+        print(f"eyefem: unknown problem '{args.problem}'; known: {', '.join(sorted(PROBLEMS))}",
+              file=sys.stderr)
+        return 2
+    fields, builder = PROBLEMS[args.problem]
+    print(f"{args.problem}: {(builder.__doc__ or '').strip().splitlines()[0]}\n[parameters]")
+    print(describe(fields))
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="eyefem", description=__doc__.splitlines()[0])
+    ap.add_argument("-v", "--verbose", action="count", default=1)
+    ap.add_argument("-q", "--quiet", action="store_const", const=-1, dest="verbose")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("run", help="run a case file")
+    p.add_argument("case")
+    p.add_argument("--out", help="output directory (default from the case file)")
+    p.add_argument("--no-vtu", action="store_true", help="skip the VTU series")
+    p.set_defaults(fn=cmd_run)
+    p = sub.add_parser("verify-tangents", help="autodiff vs hand-coded vs finite-difference tangents")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(fn=cmd_verify)
+    p = sub.add_parser("cases", help="list case files and problems")
+    p.add_argument("dir", nargs="?", default="cases")
+    p.set_defaults(fn=cmd_cases)
+    p = sub.add_parser("describe", help="document a problem's parameters")
+    p.add_argument("problem")
+    p.set_defaults(fn=cmd_describe)
+    args = ap.parse_args(argv)
+    _setup(args.verbose)
+    return args.fn(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
