@@ -200,18 +200,20 @@ def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, enabled):
 
 def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
           options: NewtonOptions = NewtonOptions(),
-          on_step: Callable[[StepRecord, Model, np.ndarray, Any], None] | None = None) -> Solution:
+          on_step: Callable[[StepRecord, Model, np.ndarray, Any], None] | None = None,
+          on_stage_end: Callable[[int, Model, np.ndarray, Any], None] | None = None) -> Solution:
     """Run a load path from q0 (default zero) with design theta (default model.theta0()).
 
     ``on_step(record, model, q, theta)`` is called after every converged step (outputs,
-    progress). Raises ConvergenceError with the last converged state on failure.
+    progress); ``on_stage_end(index, model, q, theta)`` after every completed stage
+    (checkpoints). Raises ConvergenceError with the last converged state on failure.
     """
     check_x64()
     q = np.zeros(model.n_dof) if q0 is None else np.array(q0, dtype=np.float64)
     theta = model.theta0() if theta is None else theta
     history: list[StepRecord] = []
     vref = float(sum(np.sum(t.data["dv"]) for t in model.terms if "dv" in t.data)) or 1.0
-    for stage in stages:
+    for i_stage, stage in enumerate(stages):
         if stage.before is not None:
             model, q, theta = stage.before(model, q, theta)
         dofs, targets = stage.prescribed
@@ -258,4 +260,6 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
                 dt = min(1.0 / stage.n_steps, dt * 2.0)
                 cuts = max(cuts - 1, 0)
         theta = theta_end
+        if on_stage_end is not None:
+            on_stage_end(i_stage, model, q, theta)
     return Solution(model, q, theta, history)

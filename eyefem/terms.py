@@ -120,3 +120,35 @@ class NodalForce(Term):
 
     def local_energy(self, q_loc, params, data):
         return -q_loc[:, 0] * params["f"]
+
+
+@dataclasses.dataclass(frozen=True)
+class NodeSprings(Term):
+    """Springs tying nodes to their reference positions: energy 1/2 k |u|^2 per node.
+
+    Used with a tiny k to hold bodies that only contact and sutures support (a sponge
+    before it touches the sclera): numerical stabilisation, its force is reported so
+    that it can be checked to be negligible.
+
+    Args: name; nodes (n,) node ids; k: stiffness per node, N/mm (params {"k"}).
+    """
+
+    name: str
+    nodes: np.ndarray
+    k: float = 1e-6
+    params: dict = dataclasses.field(default_factory=dict)
+    data: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        n = np.asarray(self.nodes, np.int64).ravel()
+        if self.k < 0:
+            raise ValueError(f"springs '{self.name}': k = {self.k} N/mm; must be >= 0")
+        object.__setattr__(self, "dofs", (3 * n[:, None] + np.arange(3)))
+        object.__setattr__(self, "params", {"k": float(self.k)})
+
+    def local_energy(self, q_loc, params, data):
+        return 0.5 * params["k"] * jnp.sum(q_loc * q_loc, axis=1)
+
+    def report(self, q, params):
+        f = params["k"] * np.linalg.norm(np.asarray(q)[self.dofs], axis=1)
+        return {"max_force_N": float(f.max()) if len(f) else 0.0}

@@ -1,0 +1,111 @@
+"""Benchmark of the core solver: a thin spherical shell inflated to 15 mmHg in 10 steps.
+
+Reports, per mesh size: compile time, the split of one Newton iteration into element
+kernels / assembly / linear solve (median of repeats at the converged state), Newton
+iterations, total wall time of the load path and peak memory (max RSS).
+
+    python benchmarks/bench_core.py                 # ~1,500 and ~12,000 hexahedra
+    python benchmarks/bench_core.py --sizes 11:2    # n_per_edge:n_thick pairs
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import statistics
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+from eyefem.assembly import Assembler  # noqa: E402
+from eyefem.linsolve import available_backends  # noqa: E402
+from eyefem.problems.verification import SHELL_FIELDS, inflated_shell  # noqa: E402
+from eyefem.solver import NewtonOptions, solve  # noqa: E402
+
+
+def _median(f, repeats):
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        f()
+        ts.append(time.perf_counter() - t)
+    return statistics.median(ts)
+
+
+def bench(n_per_edge, n_thick, backend, repeats=5):
+    p = {f.name: f.default for f in SHELL_FIELDS}
+    p.update(n_per_edge=n_per_edge, n_thick=n_thick)
+    tic = time.perf_counter()
+    setup = inflated_shell(p, {})
+    model = setup.model
+    t_build = time.perf_counter() - tic
+    theta = model.theta0()
+    q = np.zeros(model.n_dof)
+    tic = time.perf_counter()
+    for t in model.terms:
+        model.local_grad_hess(t, q, theta)
+    model.gradient(q, theta)
+    model.hvp(q, q, theta)
+    t_compile = time.perf_counter() - tic
+    opts = NewtonOptions(backend=backend)
+    tic = time.perf_counter()
+    sol = solve(model, setup.stages, options=opts)
+    t_total = time.perf_counter() - tic
+    its = sum(r.iterations for r in sol.history)
+    q, theta = sol.q, sol.theta
+    dofs, _ = setup.stages[0].prescribed
+    pres = np.zeros(model.n_dof, bool)
+    pres[dofs] = True
+    asm = Assembler(model, pres)
+    t_kernel = _median(lambda: [model.local_grad_hess(t, q, theta) for t in model.terms], repeats)
+    t_asm_all = _median(lambda: asm.assemble(q, theta), repeats)
+    r, K, B, D, lr = asm.assemble(q, theta)
+    t_grad = _median(lambda: model.gradient(q, theta), repeats)
+
+    def lin():
+        s = asm.solver(K, B, D, lr, backend)
+        s.solve(-r[asm.free_primal], -r[asm.mult])
+
+    t_solve = _median(lin, max(2, repeats // 2))
+    return {
+        "n_elem": model.mesh.n_elem, "n_dof": model.n_dof, "backend": backend,
+        "build_s": t_build, "compile_s": t_compile,
+        "kernel_s": t_kernel, "assembly_s": t_asm_all - t_kernel, "solve_s": t_solve,
+        "residual_s": t_grad, "iteration_s": t_asm_all + t_solve + t_grad,
+        "newton_iterations": its, "steps": len(sol.history), "total_s": t_total,
+        "peak_rss_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="11:2,32:2", help="n_per_edge:n_thick list")
+    ap.add_argument("--backend", default=available_backends()[0])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--json", help="write the rows to this file")
+    args = ap.parse_args()
+    rows = []
+    for s in args.sizes.split(","):
+        a, b = (int(x) for x in s.split(":"))
+        rows.append(bench(a, b, args.backend, args.repeats))
+    print(f"machine: {platform.processor() or platform.machine()}, "
+          f"{__import__('os').cpu_count()} cores, jax {jax.__version__}")
+    keys = list(rows[0])
+    print("| " + " | ".join(keys) + " |")
+    print("|" + "---|" * len(keys))
+    for r in rows:
+        print("| " + " | ".join(f"{r[k]:.3g}" if isinstance(r[k], float) else str(r[k])
+                                for k in keys) + " |")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,118 @@
+"""Linear elastic bars with axial stiffness only (sutures, Zinn's zonule).
+
+Each bar joins two *embedded points*: a point x = sum_a N_a(xi) x_a inside a
+bilinear quadrilateral face (4 nodes, parametric coordinates xi in [-1, 1]^2), or a
+mesh node (the same node four times). Suture anchors therefore need not be mesh
+nodes, and they move smoothly with the suture geometry (xi is a differentiable param).
+
+Energy of one bar (seed 4.6: "linear elastic bar element with axial stiffness only"):
+
+    e = EA / (2 L0) (l - L_rest)^2          [N mm],   L_rest = L0 (1 - s)
+
+with l the current length, L0 the initial length, EA the axial stiffness (N) and s the
+relative shortening (tightening) of the bar, a param ramped by load stages. With
+``tension_only`` a slack bar (l < L_rest) carries nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from .terms import Term
+
+_C = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
+
+
+def bilinear(xi):
+    """Bilinear shape functions (..., 4) at parametric points xi (..., 2) (numpy or jax)."""
+    return 0.25 * (1 + xi[..., None, 0] * _C[:, 0]) * (1 + xi[..., None, 1] * _C[:, 1])
+
+
+def embedded_positions(X4, u4, xi):
+    """Positions (n, 3) of embedded points: X4, u4 (n, 4, 3) face nodes; xi (n, 2)."""
+    N = bilinear(xi)
+    return jnp.einsum("na,nai->ni", N, X4 + u4)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Bars(Term):
+    """Bars between embedded points.
+
+    Args:
+      name: term name. params: {"EA": (n,) N, "shortening": (n,) relative, "xi": (n, 2, 2)}.
+      nodes_a, nodes_b: (n, 4) node ids of the face holding each end (a node repeated 4
+        times for a node end).
+      xi_a, xi_b: (n, 2) parametric coordinates of the ends in their faces.
+      node_xyz: (n_nodes, 3) reference coordinates of the mesh.
+      EA: axial stiffness E * A per bar, N (scalar or (n,)).
+      tension_only: slack bars carry no force.
+    """
+
+    name: str
+    nodes_a: np.ndarray
+    nodes_b: np.ndarray
+    xi_a: np.ndarray
+    xi_b: np.ndarray
+    node_xyz: np.ndarray
+    EA: float | np.ndarray = 1.0
+    tension_only: bool = False
+
+    def __post_init__(self):
+        na = np.asarray(self.nodes_a, np.int64).reshape(-1, 4)
+        nb = np.asarray(self.nodes_b, np.int64).reshape(-1, 4)
+        n = len(na)
+        xi = np.stack([np.asarray(self.xi_a, float).reshape(n, 2),
+                       np.asarray(self.xi_b, float).reshape(n, 2)], axis=1)
+        if np.any(np.abs(xi) > 1 + 1e-9):
+            i = int(np.nonzero(np.any(np.abs(xi) > 1 + 1e-9, axis=(1, 2)))[0][0])
+            raise ValueError(f"bars '{self.name}': bar {i} has an end outside its face "
+                             f"(xi = {xi[i].tolist()}); parametric coordinates must be in [-1, 1]")
+        EA = np.broadcast_to(np.asarray(self.EA, float), (n,)).copy()
+        if np.any(EA <= 0):
+            raise ValueError(f"bars '{self.name}': axial stiffness EA must be > 0 N "
+                             f"(bar {int(np.argmin(EA))}: {EA.min()})")
+        X = self.node_xyz
+        nodes8 = np.concatenate([na, nb], axis=1)
+        L0 = np.linalg.norm(np.asarray(embedded_positions(X[nb], 0 * X[nb], xi[:, 1]))
+                            - np.asarray(embedded_positions(X[na], 0 * X[na], xi[:, 0])), axis=1)
+        if np.any(L0 <= 1e-12):
+            i = int(np.argmin(L0))
+            raise ValueError(f"bars '{self.name}': bar {i} has zero initial length; its ends "
+                             "coincide")
+        object.__setattr__(self, "dofs", (3 * nodes8[:, :, None] + np.arange(3)).reshape(n, 24))
+        object.__setattr__(self, "params", {"EA": EA, "shortening": np.zeros(n), "xi": xi})
+        object.__setattr__(self, "data", {"X": X[nodes8], "L0": L0})
+
+    def static_key(self):
+        return (self.tension_only,)
+
+    def lengths(self, q_loc, params, data):
+        u = q_loc.reshape(-1, 8, 3)
+        xa = embedded_positions(data["X"][:, :4], u[:, :4], params["xi"][:, 0])
+        xb = embedded_positions(data["X"][:, 4:], u[:, 4:], params["xi"][:, 1])
+        return jnp.sqrt(jnp.sum((xb - xa) ** 2, axis=1))
+
+    def local_energy(self, q_loc, params, data):
+        l = self.lengths(q_loc, params, data)
+        L0 = data["L0"]
+        stretch = l - L0 * (1.0 - params["shortening"])
+        if self.tension_only:
+            stretch = jnp.maximum(stretch, 0.0)
+        return 0.5 * params["EA"] / L0 * stretch**2
+
+    def forces(self, q, params):
+        """Axial force per bar (n,), N (positive in tension)."""
+        ql = jnp.asarray(q)[self.dofs]
+        l = self.lengths(ql, params, self.data)
+        L0 = self.data["L0"]
+        s = l - L0 * (1.0 - params["shortening"])
+        if self.tension_only:
+            s = jnp.maximum(s, 0.0)
+        return np.asarray(params["EA"] / L0 * s)
+
+    def report(self, q, params):
+        f = self.forces(q, params)
+        return {"max_force_N": float(f.max()) if len(f) else 0.0}

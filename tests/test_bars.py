@@ -1,0 +1,98 @@
+"""Suture / zonule bars: closed form, invariance, hand-coded tangent vs autodiff vs FD."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from eyefem.bars import Bars, bilinear
+from eyefem.model import Model
+
+
+def _hand_bar(xa, xb, EA, L0, Lr):
+    """Classical bar force vector (6,) and tangent (6, 6) between two points."""
+    d = xb - xa
+    l = np.linalg.norm(d)
+    n = d / l
+    N = EA / L0 * (l - Lr)
+    k = EA / L0 * np.outer(n, n) + N / l * (np.eye(3) - np.outer(n, n))
+    f = np.concatenate([-N * n, N * n])
+    return f, np.block([[k, -k], [-k, k]])
+
+
+@pytest.fixture(scope="module")
+def setup():
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-1, 1, (10, 3))
+    X[:4] = [[0, 0, 0], [1, 0, 0], [1, 1, 0.1], [0, 1, 0]]
+    na = np.array([[0, 1, 2, 3], [5, 5, 5, 5]])
+    nb = np.array([[6, 6, 6, 6], [7, 7, 7, 7]])
+    xi_a = np.array([[0.3, -0.4], [0.0, 0.0]])
+    bars = Bars("b", na, nb, xi_a, np.zeros((2, 2)), X, EA=[2.0, 3.0])
+    model = Model(None, (bars,), 30)  # bars alone need no hexahedral mesh
+    return bars, model, X, rng
+
+
+def test_closed_form_force_and_tightening(setup):
+    bars, model, X, rng = setup
+    q = np.zeros(30)
+    q[3 * 7: 3 * 7 + 3] = 0.1 * (X[7] - X[5]) / np.linalg.norm(X[7] - X[5])  # stretch bar 1 by 0.1
+    p = dict(bars.params)
+    f = bars.forces(q, p)
+    assert f[1] == pytest.approx(3.0 / np.linalg.norm(X[7] - X[5]) * 0.1, rel=1e-12)
+    p["shortening"] = np.array([0.0, 0.05])
+    L0 = np.linalg.norm(X[7] - X[5])
+    assert bars.forces(q, p)[1] == pytest.approx(3.0 / L0 * (0.1 + 0.05 * L0), rel=1e-12)
+    slack = Bars("s", [[5] * 4], [[7] * 4], [[0, 0]], [[0, 0]], X, EA=1.0, tension_only=True)
+    qs = np.zeros(30)
+    qs[21:24] = -0.1 * (X[7] - X[5]) / L0
+    assert slack.forces(qs, slack.params)[0] == 0.0
+
+
+def test_energy_invariant_under_rotation(setup):
+    bars, model, X, rng = setup
+    u = 0.1 * rng.standard_normal((10, 3))
+    Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    u2 = (X + u) @ Q.T + 0.7 - X
+    th = {"b": bars.params}
+    assert model.energy(u.ravel(), th) == pytest.approx(model.energy(u2.ravel(), th), rel=1e-12)
+
+
+def test_tangent_matches_hand_coded_and_fd(setup):
+    bars, model, X, rng = setup
+    u = 0.1 * rng.standard_normal((10, 3))
+    p = dict(bars.params)
+    p["shortening"] = np.array([0.02, 0.1])
+    th = {"b": p}
+    g, H = model.local_grad_hess(bars, u.ravel(), th)
+    for i in range(2):
+        Ta = np.kron(bilinear(p["xi"][i, 0])[None], np.eye(3))  # (3, 12)
+        Tb = np.kron(bilinear(p["xi"][i, 1])[None], np.eye(3))
+        T = np.block([[Ta, np.zeros((3, 12))], [np.zeros((3, 12)), Tb]])  # (6, 24)
+        x = (bars.data["X"][i] + u[bars.dofs[i, ::3] // 3]).ravel()
+        xa, xb = Ta @ x[:12], Tb @ x[12:]
+        L0 = bars.data["L0"][i]
+        f, k = _hand_bar(xa, xb, p["EA"][i], L0, L0 * (1 - p["shortening"][i]))
+        np.testing.assert_allclose(g[i], T.T @ f, rtol=1e-10, atol=1e-13)
+        np.testing.assert_allclose(H[i], T.T @ k @ T, rtol=1e-9, atol=1e-12)
+    # finite differences of the global gradient
+    v = rng.standard_normal(30)
+    h = 1e-6
+    fd = (model.gradient(u.ravel() + h * v, th) - model.gradient(u.ravel() - h * v, th)) / (2 * h)
+    np.testing.assert_allclose(model.hvp(u.ravel(), v, th), fd, rtol=1e-6, atol=1e-8)
+
+
+def test_bad_bars_are_reported():
+    X = np.eye(3)
+    with pytest.raises(ValueError, match="bar 0 has an end outside its face"):
+        Bars("s", [[0, 1, 2, 0]], [[1] * 4], [[1.5, 0]], [[0, 0]], X)
+    with pytest.raises(ValueError, match="zero initial length"):
+        Bars("s", [[0] * 4], [[0] * 4], [[0, 0]], [[0, 0]], X)
+    with pytest.raises(ValueError, match="EA must be > 0"):
+        Bars("s", [[0] * 4], [[1] * 4], [[0, 0]], [[0, 0]], X, EA=-1.0)
+
+
+def test_bilinear_partition_of_unity():
+    xi = jnp.array([[0.2, -0.7], [1.0, 1.0]])
+    N = np.asarray(bilinear(xi))
+    np.testing.assert_allclose(N.sum(1), 1.0)
+    np.testing.assert_allclose(N[1], [0, 0, 1, 0])

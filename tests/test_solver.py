@@ -1,0 +1,236 @@
+"""Core solver: element kernels, saddle-point solve, Newton, verification problems, bad input."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from eyefem import generators
+from eyefem.casefile import CaseError, load_case
+from eyefem.cli import main as cli_main
+from eyefem.linsolve import SaddlePointSolver, available_backends
+from eyefem.materials import MooneyRivlin, mooney_rivlin, neo_hookean
+from eyefem.mesh import Mesh
+from eyefem.model import node_dofs, solid_model
+from eyefem.problems import PROBLEMS
+from eyefem.problems.base import run_setup
+from eyefem.solver import ConvergenceError, NewtonOptions, Stage, solve
+from eyefem.surface import PressureLoad, enclosed_volume
+
+
+def _params(problem, **kw):
+    fields = PROBLEMS[problem][0]
+    p = {f.name: f.default for f in fields}
+    p.update(kw)
+    return p
+
+
+@pytest.fixture(scope="module")
+def cube():
+    mat = MooneyRivlin.from_terms("m", {"c10": 0.5, "c01": 0.2, "c20": 0.1, "c11": 0.05,
+                                        "c02": 0.02, "c30": 0.01})
+    mesh = generators.box(1.0, 1.2, 0.8, 2, 2, 2, material="m")
+    return solid_model(mesh, {"m": mat})
+
+
+def test_fast_element_hessian_equals_hessian_of_energy(cube):
+    """The chain-rule kernel gives the same gradient and Hessian as jax.hessian of the energy."""
+    solid = cube.terms[0]
+    rng = np.random.default_rng(1)
+    q = np.zeros(cube.n_dof)
+    q[: cube.n_u] = 0.1 * rng.standard_normal(cube.n_u)
+    q[cube.n_u:] = rng.standard_normal(cube.mesh.n_elem)
+    theta = cube.theta0()
+    g, H = cube.local_grad_hess(solid, q, theta)
+    ql = jnp.asarray(q)[solid.dofs]
+
+    def e1(x, i):
+        return solid.local_energy(ql.at[i].set(x), theta["solid"], solid.data)[i]
+
+    for i in (0, 5):
+        gi = jax.grad(e1)(ql[i], i)
+        Hi = jax.hessian(e1)(ql[i], i)
+        np.testing.assert_allclose(g[i], gi, rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(H[i], Hi, rtol=1e-10, atol=1e-10 * np.abs(Hi).max())
+    assert np.allclose(H, np.swapaxes(H, 1, 2), atol=1e-10 * np.abs(H).max())
+
+
+def test_energy_invariant_under_rigid_rotation(cube):
+    solid = cube.terms[0]
+    rng = np.random.default_rng(2)
+    X = cube.mesh.nodes
+    u = 0.1 * rng.standard_normal(X.shape)
+    lam = rng.standard_normal(cube.mesh.n_elem)
+    Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    Q *= np.sign(np.linalg.det(Q))
+    x_rot = (X + u) @ Q.T + np.array([1.0, -2.0, 0.5])
+    q1 = np.concatenate([u.ravel(), lam])
+    q2 = np.concatenate([(x_rot - X).ravel(), lam])
+    th = cube.theta0()
+    e1, e2 = cube.energy(q1, th), cube.energy(q2, th)
+    assert abs(e1 - e2) <= 1e-12 * abs(e1)
+
+
+def test_saddle_point_solve_is_exact():
+    """Uzawa on K + B D B^T solves [[K, B], [B^T, 0]] exactly, with both backends."""
+    rng = np.random.default_rng(3)
+    n, m = 40, 6
+    A = sp.random(n, n, density=0.2, random_state=4)
+    K = (A @ A.T + sp.eye(n) * 2).tocsr()
+    B = sp.random(n, m, density=0.3, random_state=5).tocsr() + sp.eye(n, m)
+    f, g = rng.standard_normal(n), rng.standard_normal(m)
+    Kd = sp.bmat([[K, B], [B.T, None]]).toarray()
+    ref = np.linalg.solve(Kd, np.concatenate([f, g]))
+    for backend in available_backends():
+        s = SaddlePointSolver(K, B, np.full(m, 100.0), augmented=False, backend=backend)
+        x, y = s.solve(f, g)
+        np.testing.assert_allclose(np.concatenate([x, y]), ref, rtol=1e-8, atol=1e-10)
+    v = rng.standard_normal(n)
+    s = SaddlePointSolver(K, B, np.full(m, 100.0), [(3.0, v)], augmented=False)
+    x, y = s.solve(f, g)
+    Kd[:n, :n] += 3.0 * np.outer(v, v)
+    np.testing.assert_allclose(np.concatenate([x, y]), np.linalg.solve(Kd, np.concatenate([f, g])),
+                               rtol=1e-8, atol=1e-10)
+
+
+def test_pressure_potential_gradient_is_follower_load():
+    """d/dx of p * sum V_f over a closed surface is p * integral N n da (and V is exact)."""
+    mesh = generators.box(2.0, 1.0, 1.5, 2, 1, 2)
+    faces = generators.box(2.0, 1.0, 1.5, 2, 1, 2).face_set("boundary")
+    mesh = mesh.replace(face_sets={"b": faces})
+    t = PressureLoad("p", mesh, "b", 0.3)
+    model = solid_model(mesh, {"default": neo_hookean("default", 1.0)}, (t,))
+    rng = np.random.default_rng(0)
+    q = np.zeros(model.n_dof)
+    q[: model.n_u] = 0.05 * rng.standard_normal(model.n_u)
+    g = model._kernel(t, "grad")(q, {"p": 0.3}, t.data, t.dofs)
+    x = mesh.nodes + q[: model.n_u].reshape(-1, 3)
+    from eyefem.mesh import quad_gauss_points, quad_shape
+    xg, wg = quad_gauss_points()
+    N, dN = quad_shape(xg)
+    ref = np.zeros_like(x)
+    for f in faces:
+        xf = x[f]
+        t1, t2 = dN[..., 0] @ xf, dN[..., 1] @ xf
+        nda = np.cross(t1, t2)
+        for a in range(4):
+            ref[f[a]] += 0.3 * np.sum(wg[:, None] * N[:, a, None] * nda, axis=0)
+    np.testing.assert_allclose(np.asarray(g)[: model.n_u].reshape(-1, 3), ref, atol=1e-12)
+    # outward normals: the enclosed volume of the reversed faces is the box volume
+    assert enclosed_volume(mesh.nodes, faces[:, ::-1]) == pytest.approx(3.0, rel=1e-12)
+
+
+@pytest.mark.parametrize("problem, kw, key, tol", [
+    ("uniaxial", {"stretch": 3.0}, "max_rel_error_force", 1e-8),
+    ("uniaxial", {"stretch": 0.5, "steps": 6}, "max_rel_error_force", 1e-8),
+    ("patch_test", {}, "max_node_error_mm", 1e-9),
+])
+def test_exact_problems(tmp_path, problem, kw, key, tol):
+    setup = PROBLEMS[problem][1](_params(problem, **kw), {})
+    res = run_setup(setup, tmp_path, vtu=False, plots=False)
+    assert res.summary[key] < tol
+    if problem == "patch_test":
+        assert res.summary["sigma_xx_rel_error"] < 1e-9
+        assert res.summary["sigma_zz_max_MPa"] < 1e-9
+
+
+def test_seed1_equibiaxial_sheet_case(tmp_path):
+    """Seed problem 1 from its case file: within 1% of theory at every step (here ~1e-12)."""
+    rc = cli_main(["-q", "run", "cases/verification/seed1_equibiaxial_sheet.toml",
+                   "--out", str(tmp_path)])
+    assert rc == 0
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["final_stretch"] == pytest.approx(5.8)
+    assert s["max_rel_error_force"] < 1e-2
+    assert s["max_rel_error_stress"] < 1e-2
+    rows = (tmp_path / "sheet_curve.csv").read_text().splitlines()
+    assert len(rows) == 41
+    assert (tmp_path / "sheet.png").stat().st_size > 1000
+    assert (tmp_path / "sheet.pvd").exists() and len(list((tmp_path / "vtu").glob("*.vtu"))) == 40
+    import meshio
+    m = meshio.read(tmp_path / "vtu" / "sheet_0039.vtu")
+    for k in ("cauchy", "von_mises", "lambda", "J", "pressure"):
+        assert k in m.cell_data
+    assert np.allclose(m.cell_data["J"][0], 1.0, atol=1e-8)
+
+
+def test_inflated_disk_coarse(tmp_path):
+    """Seed problem 2 on a coarse mesh: pole pressure and stress within 5% of membrane theory."""
+    setup = PROBLEMS["inflated_disk"][1](
+        _params("inflated_disk", n_radial=12, n_circ=12, steps=8), {})
+    res = run_setup(setup, tmp_path, vtu=False, plots=False)
+    s = res.summary
+    assert s["final_pole_stretch"] > 1.1
+    assert s["max_rel_error_pressure"] < 0.05
+    assert s["max_rel_error_stress"] < 0.05
+
+
+# --- bad input -------------------------------------------------------------------------------
+def test_inverted_element_is_named():
+    mesh = generators.box(1, 1, 1, 2, 1, 1)
+    hexes = mesh.hexes.copy()
+    hexes[1] = hexes[1][[4, 5, 6, 7, 0, 1, 2, 3]]
+    with pytest.raises(ValueError, match="element 1 .*non-positive Jacobian"):
+        Mesh(mesh.nodes, hexes, mesh.material_ids)
+
+
+def test_bad_sets_and_materials():
+    mesh = generators.box(1, 1, 1, 1, 1, 1)
+    with pytest.raises(ValueError, match="node set 'bad'.*do not exist"):
+        mesh.replace(node_sets={"bad": [0, 99]})
+    with pytest.raises(ValueError, match="c10 = -0.1"):
+        neo_hookean("sclera", -0.1)
+    with pytest.raises(ValueError, match="unknown coefficient 'k10'"):
+        MooneyRivlin.from_terms("x", {"k10": 1.0})
+    with pytest.raises(ValueError, match=r"materials \['default'\] are used"):
+        solid_model(mesh, {"other": neo_hookean("other", 1.0)})
+
+
+@pytest.mark.parametrize("text, match", [
+    ('[case]\nproblem = "uniaxial"\n[parameters]\nstrech = 2.0\n', "unknown field 'strech'.*stretch"),
+    ('[case]\nproblem = "uniaxal"\n', "problem 'uniaxal' is unknown.*uniaxial"),
+    ('[case]\ntitle = "x"\n', "missing required field 'problem'"),
+    ('[case]\nproblem = "uniaxial"\n[parameters]\nsteps = 0\n', "'steps' = 0 is out of range"),
+    ('[case]\nproblem = "uniaxial"\n[parameters]\nstretch = "big"\n', "expected float"),
+    ('[case]\nproblem = "uniaxial"\n[solvr]\n', r"unknown section \[solvr\]"),
+    ('[case]\nproblem = "uniaxial"\n[materials.m]\nc10 = -1.0\n', r"\[materials.m\].*c10 = -1.0"),
+])
+def test_case_file_errors(tmp_path, text, match):
+    f = tmp_path / "bad.toml"
+    f.write_text(text)
+    with pytest.raises(CaseError, match=match):
+        load_case(f, {k: v[0] for k, v in PROBLEMS.items()})
+
+
+def test_unreachable_load_keeps_last_converged_state(tmp_path):
+    """A neo-Hookean cube pulled to stretch 40 in one step with a tiny iteration budget fails
+    with ConvergenceError after the step cuts, keeping the last converged state; the outputs
+    on disk are complete files of converged steps only."""
+    mat = neo_hookean("m", 1.0)
+    mesh = generators.box(1.0, 1.0, 1.0, 1, 1, 1, material="m")
+    model = solid_model(mesh, {"m": mat})
+    d = np.concatenate([node_dofs(mesh.node_set("x0"), "x"), node_dofs(mesh.node_set("y0"), "y"),
+                        node_dofs(mesh.node_set("z0"), "z"), node_dofs(mesh.node_set("x1"), "x")])
+    v = np.zeros(len(d))
+    v[-4:] = 39.0
+    opts = NewtonOptions(max_iter=2, max_cuts=3)
+    with pytest.raises(ConvergenceError, match="failed after 3 cuts") as exc:
+        solve(model, [Stage("pull", 1, (d, v))], options=opts)
+    q = exc.value.q
+    assert np.all(np.isfinite(q))
+    np.testing.assert_array_equal(q, 0.0)  # nothing converged: the initial state is kept
+
+
+def test_cli_reports_unreachable_load_without_partial_files(tmp_path):
+    case = tmp_path / "c.toml"
+    case.write_text('[case]\nproblem = "uniaxial"\n[parameters]\nstretch = 60.0\nsteps = 2\n'
+                    '[solver]\nmax_iter = 2\nmax_cuts = 2\n')
+    out = tmp_path / "out"
+    rc = cli_main(["-q", "run", str(case), "--out", str(out)])
+    assert rc == 3
+    assert not (out / "summary.json").exists()
+    leftovers = [p for p in out.rglob("*") if p.name.startswith(".")]
+    assert leftovers == []

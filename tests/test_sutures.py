@@ -1,0 +1,75 @@
+"""Automatic suture generation: ray-face intersection and bite positions by hand."""
+
+import numpy as np
+import pytest
+
+from eyefem.bars import bilinear
+from eyefem.sutures import generate_sutures, ray_face_intersection, suture_bar_ends
+
+
+def _sphere_patch(radius, n=24, half_angle=0.6):
+    """Quads on a sphere around +z (outward normals), nodes (k, 3), faces (m, 4)."""
+    a = np.linspace(-half_angle, half_angle, n + 1)
+    u, v = np.meshgrid(a, a, indexing="ij")
+    d = np.stack([np.tan(u), np.tan(v), np.ones_like(u)], -1)
+    xyz = radius * (d / np.linalg.norm(d, axis=-1, keepdims=True)).reshape(-1, 3)
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    faces = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
+    return xyz, faces
+
+
+def test_ray_hits_bilinear_face_inside():
+    xyz = np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0.4], [0, 2, 0]], float)
+    faces = np.array([[0, 1, 2, 3]])
+    hit = ray_face_intersection(xyz, faces, [1.5, 0.5, 5.0], [0, 0, -1])
+    assert hit is not None
+    f, xi, t = hit
+    p = bilinear(xi) @ xyz[faces[f]]
+    np.testing.assert_allclose(p[:2], [1.5, 0.5], atol=1e-12)
+    # bilinear surface z = 0.1 * x * y on this face
+    assert p[2] == pytest.approx(0.1 * 1.5 * 0.5, abs=1e-12)
+    assert t == pytest.approx(5.0 - p[2])
+    assert ray_face_intersection(xyz, faces, [5.0, 5.0, 5.0], [0, 0, -1]) is None
+
+
+def test_bites_on_sphere_at_hand_computed_positions():
+    """Sutures across a strip over the pole of a 12 mm sphere: bites at +-w/2 along x."""
+    R = 12.0
+    xyz, faces = _sphere_patch(R)
+    top = R + 0.8
+    cen = np.array([[0.0, 0.0, top], [0.0, 2.0, np.sqrt(top**2 - 4)]])
+    nrm = cen / np.linalg.norm(cen, axis=1, keepdims=True)
+    across = np.array([[1.0, 0, 0], [1.0, 0, 0]])
+    lay = generate_sutures(xyz, faces, cen, across, nrm, width=9.0, n_bars=3)
+    pa, pb = lay.bite_a.positions(xyz), lay.bite_b.positions(xyz)
+    # the bites lie on the ray from the centre through centre -+ w/2 across
+    for k in range(2):
+        for p, s in ((pa[k], -1), (pb[k], 1)):
+            d = cen[k] + s * 4.5 * across[k]
+            d /= np.linalg.norm(d)
+            assert np.linalg.norm(np.cross(p / np.linalg.norm(p), d)) < 1e-9
+            assert np.linalg.norm(p) == pytest.approx(R, rel=2e-3)  # on the faceted sphere
+    assert lay.n_bars == 3 and lay.over_xyz.shape == (2, 2, 3)
+    L = lay.lengths(xyz)
+    assert np.all(L > 9.0) and np.all(L < 12.0)
+    na, xa, nb, xb, which = suture_bar_ends(lay, over_node_ids=np.arange(4).reshape(2, 2) + 1000)
+    assert na.shape == (6, 4) and which.tolist() == [0, 0, 0, 1, 1, 1]
+    # varying the width moves the bites smoothly inside their faces
+    lay2 = generate_sutures(xyz, faces, cen, across, nrm, width=9.01, n_bars=3)
+    assert np.linalg.norm(lay2.bite_b.positions(xyz) - pb, axis=1).max() < 0.01
+
+
+def test_suture_angle_rotates_bites():
+    xyz, faces = _sphere_patch(12.0)
+    cen, nrm = np.array([[0, 0, 12.8]]), np.array([[0, 0, 1.0]])
+    lay = generate_sutures(xyz, faces, cen, [[1.0, 0, 0]], nrm, width=8.0, angle_deg=30.0)
+    d = lay.bite_b.positions(xyz)[0] - lay.bite_a.positions(xyz)[0]
+    assert np.degrees(np.arctan2(d[1], d[0])) == pytest.approx(30.0, abs=0.5)
+
+
+def test_bad_suture_input():
+    xyz, faces = _sphere_patch(12.0, half_angle=0.2)
+    with pytest.raises(ValueError, match="misses the scleral surface"):
+        generate_sutures(xyz, faces, [[0, 0, 12.8]], [[1.0, 0, 0]], [[0, 0, 1.0]], width=20.0)
+    with pytest.raises(ValueError, match="width = -1"):
+        generate_sutures(xyz, faces, [[0, 0, 12.8]], [[1.0, 0, 0]], [[0, 0, 1.0]], width=-1.0)
