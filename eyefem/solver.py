@@ -119,6 +119,16 @@ class Solution:
     q: np.ndarray
     theta: Any
     history: list[StepRecord]
+    assembler: Assembler | None = None
+    solver: Any = None
+    active: tuple[str, ...] | None = None
+
+    def factorised(self) -> "Solution":
+        """This solution with a factorisation of the tangent (for adjoints) if it has none."""
+        if self.solver is not None:
+            return self
+        r, K, B, D, lr = self.assembler.assemble(self.q, self.theta, self.active)
+        return dataclasses.replace(self, solver=self.assembler.solver(K, B, D, lr))
 
 
 def _lerp(a, b, t):
@@ -213,6 +223,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
     theta = model.theta0() if theta is None else theta
     history: list[StepRecord] = []
     vref = float(sum(np.sum(t.data["dv"]) for t in model.terms if "dv" in t.data)) or 1.0
+    asm, last_solver, stage = None, None, None
     for i_stage, stage in enumerate(stages):
         if stage.before is not None:
             model, q, theta = stage.before(model, q, theta)
@@ -234,8 +245,8 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
             dqp[dofs] = start_vals + t_new * (targets - start_vals) - q[dofs]
             tic = time.perf_counter()
             try:
-                model_new, q_new, its, res, _ = newton(model, asm, q, th, dqp, options,
-                                                       stage.active, vref)
+                model_new, q_new, its, res, slv = newton(model, asm, q, th, dqp, options,
+                                                         stage.active, vref)
             except _StepFailed as exc:
                 cuts += 1
                 if cuts > options.max_cuts:
@@ -250,6 +261,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
                 continue
             step += 1
             t, q, theta, model = t_new, q_new, th, model_new
+            last_solver = slv
             rec = StepRecord(stage.name, step, t, its, res, time.perf_counter() - tic)
             history.append(rec)
             log.info("stage %-12s step %3d  t = %.4f  iterations %2d  |r| = %.2e N  (%.2f s)",
@@ -262,4 +274,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
         theta = theta_end
         if on_stage_end is not None:
             on_stage_end(i_stage, model, q, theta)
-    return Solution(model, q, theta, history)
+    if asm is not None:
+        asm.model = model
+    return Solution(model, q, theta, history, asm, last_solver,
+                    stage.active if stage is not None else None)
