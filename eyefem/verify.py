@@ -1,0 +1,198 @@
+"""Tangent verification: autodiff vs hand-coded vs finite differences, for every energy term.
+
+A check is a function ``fn(rng) -> CheckData`` registered under a name with
+:func:`register_check`; it builds a random deformed state of one term and returns the
+autodiff residual and tangent, the hand-coded ones, and the autodiff residual as a
+function (for central finite differences). ``eyefem verify-tangents`` prints the table.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .bars import Bars, bilinear
+from .handcoded import bar_residual_tangent, pressure_face_residual_tangent, q1p0_residual_tangent
+from .materials import MooneyRivlin
+from .mesh import HEX_CORNERS, HEX_FACES, Mesh
+from .solid import SolidQ1P0
+from .surface import face_cone_volume
+
+HAND_TOL = 1e-8
+FD_TOL = 1e-5
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckData:
+    """What a check returns: residuals (n,), tangents (n, n), the residual function and state x (n,)."""
+
+    r_ad: np.ndarray
+    r_hand: np.ndarray
+    K_ad: np.ndarray
+    K_hand: np.ndarray
+    r_fun: Callable[[np.ndarray], np.ndarray]
+    x: np.ndarray
+    state: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class TangentCheck:
+    """Relative differences for one term."""
+
+    name: str
+    r_hand: float
+    K_hand: float
+    K_fd: float
+    state: str
+
+    @property
+    def passed(self) -> bool:
+        return self.r_hand <= HAND_TOL and self.K_hand <= HAND_TOL and self.K_fd <= FD_TOL
+
+
+_CHECKS: dict[str, Callable[[np.random.Generator], CheckData]] = {}
+
+
+def register_check(name: str, fn: Callable[[np.random.Generator], CheckData]):
+    """Add a term's check to ``eyefem verify-tangents``."""
+    _CHECKS[name] = fn
+
+
+def _rel(a, b):
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / max(np.linalg.norm(b), 1e-300))
+
+
+def fd_tangent(r_fun, x, h=1e-6):
+    """Central finite-difference Jacobian (n, n) of r_fun at x, step h * max(1, |x|_inf)."""
+    step = h * max(1.0, float(np.abs(x).max()))
+    cols = []
+    for j in range(len(x)):
+        e = np.zeros_like(x)
+        e[j] = step
+        cols.append((np.asarray(r_fun(x + e)) - np.asarray(r_fun(x - e))) / (2 * step))
+    return np.stack(cols, axis=1)
+
+
+def random_deformation(rng, scale=0.5):
+    """A random rotation times a stretch of order 1.5 (not isochoric): F (3, 3)."""
+    Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    Q *= np.sign(np.linalg.det(Q))
+    U = np.diag(1.0 + scale * rng.uniform(0.2, 1.0, 3)) + 0.1 * rng.standard_normal((3, 3))
+    return Q @ (0.5 * (U + U.T))
+
+
+def _solid_check(terms):
+    def check(rng):
+        X = HEX_CORNERS * 0.5 + 0.08 * rng.standard_normal((8, 3))
+        c = MooneyRivlin.from_terms("m", terms).coeffs
+        term = SolidQ1P0("solid", Mesh(X, np.arange(8)[None], [0]), c[None], 24)
+        F = random_deformation(rng)
+        u = X @ F.T - X + 0.03 * rng.standard_normal((8, 3))
+        lam = float(rng.uniform(-1, 1))
+        x = np.concatenate([u.ravel(), [lam]])
+        kern = jax.jit(term.local_grad_hess)
+
+        def r_fun(y):
+            return np.asarray(kern(jnp.asarray(y)[None], term.params, term.data)[0][0])
+
+        g, H = kern(jnp.asarray(x)[None], term.params, term.data)
+        r, K = q1p0_residual_tangent(X, u, lam, c)
+        return CheckData(np.asarray(g[0]), r, np.asarray(H[0]), K, r_fun, x,
+                         f"det F = {np.linalg.det(F):.3f}, lambda = {lam:.3f} MPa")
+    return check
+
+
+def _pressure_check(rng):
+    """Follower pressure assembled over the closed boundary of a deformed hexahedron."""
+    X = HEX_CORNERS * 0.5
+    F = random_deformation(rng, 0.3)
+    x = (X @ F.T + 0.05 * rng.standard_normal((8, 3))).ravel()
+    faces = HEX_FACES
+    p = float(rng.uniform(0.1, 1.0))
+
+    def energy(y):
+        return p * jnp.sum(face_cone_volume(y.reshape(8, 3)[faces], jnp.zeros(3)))
+
+    grad = jax.jit(jax.grad(energy))
+    H = np.asarray(jax.hessian(energy)(jnp.asarray(x)))
+    r = np.zeros(24)
+    K = np.zeros((24, 24))
+    for f in faces:
+        rf, kf = pressure_face_residual_tangent(x.reshape(8, 3)[f], p)
+        d = (3 * f[:, None] + np.arange(3)).ravel()
+        r[d] += rf
+        K[np.ix_(d, d)] += kf
+    return CheckData(np.asarray(grad(jnp.asarray(x))), r, H, K,
+                     lambda y: np.asarray(grad(jnp.asarray(y))), x, f"p = {p:.3f} MPa")
+
+
+def _bar_check(rng):
+    """A suture bar from a point inside a distorted face to a node, tightened by 5%."""
+    X = np.array([[0, 0, 0], [1, 0, 0], [1.1, 1, 0.2], [0, 0.9, 0], [0.4, 0.3, 2.0]])
+    bar = Bars("bar", [[0, 1, 2, 3]], [[4] * 4], [rng.uniform(-0.8, 0.8, 2)], [[0, 0]], X,
+               EA=3.0)
+    p = {**bar.params, "shortening": np.array([0.05])}
+    u = 0.2 * rng.standard_normal((5, 3))
+    x = u[bar.dofs[0, ::3] // 3].ravel()
+    kern = jax.jit(bar.local_grad_hess)
+    g, H = kern(jnp.asarray(x)[None], p, bar.data)
+    T = np.zeros((6, 24))
+    T[:3, :12] = np.kron(bilinear(p["xi"][0, 0])[None], np.eye(3))
+    T[3:, 12:] = np.kron(bilinear(p["xi"][0, 1])[None], np.eye(3))
+    xs = bar.data["X"][0].ravel() + x
+    L0 = bar.data["L0"][0]
+    f, k = bar_residual_tangent(T[:3] @ xs, T[3:] @ xs, 3.0, L0, 0.95 * L0)
+    return CheckData(np.asarray(g[0]), T.T @ f, np.asarray(H[0]), T.T @ k @ T,
+                     lambda y: np.asarray(kern(jnp.asarray(y)[None], p, bar.data)[0][0]), x,
+                     "embedded end, shortening 5%")
+
+
+register_check("solid_q1p0_neo_hookean", _solid_check({"c10": 0.0833}))
+register_check("solid_q1p0_mooney_rivlin", _solid_check({"c10": 25.0, "c01": 5.0}))
+register_check("solid_q1p0_generalised", _solid_check(
+    {"c10": 0.5, "c01": 0.2, "c20": 0.1, "c11": 0.05, "c02": 0.02, "c30": 0.01, "c03": 0.005}))
+register_check("follower_pressure", _pressure_check)
+register_check("suture_bar", _bar_check)
+
+
+def _load_term_checks():
+    """Import the modules of further terms, which register their checks."""
+    import importlib
+
+    for mod in ("eyefem.cavity", "eyefem.contact"):
+        try:
+            importlib.import_module(mod)
+        except ImportError:
+            pass
+
+
+def verify_tangents(seed: int = 0, terms=None) -> list[TangentCheck]:
+    """Run the registered checks (or the named ones) at random states."""
+    jax.config.update("jax_enable_x64", True)
+    assert jnp.zeros(1).dtype == jnp.float64
+    _load_term_checks()
+    out = []
+    for name, fn in _CHECKS.items():
+        if terms is not None and name not in terms:
+            continue
+        d = fn(np.random.default_rng(seed))
+        K_fd = fd_tangent(d.r_fun, d.x)
+        out.append(TangentCheck(name, _rel(d.r_ad, d.r_hand), _rel(d.K_ad, d.K_hand),
+                                _rel(d.K_ad, K_fd), d.state))
+    return out
+
+
+def format_table(checks: list[TangentCheck]) -> str:
+    """Fixed-width table of the checks."""
+    head = (f"{'term':<28} {'|dr|/|r| AD-hand':>17} {'|dK|/|K| AD-hand':>17} "
+            f"{'|dK|/|K| AD-FD':>15}  result  state")
+    lines = [head, "-" * len(head)]
+    for c in checks:
+        lines.append(f"{c.name:<28} {c.r_hand:>17.2e} {c.K_hand:>17.2e} {c.K_fd:>15.2e}  "
+                     f"{'pass' if c.passed else 'FAIL':<6}  {c.state}")
+    lines.append(f"(pass: AD vs hand-coded <= {HAND_TOL:g}, AD vs central FD <= {FD_TOL:g})")
+    return "\n".join(lines)
