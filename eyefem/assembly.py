@@ -23,7 +23,7 @@ from .terms import Term
 class _TermPattern:
     prim: np.ndarray  # (k_p,) local positions of primal dofs
     mult: int | None  # local position of the multiplier
-    k_slots: np.ndarray  # (n * k_p * k_p,) CSR data slot or -1
+    k_slots: np.ndarray  # (n * k_p * k_p,) CSR data slot (nnz: a dropped entry)
     k_valid: np.ndarray  # indices into the flattened (n, k_p, k_p) block that are kept
     b_slots: np.ndarray | None
     b_valid: np.ndarray | None
@@ -49,7 +49,7 @@ class Assembler:
         contraction per Uzawa iteration).
     """
 
-    def __init__(self, model: Model, prescribed: np.ndarray, beta: float = 1e3):
+    def __init__(self, model: Model, prescribed: np.ndarray, beta: float = 1e4):
         self.model = model
         self.beta = beta
         n = model.n_dof
@@ -68,6 +68,7 @@ class Assembler:
         rows, cols, brow, bcol = [], [], [], []
         pats, offs, boffs = {}, 0, 0
         staged = []
+        t_rows = {}
         for t in model.terms:
             if getattr(t, "dynamic", False):
                 continue
@@ -81,6 +82,7 @@ class Assembler:
             c = np.tile(rd, (1, len(prim))).ravel()
             valid = np.nonzero((r >= 0) & (c >= 0))[0]
             rows.append(r[valid]); cols.append(c[valid])
+            t_rows[t.name] = r
             staged.append((t.name, prim, ms[0] if ms else None, valid, offs))
             offs += len(valid)
             if ms:
@@ -107,7 +109,9 @@ class Assembler:
             if name in pats:
                 bv, boff = pats[name]
                 bs = binv[boff: boff + len(bv)]
-            self.patterns[name] = _TermPattern(prim, m, inv[off: off + len(valid)], valid, bs, bv)
+            slots = np.full(len(t_rows[name]), len(self.indices), np.int64)
+            slots[valid] = inv[off: off + len(valid)]
+            self.patterns[name] = _TermPattern(prim, m, slots, valid, bs, bv)
 
     def assemble(self, q, theta, active=None):
         """Residual (n_dof,) and the factorisation-ready tangent pieces at q.
@@ -123,23 +127,19 @@ class Assembler:
         extra = []
         low_rank = []
         for t in model._active(active):
-            g, H = model.local_grad_hess(t, q, theta)
+            if getattr(t, "dynamic", False):
+                g, H = model.local_grad_hess(t, q, theta)
+                extra.append(self._coo(t, H))
+            else:
+                g, Hpp, b, d = model.local_grad_hess_condensed(t, q, theta, self.beta)
+                p = self.patterns[t.name]
+                if p.mult is not None:
+                    D[self.mred[t.dofs[:, p.mult]]] = d
+                    bdata += np.bincount(p.b_slots, b.ravel()[p.b_valid], minlength=len(bdata))
+                kdata += np.bincount(p.k_slots, Hpp.ravel(), minlength=len(kdata) + 1)[:-1]
             r += np.bincount(t.dofs.ravel(), g.ravel(), minlength=model.n_dof)
             for al, v in t.low_rank(q, theta[t.name], t.data, t.dofs):
                 low_rank.append((al, np.asarray(v)[self.free_primal]))
-            if getattr(t, "dynamic", False):
-                extra.append(self._coo(t, H))
-                continue
-            p = self.patterns[t.name]
-            Hpp = H[:, p.prim][:, :, p.prim]
-            if p.mult is not None:
-                b = H[:, p.prim, p.mult]  # (n, kp)
-                diag = np.einsum("nii->n", Hpp) / len(p.prim)
-                d = self.beta * np.abs(diag) / np.maximum(np.einsum("ni,ni->n", b, b), 1e-300)
-                Hpp = Hpp + d[:, None, None] * b[:, :, None] * b[:, None, :]
-                D[self.mred[t.dofs[:, p.mult]]] = d
-                bdata += np.bincount(p.b_slots, b.ravel()[p.b_valid], minlength=len(bdata))
-            kdata += np.bincount(p.k_slots, Hpp.ravel()[p.k_valid], minlength=len(kdata))
         K = sp.csr_matrix((kdata, self.indices, self.indptr), shape=(self.n_p, self.n_p))
         for e in extra:
             K = K + e

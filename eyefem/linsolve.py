@@ -65,17 +65,21 @@ _PARDISO_POOL: list = []
 
 
 class _Pardiso:
-    """MKL Pardiso (real unsymmetric mode, robust to the indefinite tangent).
+    """MKL Pardiso, real symmetric indefinite mode (mtype -2) on the upper triangle.
 
+    Pardiso may perturb tiny pivots; the saddle-point solver checks every residual.
     Solver instances are pooled: creating one locates the MKL library (about 0.3 s).
     """
 
     def __init__(self, A):
         import pypardiso
-        self.solver = _PARDISO_POOL.pop() if _PARDISO_POOL else pypardiso.PyPardisoSolver(mtype=11)
-        self.A = sp.csr_matrix(A)
+        self.solver = _PARDISO_POOL.pop() if _PARDISO_POOL else pypardiso.PyPardisoSolver(mtype=-2)
+        self.A = sp.triu(A, format="csr")
         self.A.sort_indices()
-        self.solver.factorize(self.A)
+        try:
+            self.solver.factorize(self.A)
+        except pypardiso.pardiso_wrapper.PyPardisoError as exc:
+            raise LinearSolveError(f"Pardiso factorisation failed: {exc}") from exc
 
     def solve(self, b):
         return self.solver.solve(self.A, np.ascontiguousarray(b))

@@ -90,6 +90,8 @@ class Model:
         if key not in ks:
             if kind == "grad_hess":
                 ks[key] = jax.jit(term.grad_hess)
+            elif kind == "grad_hess_condensed":
+                ks[key] = jax.jit(term.grad_hess_condensed)
             elif kind == "energy":
                 ks[key] = jax.jit(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
             elif kind == "grad":
@@ -123,6 +125,17 @@ class Model:
         """Local gradients and Hessians of one term at q (numpy)."""
         g, H = self._kernel(term, "grad_hess")(q, theta[term.name], term.data, term.dofs)
         return np.asarray(g), np.asarray(H)
+
+    def local_grad_hess_condensed(self, term: Term, q, theta, beta):
+        """Local gradients (n, k) and primal Hessians with the multiplier condensed.
+
+        Returns g (n, k), H_pp + d b b^T (n, k_p, k_p), b (n, k_p), d (n,) where b is the
+        multiplier column and d = beta |mean diag H_pp| / |b|^2 (see linsolve); b and d
+        are None for a term without multipliers.
+        """
+        out = self._kernel(term, "grad_hess_condensed")(q, theta[term.name], term.data,
+                                                        term.dofs, beta)
+        return tuple(None if a is None else np.asarray(a) for a in out)
 
     def update(self, q) -> "Model":
         """The model with every term's host-side update applied at q (contact search)."""

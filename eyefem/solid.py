@@ -21,7 +21,7 @@ import numpy as np
 
 from .materials import strain_energy
 from .mesh import Mesh, hex_geometry
-from .terms import Term
+from .terms import Term, condense
 
 N_LOCAL = 25
 
@@ -94,7 +94,19 @@ class SolidQ1P0(Term):
         return jnp.sum(e * data["dv"], axis=1)
 
     def local_grad_hess(self, q_loc, params, data):
-        """Gradients (n, 25) and Hessians (n, 25, 25) by the chain rule through F.
+        """Gradients (n, 25) and Hessians (n, 25, 25) (see ``_blocks``)."""
+        gu, gl, kuu, kul = self._blocks(q_loc, params, data)
+        n = q_loc.shape[0]
+        H = jnp.zeros((n, 25, 25), q_loc.dtype)
+        H = H.at[:, :24, :24].set(kuu).at[:, :24, 24].set(kul).at[:, 24, :24].set(kul)
+        return jnp.concatenate([gu, gl[:, None]], axis=1), H
+
+    def grad_hess_condensed(self, q, params, data, dofs, beta):
+        gu, gl, kuu, kul = self._blocks(q[dofs], params, data)
+        return (jnp.concatenate([gu, gl[:, None]], axis=1),) + condense(kuu, kul, beta)
+
+    def _blocks(self, q_loc, params, data):
+        """Blocks g_u (n, 24), g_lambda (n,), K_uu (n, 24, 24), K_ulambda (n, 24), chain rule through F.
 
         dW/dF and d2W/dF2 (9 x 9) come from autodiff at each Gauss point; the shape
         function gradients are applied with einsum (about 4x faster than the Hessian
@@ -113,10 +125,7 @@ class SolidQ1P0(Term):
         gl = 2.0 * jnp.sum(dv * (J - 1.0), axis=1)
         kuu = jnp.einsum("eg,egijkl,egaj,egbl->eaibk", dv, A, G, G).reshape(-1, 24, 24)
         kul = 2.0 * jnp.einsum("eg,egij,egaj->eai", dv, cof, G).reshape(-1, 24)
-        n = q_loc.shape[0]
-        H = jnp.zeros((n, 25, 25), q_loc.dtype)
-        H = H.at[:, :24, :24].set(kuu).at[:, :24, 24].set(kul).at[:, 24, :24].set(kul)
-        return jnp.concatenate([gu, gl[:, None]], axis=1), H
+        return gu, gl, kuu, kul
 
     def fields(self, q, params):
         """Per-element post-processing from the global dof vector q (numpy).

@@ -47,7 +47,7 @@ class NewtonOptions:
     max_cuts: int = 8
     line_search: bool = True
     backend: str | None = None
-    beta: float = 1e3
+    beta: float = 1e4
 
     def __post_init__(self):
         for f in ("rtol", "vtol", "atol", "beta"):

@@ -22,6 +22,13 @@ import jax.numpy as jnp
 import numpy as np
 
 
+def condense(Hpp, b, beta):
+    """Augment primal blocks Hpp (n, k, k) by d b b^T, d = beta |mean diag Hpp| / |b|^2 (n,)."""
+    diag = jnp.abs(jnp.einsum("nii->n", Hpp)) / Hpp.shape[1]
+    d = beta * diag / jnp.maximum(jnp.einsum("ni,ni->n", b, b), 1e-300)
+    return Hpp + d[:, None, None] * b[:, :, None] * b[:, None, :], b, d
+
+
 class Term(abc.ABC):
     """Base class of every energy term.
 
@@ -75,6 +82,20 @@ class Term(abc.ABC):
     def grad_hess(self, q, params, data, dofs):
         """Local gradients and Hessians from the global dof vector q (n_dof,)."""
         return self.local_grad_hess(q[dofs], params, data)
+
+    def grad_hess_condensed(self, q, params, data, dofs, beta):
+        """Local gradients with the primal Hessian block augmented by the multiplier column.
+
+        Returns g (n, k), H_pp + d b b^T (n, k_p, k_p), b (n, k_p), d (n,), where b is the
+        multiplier column of the local Hessian and d = beta |mean diag H_pp| / |b|^2 (see
+        linsolve); b and d are None for a term without multipliers.
+        """
+        g, H = self.grad_hess(q, params, data, dofs)
+        if not self.multiplier_slots:
+            return g, H, None, None
+        m = self.multiplier_slots[0]
+        prim = np.array([i for i in range(H.shape[1]) if i != m])
+        return (g,) + condense(H[:, prim][:, :, prim], H[:, prim, m], beta)
 
     def low_rank(self, q, params, data, dofs):
         """Rank-k parts of the Hessian not in the local blocks: list of (alpha, vector (n_dof,)).
