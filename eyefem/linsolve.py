@@ -61,35 +61,58 @@ class _SuperLU:
         return self.lu.solve(b)
 
 
-_PARDISO_POOL: list = []
+_PARDISO_BY_PATTERN: dict = {}
 
 
 class _Pardiso:
     """MKL Pardiso, real symmetric indefinite mode (mtype -2) on the upper triangle.
 
-    Pardiso may perturb tiny pivots; the saddle-point solver checks every residual.
-    Solver instances are pooled: creating one locates the MKL library (about 0.3 s).
+    One Pardiso instance is kept per sparsity pattern, so the symbolic analysis
+    (ordering, about a third of the factorisation time) is done once per pattern and
+    every Newton iteration only refactorises numerically. If another factorisation of
+    the same pattern has been made since, ``solve`` refactorises this one first, so an
+    old factorisation (kept for an adjoint solve) stays valid. Pardiso may perturb tiny
+    pivots; the saddle-point solver checks every residual.
     """
 
     def __init__(self, A):
         import pypardiso
-        self.solver = _PARDISO_POOL.pop() if _PARDISO_POOL else pypardiso.PyPardisoSolver(mtype=-2)
+
         self.A = sp.triu(A, format="csr")
         self.A.sort_indices()
+        key = (self.A.shape[0], self.A.nnz, hash(self.A.indptr.tobytes()),
+               hash(self.A.indices.tobytes()))
+        entry = _PARDISO_BY_PATTERN.get(key)
+        if entry is None:
+            if len(_PARDISO_BY_PATTERN) > 8:  # patterns change with contact: keep a few
+                old = _PARDISO_BY_PATTERN.pop(next(iter(_PARDISO_BY_PATTERN)))
+                old["solver"].free_memory(everything=True)
+            solver = pypardiso.PyPardisoSolver(mtype=-2)
+            entry = {"solver": solver, "owner": None}
+            self._call(solver, 11)
+            _PARDISO_BY_PATTERN[key] = entry
+        self.entry = entry
+        self._factorize()
+
+    def _call(self, solver, phase, b=None):
+        import pypardiso
+
+        solver.set_phase(phase)
+        b = np.zeros((self.A.shape[0], 1)) if b is None else b
         try:
-            self.solver.factorize(self.A)
+            return solver._call_pardiso(self.A, b)
         except pypardiso.pardiso_wrapper.PyPardisoError as exc:
-            raise LinearSolveError(f"Pardiso factorisation failed: {exc}") from exc
+            raise LinearSolveError(f"Pardiso failed (phase {phase}): {exc}") from exc
+
+    def _factorize(self):
+        self._call(self.entry["solver"], 22)
+        self.entry["owner"] = id(self)
 
     def solve(self, b):
-        return self.solver.solve(self.A, np.ascontiguousarray(b))
-
-    def __del__(self):
-        try:
-            self.solver.free_memory(everything=False)
-            _PARDISO_POOL.append(self.solver)
-        except Exception:  # noqa: BLE001 - interpreter shutdown
-            pass
+        if self.entry["owner"] != id(self):
+            self._factorize()
+        x = self._call(self.entry["solver"], 33, np.asfortranarray(b.reshape(-1, 1)))
+        return x.ravel()
 
 
 def factorize(A: sp.spmatrix, backend: str | None = None):
@@ -146,6 +169,50 @@ class SaddlePointSolver:
             x = x - self.KiV @ (self.cap_inv @ (self.V.T @ x))
         return x
 
+    def _schur_cg(self, f, g):
+        B, D = self.B, self.D
+        fa = f + B @ (D * g)
+        x = self._solve_aug(fa)  # y = 0
+        y = np.zeros(B.shape[1])
+        r = g - B.T @ x  # residual of S y = B^T x0 - g, sign: r = rhs - S y
+        r = -r
+        z = D * r
+        p = z.copy()
+        rz = r @ z
+        scale = max(np.linalg.norm(D * g), np.linalg.norm(D * (B.T @ x)), 1e-300)
+        for it in range(self.max_uzawa):
+            if np.sqrt(abs(rz)) <= 1e-3 * self.tol * scale:
+                break
+            w = self._solve_aug(B @ p)  # K_aug^-1 B p
+            Sp = B.T @ w
+            pSp = p @ Sp
+            if pSp <= 0:
+                log.debug("Schur CG: negative curvature, switching to Uzawa")
+                return self._uzawa(f, g)
+            alpha = rz / pSp
+            y = y + alpha * p
+            x = x - alpha * w
+            r = r - alpha * Sp
+            z = D * r
+            rz_new = r @ z
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        self.iterations = it
+        return x, y
+
+    def _uzawa(self, f, g):
+        y = np.zeros(self.B.shape[1])
+        Dg = self.B @ (self.D * g)
+        for it in range(self.max_uzawa):
+            x = self._solve_aug(f + Dg - self.B @ y)
+            c = self.B.T @ x - g
+            y = y + self.D * c
+            if np.linalg.norm(self.B @ (self.D * c)) <= self.tol * max(
+                    np.linalg.norm(f), np.linalg.norm(self.B @ y), 1e-300):
+                break
+        self.iterations = it
+        return x, y
+
     def _apply_K(self, x):
         """(K + low rank) x, without the augmentation."""
         y = self.K_aug @ x
@@ -156,28 +223,28 @@ class SaddlePointSolver:
         return y
 
     def solve(self, f, g=None):
-        """Solve the saddle-point system; returns (x (n,), y (m,))."""
+        """Solve the saddle-point system; returns (x (n,), y (m,)).
+
+        Conjugate gradients on the Schur complement S = B^T K_aug^-1 B of the augmented
+        system, preconditioned by D (S is close to D^-1): one back-solve per iteration.
+        Falls back to Uzawa iterations if S shows negative curvature (indefinite K).
+        """
         self.n_solves += 1
         if self.B is None:
             x = self._solve_aug(f)
             y = np.zeros(0)
         else:
-            g = np.zeros(self.B.shape[1]) if g is None else g
-            y = np.zeros(self.B.shape[1])
-            Dg = self.B @ (self.D * g)
-            for it in range(self.max_uzawa):
-                x = self._solve_aug(f + Dg - self.B @ y)
-                c = self.B.T @ x - g
-                y = y + self.D * c
-                if np.linalg.norm(self.B @ (self.D * c)) <= self.tol * max(np.linalg.norm(f), np.linalg.norm(self.B @ y), 1e-300):
-                    break
-        res = self._apply_K(x) - f
+            x, y = self._schur_cg(f, np.zeros(self.B.shape[1]) if g is None else g)
+        kx = self._apply_K(x)
+        res = kx - f
         if self.B is not None:
             res = res + self.B @ y
             cres = self.B.T @ x - g
         else:
             cres = np.zeros(0)
-        scale = max(np.linalg.norm(f), 1e-300)
+        # relative to the size of the terms summed (the augmented K x bounds the roundoff)
+        scale = max(np.linalg.norm(f), np.linalg.norm(self.K_aug @ x),
+                    np.linalg.norm(self.B @ y) if self.B is not None else 0.0, 1e-300)
         rel = np.linalg.norm(res) / scale
         if not np.isfinite(rel) or rel > 1e-6:
             raise LinearSolveError(f"linear solve residual {rel:.2e} relative (backend "
