@@ -94,6 +94,31 @@ def cmd_describe(args) -> int:
     return 0
 
 
+def cmd_new_case(args) -> int:
+    from .casefile import CaseError
+    from .dialogue import new_case
+    from .problems import PROBLEMS
+
+    if args.problem not in PROBLEMS:
+        print(f"eyefem: unknown problem '{args.problem}'; known: {', '.join(sorted(PROBLEMS))}",
+              file=sys.stderr)
+        return 2
+    preset = {}
+    for item in args.set or []:
+        if "=" not in item:
+            print(f"eyefem: --set '{item}': expected name=value", file=sys.stderr)
+            return 2
+        k, v = item.split("=", 1)
+        preset[k.strip()] = v
+    try:
+        new_case(args.problem, PROBLEMS[args.problem][0], Path(args.output), preset=preset,
+                 accept_defaults=args.yes, title=args.title or "")
+    except (CaseError, EOFError) as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="eyefem", description=__doc__.splitlines()[0])
     ap.add_argument("-v", "--verbose", action="count", default=1)
@@ -113,6 +138,13 @@ def main(argv=None) -> int:
     p = sub.add_parser("describe", help="document a problem's parameters")
     p.add_argument("problem")
     p.set_defaults(fn=cmd_describe)
+    p = sub.add_parser("new-case", help="write a case file by answering questions (or --set)")
+    p.add_argument("problem", help="problem name (see 'eyefem cases')")
+    p.add_argument("-o", "--output", required=True, help="case file to write")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="answer without asking")
+    p.add_argument("--yes", action="store_true", help="accept the defaults of the rest")
+    p.add_argument("--title", help="case title")
+    p.set_defaults(fn=cmd_new_case)
     args = ap.parse_args(argv)
     _setup(args.verbose)
     return args.fn(args)

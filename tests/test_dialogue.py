@@ -1,0 +1,40 @@
+"""The case-file dialogue: scripted answers, re-asking on invalid input, flags only."""
+
+import pytest
+
+from eyefem.casefile import CaseError, load_case
+from eyefem.cli import main as cli_main
+from eyefem.dialogue import new_case, scripted
+from eyefem.problems import PROBLEMS
+
+SCHEMAS = {k: v[0] for k, v in PROBLEMS.items()}
+
+
+def test_scripted_dialogue_reasks_and_writes_a_valid_case(tmp_path):
+    fields = PROBLEMS["uniaxial"][0]  # stretch, n, steps
+    said = []
+    answers = ["-2", "big", "2.5", "", "4"]  # two invalid stretches, then 2.5; n default; steps 4
+    path = new_case("uniaxial", fields, tmp_path / "u.toml", ask=scripted(answers),
+                    say=said.append)
+    assert sum("invalid" in s for s in said) == 2
+    case = load_case(path, SCHEMAS)
+    assert case.parameters["stretch"] == 2.5 and case.parameters["steps"] == 4
+    assert case.parameters["n"] == 2
+
+
+def test_flags_only_case_runs(tmp_path):
+    out = tmp_path / "c.toml"
+    assert cli_main(["-q", "new-case", "uniaxial", "-o", str(out), "--set", "stretch=1.5",
+                     "--set", "steps=2", "--yes"]) == 0
+    assert cli_main(["-q", "run", str(out), "--out", str(tmp_path / "res"), "--no-vtu"]) == 0
+    assert (tmp_path / "res" / "summary.json").exists()
+
+
+def test_bad_flags_are_reported(tmp_path, capsys):
+    assert cli_main(["-q", "new-case", "uniaxial", "-o", str(tmp_path / "x.toml"),
+                     "--set", "strech=2", "--yes"]) == 2
+    assert "strech" in capsys.readouterr().err
+    with pytest.raises(CaseError, match="no valid answer for 'stretch'"):
+        new_case("uniaxial", PROBLEMS["uniaxial"][0], tmp_path / "y.toml",
+                 ask=scripted(["-1"] * 5), say=lambda s: None)
+    assert not (tmp_path / "y.toml").exists()
