@@ -111,8 +111,8 @@ class _Pardiso:
     def solve(self, b):
         if self.entry["owner"] != id(self):
             self._factorize()
-        x = self._call(self.entry["solver"], 33, np.asfortranarray(b.reshape(-1, 1)))
-        return x.ravel()
+        x = self._call(self.entry["solver"], 33, np.asfortranarray(b.reshape(b.shape[0], -1)))
+        return x.reshape(b.shape)  # b (n,) or (n, k): several right-hand sides at once
 
 
 def factorize(A: sp.spmatrix, backend: str | None = None):
@@ -158,7 +158,7 @@ class SaddlePointSolver:
             V = np.stack([v for _, v in self.low_rank], axis=1)  # (n, r)
             a = np.array([al for al, _ in self.low_rank])
             self.V, self.alpha = V, a
-            self.KiV = np.column_stack([self.fact.solve(V[:, j]) for j in range(V.shape[1])])
+            self.KiV = self.fact.solve(V).reshape(V.shape)  # all r right-hand sides at once
             cap = np.diag(1.0 / a) + V.T @ self.KiV
             self.cap_inv = np.linalg.inv(cap)
         self.n_solves = 0

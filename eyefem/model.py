@@ -137,9 +137,9 @@ class Model:
                                                         term.dofs, beta)
         return tuple(None if a is None else np.asarray(a) for a in out)
 
-    def update(self, q) -> "Model":
+    def update(self, q, theta) -> "Model":
         """The model with every term's host-side update applied at q (contact search)."""
-        new = tuple(t.update(q) for t in self.terms)
+        new = tuple(t.update(q, theta[t.name]) for t in self.terms)
         if all(a is b for a, b in zip(new, self.terms)):
             return self
         return Model(self.mesh, new, self.n_dof)

@@ -162,7 +162,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         q = q + dq_prescribed + asm.expand(x, y)
         fref = np.linalg.norm(rhs[free])
     for it in range(opts.max_iter + 1):
-        model = model.update(q)
+        model = model.update(q, theta)
         asm.model = model
         r = model.gradient(q, theta, active)
         if not np.all(np.isfinite(r)):

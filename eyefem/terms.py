@@ -116,7 +116,7 @@ class Term(abc.ABC):
         """Hashable configuration that changes the compiled code (not the arrays)."""
         return ()
 
-    def update(self, q: np.ndarray) -> "Term":
+    def update(self, q: np.ndarray, params) -> "Term":
         """Host-side update between Newton iterations (contact search); default: self."""
         return self
 

@@ -1,0 +1,155 @@
+"""Hand-coded (numpy) contact forces and tangents, and their tangent-verification checks.
+
+Rigid (frictionless, frozen closest point c and normal n, body moved by d * dir):
+
+    g = (x - c - d dir) . n,   r = alpha g n,   K = alpha n n^T          (g < 0)
+
+Node to quadrilateral, with the seed's D vector of length 15 (hitting node, then the
+four face nodes) D = [n, -N_1 n, ..., -N_4 n]:
+
+    sliding:   g = (x_h - x_t) . n(x_1..x_4),   r = alpha g dg,   K = alpha (dg dg^T + g d2g)
+    sticking:  d = x_h - x_t(xi_0),             r = alpha Dm^T d,  K = alpha Dm^T Dm
+
+with dg = D + (the normal's variation), Dm = [I, -N_1 I, ..., -N_4 I] (3 x 15). The
+normal n = m / |m|, m = t_1 x t_2, t_k = sum_a N_a,k x_a is differentiated in full:
+dn = P dm / |m| (P = I - n n^T), d2m[u, v] = dt_1[u] x dt_2[v] + dt_1[v] x dt_2[u].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_C = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
+
+
+def quad_shape(xi):
+    """Bilinear N (4,) and dN/dxi (4, 2) at xi (2,)."""
+    N = 0.25 * (1 + xi[0] * _C[:, 0]) * (1 + xi[1] * _C[:, 1])
+    dN = np.stack([0.25 * _C[:, 0] * (1 + xi[1] * _C[:, 1]),
+                   0.25 * _C[:, 1] * (1 + xi[0] * _C[:, 0])], -1)
+    return N, dN
+
+
+def rigid_residual_tangent(x, c, n, alpha):
+    """Residual (3,) N and tangent (3, 3) N/mm of one node x against a rigid point c, normal n."""
+    g = float((x - c) @ n)
+    if g >= 0:
+        return np.zeros(3), np.zeros((3, 3))
+    return alpha * g * n, alpha * np.outer(n, n)
+
+
+def node_quad_residual_tangent(x5, xi, alpha, mode="sliding"):
+    """Residual (15,) and tangent (15, 15) of a hitting node x5[0] against face x5[1:5].
+
+    Args: x5 (5, 3) current positions, mm; xi (2,) parametric point; alpha N/mm.
+    """
+    N, dN = quad_shape(xi)
+    Dm = np.hstack([np.eye(3)] + [-N[a] * np.eye(3) for a in range(4)])  # (3, 15)
+    xh, xf = x5[0], x5[1:]
+    r = xh - N @ xf
+    if mode == "sticking":
+        return alpha * Dm.T @ r, alpha * Dm.T @ Dm
+    t1, t2 = dN[:, 0] @ xf, dN[:, 1] @ xf
+    m = np.cross(t1, t2)
+    lm = np.linalg.norm(m)
+    n = m / lm
+    g = float(r @ n)
+    if g >= 0:
+        return np.zeros(15), np.zeros((15, 15))
+    P = np.eye(3) - np.outer(n, n)
+    E = np.eye(15)
+
+    def parts(u):  # variations of r, t1, t2, m, n along a 15-vector u
+        ua = u[3:].reshape(4, 3)
+        dt1, dt2 = dN[:, 0] @ ua, dN[:, 1] @ ua
+        dm = np.cross(dt1, t2) + np.cross(t1, dt2)
+        return Dm @ u, dt1, dt2, dm, P @ dm / lm
+
+    V = [parts(E[i]) for i in range(15)]
+    dg = np.array([dr @ n + r @ dn for dr, _, _, _, dn in V])
+    d2g = np.zeros((15, 15))
+    for i, (dru, dt1u, dt2u, dmu, dnu) in enumerate(V):
+        for j, (drv, dt1v, dt2v, dmv, dnv) in enumerate(V):
+            d2m = np.cross(dt1u, dt2v) + np.cross(dt1v, dt2u)
+            d2n_r = (-(r @ dnv) * (n @ dmu) / lm - g * (dnv @ dmu) / lm
+                     - (n @ dmv) * (r @ P @ dmu) / lm**2 + r @ P @ d2m / lm)
+            d2g[i, j] = dru @ dnv + drv @ dnu + d2n_r
+    return alpha * g * dg, alpha * (np.outer(dg, dg) + g * d2g)
+
+
+# --- tangent-verification checks ----------------------------------------------------------------
+
+def _rigid_check(rng):
+    import jax
+    import jax.numpy as jnp
+
+    from .contact import RigidContact
+    from .verify import CheckData
+
+    n = rng.standard_normal(3)
+    n /= np.linalg.norm(n)
+    c = rng.standard_normal(3)
+    dirv = rng.standard_normal(3)
+    dirv /= np.linalg.norm(dirv)
+    d = 0.3
+    X = c + d * dirv + 0.1 * rng.standard_normal(3)
+    x = X - (((X - c - d * dirv) @ n) + 0.05) * n + 0.02 * rng.standard_normal(3)  # g ~ -0.05
+    alpha = 50.0
+    data = {"X": X[None], "c": c[None], "n": n[None], "dir": dirv[None], "body": np.zeros(1, int),
+            "w": np.ones(1), "alpha": np.full(1, alpha), "area": np.ones(1)}
+    params = {"d": jnp.array([d])}
+
+    term = RigidContact.__new__(RigidContact)  # the kernel only: no mesh needed
+
+    def energy(u):
+        return jnp.sum(term.local_energy(u.reshape(1, 3), params, data))
+
+    grad = jax.jit(jax.grad(energy))
+    u = x - X
+    r_h, K_h = rigid_residual_tangent(x, c + d * dirv, n, alpha)
+    return CheckData(np.asarray(grad(jnp.asarray(u))), r_h,
+                     np.asarray(jax.hessian(energy)(jnp.asarray(u))), K_h,
+                     lambda y: np.asarray(grad(jnp.asarray(y))), u,
+                     f"gap {float((x - c - d * dirv) @ n):.3f} mm, moving body")
+
+
+def _surface_check(mode):
+    def check(rng):
+        import jax
+        import jax.numpy as jnp
+
+        from .contact import SurfaceContact
+        from .verify import CheckData
+
+        X = np.array([[0.3, 0.4, 0.2], [0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+        x5 = X + 0.08 * rng.standard_normal((5, 3))
+        xi = rng.uniform(-0.6, 0.6, 2)
+        N, _ = quad_shape(xi)
+        x5[0] = N @ x5[1:] + np.array([0.01, -0.02, -0.05])  # penetrating by ~0.05 mm
+        alpha = 40.0
+        data = {"X": X[None], "xi": xi[None], "w": np.ones(1), "alpha": np.full(1, alpha),
+                "area": np.ones(1)}
+        term = SurfaceContact.__new__(SurfaceContact)  # the kernel only: no mesh needed
+        object.__setattr__(term, "mode", mode)
+
+        def energy(u):
+            return jnp.sum(term.local_energy(u.reshape(1, 15), {"scale": 1.0}, data))
+
+        grad = jax.jit(jax.grad(energy))
+        u = (x5 - X).ravel()
+        r_h, K_h = node_quad_residual_tangent(x5, xi, alpha, mode)
+        return CheckData(np.asarray(grad(jnp.asarray(u))), r_h,
+                         np.asarray(jax.hessian(energy)(jnp.asarray(u))), K_h,
+                         lambda y: np.asarray(grad(jnp.asarray(y))), u,
+                         f"node on a warped quad, {mode}")
+
+    return check
+
+
+def register_checks():
+    """Register the contact checks with eyefem.verify."""
+    from .verify import register_check
+
+    register_check("rigid_contact", _rigid_check)
+    register_check("surface_contact_sliding", _surface_check("sliding"))
+    register_check("surface_contact_sticking", _surface_check("sticking"))
