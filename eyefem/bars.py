@@ -116,3 +116,79 @@ class Bars(Term):
     def report(self, q, params):
         f = self.forces(q, params)
         return {"max_force_N": float(f.max()) if len(f) else 0.0}
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class AnchoredBars(Term):
+    """Bars from embedded points to anchors that move with rigid bodies (sutures over a
+    rigid buckle).
+
+    End a: a point in a face (nodes_a (n, 4), params xi (n, 2)); end b: an anchor at
+    anchor_xyz (n, 3) moved by d[body] * dir + s[body] * dir2 (the buckle's motion,
+    params "d", "s" (n_bodies,); dir, dir2 (n, 3) per anchor). Energy EA / (2 L0) (l - (L0 - tightening))^2 with the
+    tied length L0 (n,) and the tightening (n,) (mm) params: the suture is tied snug at
+    the state where it is made, then shortened.
+
+    Args:
+      name; nodes_a; xi_a (n, 2); anchor_xyz (n, 3); body (n,) body index of each anchor;
+      dirs, dirs2: (n, 3) motion directions of the anchors; n_bodies: number of bodies;
+      node_xyz (n_nodes, 3) reference nodes;
+      L0 (n,) tied lengths, mm; EA: N; tension_only (sutures: True).
+    """
+
+    name: str
+    nodes_a: np.ndarray
+    xi_a: np.ndarray
+    anchor_xyz: np.ndarray
+    body: np.ndarray
+    dirs: np.ndarray
+    dirs2: np.ndarray
+    n_bodies: int
+    node_xyz: np.ndarray
+    L0: np.ndarray
+    EA: float | np.ndarray = 1.0
+    tension_only: bool = True
+
+    def __post_init__(self):
+        na = np.asarray(self.nodes_a, np.int64).reshape(-1, 4)
+        n = len(na)
+        L0 = np.broadcast_to(np.asarray(self.L0, float), (n,)).copy()
+        if np.any(L0 <= 0):
+            raise ValueError(f"bars '{self.name}': bar {int(np.argmin(L0))} has tied length "
+                             f"{L0.min():.3g} mm; must be > 0")
+        EA = np.broadcast_to(np.asarray(self.EA, float), (n,)).copy()
+        if np.any(EA <= 0):
+            raise ValueError(f"bars '{self.name}': axial stiffness EA must be > 0 N")
+        nb = self.n_bodies
+        object.__setattr__(self, "dofs", (3 * na[:, :, None] + np.arange(3)).reshape(n, 12))
+        object.__setattr__(self, "params", {"EA": EA, "tightening": np.zeros(n), "L0": L0,
+                                            "xi": np.asarray(self.xi_a, float).reshape(n, 2),
+                                            "d": np.zeros(nb), "s": np.zeros(nb)})
+        object.__setattr__(self, "data", {"X": self.node_xyz[na], "anchor": np.asarray(
+            self.anchor_xyz, float), "body": np.asarray(self.body, np.int64),
+            "dir": np.asarray(self.dirs, float), "dir2": np.asarray(self.dirs2, float)})
+
+    def static_key(self):
+        return (self.tension_only,)
+
+    def lengths(self, q_loc, params, data):
+        xa = embedded_positions(data["X"], q_loc.reshape(-1, 4, 3), params["xi"])
+        xb = (data["anchor"] + params["d"][data["body"]][:, None] * data["dir"]
+              + params["s"][data["body"]][:, None] * data["dir2"])
+        return jnp.sqrt(jnp.sum((xb - xa) ** 2, axis=1))
+
+    def _stretch(self, q_loc, params, data):
+        s = self.lengths(q_loc, params, data) - (params["L0"] - params["tightening"])
+        return jnp.maximum(s, 0.0) if self.tension_only else s
+
+    def local_energy(self, q_loc, params, data):
+        return 0.5 * params["EA"] / params["L0"] * self._stretch(q_loc, params, data) ** 2
+
+    def forces(self, q, params):
+        """Axial force per bar (n,), N (positive in tension)."""
+        s = self._stretch(jnp.asarray(q)[self.dofs], params, self.data)
+        return np.asarray(params["EA"] / params["L0"] * s)
+
+    def report(self, q, params):
+        f = self.forces(q, params)
+        return {"max_force_N": float(f.max()) if len(f) else 0.0}

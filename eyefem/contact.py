@@ -69,7 +69,7 @@ class RigidContact(Term):
 
     Args:
       name: term name; params {"d": (n_bodies,) displacement of each body along its
-        direction, mm}.
+        direction, mm; "s": (n_bodies,) along its direction2, mm}.
       mesh: the mesh holding the slave node set.
       node_set: contact (slave) nodes.
       bodies: RigidBody surfaces (normals pointing out of the rigid body).
@@ -104,7 +104,8 @@ class RigidContact(Term):
         object.__setattr__(self, "area", np.maximum(area, 1e-12))
         object.__setattr__(self, "alpha", float(alpha))
         object.__setattr__(self, "h", h)
-        object.__setattr__(self, "params", {"d": np.zeros(len(self.bodies))})
+        object.__setattr__(self, "params", {"d": np.zeros(len(self.bodies)),
+                                            "s": np.zeros(len(self.bodies))})
         self._pair(np.zeros(3 * self.mesh.n_nodes), self.params, initial=True)
 
     def static_key(self):
@@ -116,14 +117,16 @@ class RigidContact(Term):
         sg = self.search_gap if self.search_gap is not None else 2.0 * self.h
         rows = []
         for k, body in enumerate(self.bodies):
-            dk = float(params["d"][k])
-            t, c, g = body.closest(x, dk)
+            dk, sk = float(params["d"][k]), float(params["s"][k])
+            t, c, g = body.closest(x, dk, s=sk)
             # a node whose closest point lies beyond an open edge of the body does not
             # face it: keep only nodes over the surface (tangential offset ~ 0)
-            off = np.linalg.norm(x - dk * body.direction - c - g[:, None] * body.normals[t], axis=1)
+            d1, d2 = body.motion_dirs(c)
+            off = np.linalg.norm(x - dk * d1 - sk * d2 - c - g[:, None] * body.normals[t], axis=1)
             sel = np.nonzero((g < sg) & (off <= 0.1 * self.h + 0.5 * np.abs(g)))[0]
-            rows.append((sel, np.full(len(sel), k), c[sel], body.normals[t[sel]], g[sel]))
-        sel, bid, c, n, g = (np.concatenate([r[i] for r in rows]) for i in range(5))
+            rows.append((sel, np.full(len(sel), k), c[sel], body.normals[t[sel]], g[sel],
+                         d1[sel], d2[sel]))
+        sel, bid, c, n, g, d1, d2 = (np.concatenate([r[i] for r in rows]) for i in range(7))
         if initial and len(g):
             tol = (self.max_initial_penetration if self.max_initial_penetration is not None
                    else 0.5 * self.h)
@@ -138,11 +141,12 @@ class RigidContact(Term):
         pad = P - len(sel)
         node = np.concatenate([self.nodes[sel], np.full(pad, self.nodes[0])])
         w = np.concatenate([np.ones(len(sel)), np.zeros(pad)])
-        dirs = np.stack([b.direction for b in self.bodies])
+
         data = {"X": self.mesh.nodes[node],
                 "c": np.concatenate([c, np.zeros((pad, 3))]),
                 "n": np.concatenate([n, np.tile([0.0, 0.0, 1.0], (pad, 1))]),
-                "dir": np.concatenate([dirs[bid], np.zeros((pad, 3))]),
+                "dir": np.concatenate([d1, np.zeros((pad, 3))]),
+                "dir2": np.concatenate([d2, np.zeros((pad, 3))]),
                 "body": np.concatenate([bid, np.zeros(pad, np.int64)]),
                 "w": w, "alpha": np.full(P, self.alpha),
                 "area": np.concatenate([self.area[sel], np.ones(pad)])}
@@ -158,7 +162,8 @@ class RigidContact(Term):
     @staticmethod
     def gaps(q_loc, params, data):
         x = data["X"] + q_loc
-        target = data["c"] + params["d"][data["body"]][:, None] * data["dir"]
+        target = (data["c"] + params["d"][data["body"]][:, None] * data["dir"]
+                  + params["s"][data["body"]][:, None] * data["dir2"])
         return jnp.einsum("pi,pi->p", x - target, data["n"])
 
     def local_energy(self, q_loc, params, data):

@@ -95,9 +95,10 @@ def _rigid_check(rng):
     X = c + d * dirv + 0.1 * rng.standard_normal(3)
     x = X - (((X - c - d * dirv) @ n) + 0.05) * n + 0.02 * rng.standard_normal(3)  # g ~ -0.05
     alpha = 50.0
-    data = {"X": X[None], "c": c[None], "n": n[None], "dir": dirv[None], "body": np.zeros(1, int),
+    data = {"X": X[None], "c": c[None], "n": n[None], "dir": dirv[None], "dir2": np.zeros((1, 3)),
+            "body": np.zeros(1, int),
             "w": np.ones(1), "alpha": np.full(1, alpha), "area": np.ones(1)}
-    params = {"d": jnp.array([d])}
+    params = {"d": jnp.array([d]), "s": jnp.zeros(1)}
 
     term = RigidContact.__new__(RigidContact)  # the kernel only: no mesh needed
 

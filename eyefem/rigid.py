@@ -19,13 +19,19 @@ class RigidBody:
     """A translating rigid triangle surface.
 
     Attributes: name; points (n, 3) mm; triangles (m, 3); direction (3,) unit vector of
-    the motion.
+    the motion d * direction; direction2 (3,) a second motion s * direction2 (unit or
+    zero; e.g. a buckle's shift along the meridian). With ``radial`` the body instead
+    shrinks toward the z axis: every point moves by d along -(its horizontal radial
+    unit vector), and by s along direction2 turned about z to the point's meridian
+    (direction2 given at the +x meridian): an encircling band tightened uniformly.
     """
 
     name: str
     points: np.ndarray
     triangles: np.ndarray
     direction: tuple = (0.0, 0.0, 1.0)
+    direction2: tuple = (0.0, 0.0, 0.0)
+    radial: bool = False
 
     def __post_init__(self):
         P = np.asarray(self.points, float)
@@ -55,6 +61,8 @@ class RigidBody:
         object.__setattr__(self, "points", P)
         object.__setattr__(self, "triangles", T)
         object.__setattr__(self, "direction", d / np.linalg.norm(d))
+        d2 = np.asarray(self.direction2, float)
+        object.__setattr__(self, "direction2", d2 / np.linalg.norm(d2) if d2.any() else d2)
         object.__setattr__(self, "normals", n / (2 * area)[:, None])
         object.__setattr__(self, "_tree", cKDTree(P[T].mean(axis=1)))
         object.__setattr__(self, "_radius", float(np.sqrt(np.max(np.sum(
@@ -71,13 +79,28 @@ class RigidBody:
             raise ValueError(f"rigid body '{name}': {path} holds no triangles")
         return cls(name, m.points[:, :3], np.concatenate(tris), direction)
 
-    def closest(self, x, d=0.0, k=8):
-        """Closest points on the moved surface to query points x (n, 3).
+    def motion_dirs(self, c):
+        """Unit directions (n, 3) of the d and s motions at surface points c (n, 3)."""
+        c = np.atleast_2d(c)
+        if not self.radial:
+            return (np.broadcast_to(self.direction, c.shape).copy(),
+                    np.broadcast_to(self.direction2, c.shape).copy())
+        phi = np.arctan2(c[:, 1], c[:, 0])
+        cs, sn = np.cos(phi), np.sin(phi)
+        d1 = np.stack([-cs, -sn, np.zeros_like(cs)], 1)
+        a = self.direction2
+        d2 = np.stack([cs * a[0] - sn * a[1], sn * a[0] + cs * a[1], np.full_like(cs, a[2])], 1)
+        return d1, d2
+
+    def closest(self, x, d=0.0, k=8, s=0.0):
+        """Closest points on the surface moved by d * direction + s * direction2 to x (n, 3).
 
         Returns: triangle ids (n,), closest points (n, 3) in the reference (unmoved)
         frame, signed gaps (n,) along the triangle normal (negative: penetration).
         """
-        x = np.asarray(x, float) - d * self.direction
+        x = np.asarray(x, float)
+        d1, d2 = self.motion_dirs(x)  # for a radial body: exact on surfaces of revolution
+        x = x - d * d1 - s * d2
         k = min(k, len(self.triangles))
         _, cand = self._tree.query(x, k=k)
         cand = cand.reshape(len(x), k)

@@ -38,6 +38,13 @@ class NewtonOptions:
       line_search: backtrack on the residual norm when a full step does not reduce it.
       backend: linear solver backend (None: the default, see linsolve).
       beta: strength of the element-wise augmentation of the saddle-point solve.
+      contact_freeze: contact pairs (dynamic terms) are re-paired every iteration until
+        the force residual falls below contact_freeze x the reference, then frozen for
+        quadratic convergence; at convergence they are re-paired once more.
+      contact_rtol: the residual after that final re-pairing must be below contact_rtol x
+        max(reference, norm of the contact forces) (a node at a surface edge or on a facet
+        edge may flip without end; this bounds the force such a flip leaves unbalanced),
+        else Newton continues.
     """
 
     rtol: float = 1e-8
@@ -48,9 +55,11 @@ class NewtonOptions:
     line_search: bool = True
     backend: str | None = None
     beta: float = 1e4
+    contact_freeze: float = 1e-3
+    contact_rtol: float = 1e-4
 
     def __post_init__(self):
-        for f in ("rtol", "vtol", "atol", "beta"):
+        for f in ("rtol", "vtol", "atol", "beta", "contact_freeze", "contact_rtol"):
             if not getattr(self, f) > 0:
                 raise ValueError(f"NewtonOptions.{f} = {getattr(self, f)}; must be > 0")
         if self.max_iter < 1 or self.max_cuts < 0:
@@ -161,8 +170,10 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         x, y = solver.solve(-rhs[free], -rhs[mult])
         q = q + dq_prescribed + asm.expand(x, y)
         fref = np.linalg.norm(rhs[free])
+    frozen = False
     for it in range(opts.max_iter + 1):
-        model = model.update(q, theta)
+        if not frozen:
+            model = model.update(q, theta)
         asm.model = model
         r = model.gradient(q, theta, active)
         if not np.all(np.isfinite(r)):
@@ -172,9 +183,23 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         nf = np.linalg.norm(rf)
         fref = max(fref, nf if it == 0 else 0.0, react)
         nm = np.linalg.norm(rm) / vref if len(rm) else 0.0
-        log.debug("  iter %d |r_u| %.3e (ref %.3e) |r_vol| %.3e", it, nf, fref, nm)
+        log.debug("  iter %d |r_u| %.3e (ref %.3e) |r_vol| %.3e%s", it, nf, fref, nm,
+                  " (pairs frozen)" if frozen else "")
         if nf <= opts.rtol * fref + opts.atol and nm <= opts.vtol:
-            return model, q, it, nf, solver
+            if not frozen:
+                return model, q, it, nf, solver
+            repaired = model.update(q, theta)  # the pairing at the converged state
+            r2 = repaired.gradient(q, theta, active)
+            nf2 = np.linalg.norm(r2[free])
+            dyn = [t.name for t in repaired.terms if t.dynamic and (active is None or t.name in active)]
+            fc = np.linalg.norm(repaired.gradient(q, theta, dyn)[free]) if dyn else 0.0
+            if nf2 <= opts.contact_rtol * max(fref, fc) + opts.atol:
+                asm.model = repaired
+                return repaired, q, it, nf2, solver
+            model, r, rf, nf, frozen = repaired, r2, r2[free], nf2, False
+            asm.model = model
+        elif nf <= opts.contact_freeze * fref and any(t.dynamic for t in model.terms):
+            frozen = True
         if it == opts.max_iter:
             break
         _, K, B, D, lr = asm.assemble(q, theta, active)

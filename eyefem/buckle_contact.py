@@ -1,0 +1,136 @@
+"""Smooth analytic contact of the sclera with rigid buckles (no pairing, no facets).
+
+The surgery cases use the buckle's exact surface instead of its triangulation: the gap
+of an outer scleral node x is a smooth function of x and of the buckle's motion, so
+Newton converges quadratically (no facet-edge or pairing chatter) and the outcomes are
+differentiable with respect to the motion (tightening, position) by the adjoint.
+
+Encircling ring (band or tire) about the globe centre, in spherical coordinates
+(r = |x|, polar angle tau): across-coordinate a = R (tau - theta_b) - s (mm, s: shift of
+the buckle toward the posterior), inner surface radius
+
+    S(a) = R + ridge - h(a) + lift(a) - d,      g = S(a) - r   (g < 0: penetration)
+
+with h the ridge (cosine flanks 0.5 mm wide), lift the upturned edges (0.3 mm over the
+last 0.5 mm, growing quadratically beyond, so contact fades out smoothly past the edge)
+and d the radial tightening (the ring's circumference shortens by 2 pi d sin theta_b).
+
+Sponge: a cylinder (radius r_s, length L, axis t) whose axis passes through
+C = (R + r_s - d) n0 + s m0: g = |x - C - ((x - C) . t) t| - r_s + 10 max(|.t| - L/2, 0)^2.
+
+Energy 1/2 alpha <-g>^2 per node (the penalty as in eyefem.contact).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from .contact import PENALTY_FACTOR, node_areas
+from .mesh import Mesh
+from .terms import Term
+
+
+def ring_profile(a, width, ridge, ridge_width):
+    """Inner-surface offset of a ring above R (mm) at across-coordinates a (jax or numpy)."""
+    aa = jnp.abs(a)
+    t = jnp.clip((aa - (ridge_width / 2 - 0.5)) / 0.5, 0.0, 1.0)
+    h = ridge * 0.5 * (1 + jnp.cos(jnp.pi * t))
+    lift = 0.3 * (jnp.maximum(aa - (width / 2 - 0.5), 0.0) / 0.5) ** 2
+    return ridge - h + lift
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class BuckleContact(Term):
+    """Frictionless penalty contact of scleral nodes with an analytic rigid buckle.
+
+    Args:
+      name: term name; params {"d": (1,) inward motion, mm; "s": (1,) posterior shift, mm}.
+      mesh: the mesh; node_set: candidate (outer scleral) nodes.
+      shape: "ring" or "sponge".
+      radius: R, the scleral radius the buckle was fitted to, mm.
+      theta_b: polar angle of the buckle centre line, rad (ring) ; for a sponge its
+        centre direction n0 (3,), meridian tangent m0 (3,) and axis (3,).
+      width, ridge, ridge_width: ring profile, mm; sponge_radius, sponge_length: mm.
+      modulus: Young's modulus of the sclera (default penalty), MPa; penalty: N/mm.
+    """
+
+    name: str
+    mesh: Mesh
+    node_set: str
+    shape: str
+    radius: float
+    theta_b: float = np.pi / 2
+    n0: tuple = (1.0, 0.0, 0.0)
+    m0: tuple = (0.0, 0.0, -1.0)
+    axis: tuple = (0.0, 0.0, -1.0)
+    width: float = 2.5
+    ridge: float = 0.0
+    ridge_width: float = 0.0
+    sponge_radius: float = 2.5
+    sponge_length: float = 10.0
+    modulus: float = 0.5
+    penalty: float | None = None
+
+    def __post_init__(self):
+        if self.shape not in ("ring", "sponge"):
+            raise ValueError(f"buckle contact '{self.name}': shape '{self.shape}'; use 'ring' or "
+                             "'sponge'")
+        nodes = self.mesh.node_set(self.node_set)
+        area, h = node_areas(self.mesh, nodes)
+        alpha = self.penalty if self.penalty is not None else PENALTY_FACTOR * self.modulus * h
+        if not alpha > 0:
+            raise ValueError(f"buckle contact '{self.name}': penalty {alpha} N/mm; must be > 0")
+        object.__setattr__(self, "nodes", nodes)
+        object.__setattr__(self, "alpha", float(alpha))
+        object.__setattr__(self, "dofs", 3 * nodes[:, None] + np.arange(3))
+        object.__setattr__(self, "params", {"d": np.zeros(1), "s": np.zeros(1)})
+        geo = np.array([self.radius, self.theta_b, self.width, self.ridge, self.ridge_width,
+                        self.sponge_radius, self.sponge_length])
+        object.__setattr__(self, "data", {
+            "X": self.mesh.nodes[nodes], "alpha": np.full(len(nodes), alpha),
+            "area": np.maximum(area, 1e-12), "geo": geo,
+            "frame": np.array([self.n0, self.m0, self.axis], float)})
+
+    def static_key(self):
+        return (self.shape,)
+
+    def gaps(self, q_loc, params, data):
+        """Signed gaps (n,), mm (negative: penetration)."""
+        x = data["X"] + q_loc
+        R, th, w, ridge, rw, rs, L = (data["geo"][i] for i in range(7))
+        d, s = params["d"][0], params["s"][0]
+        if self.shape == "ring":
+            r = jnp.sqrt(jnp.sum(x * x, axis=1))
+            tau = jnp.arccos(jnp.clip(x[:, 2] / r, -1.0, 1.0))
+            a = R * (tau - th) - s
+            prof = ring_profile(a, w, ridge, rw)
+            return R + prof - d - r
+        n0, m0, t = data["frame"][0], data["frame"][1], data["frame"][2]
+        C = (R + rs - d) * n0 + s * m0
+        v = x - C
+        along = v @ t
+        rad = v - along[:, None] * t
+        dist = jnp.sqrt(jnp.sum(rad * rad, axis=1) + 1e-30)
+        return dist - rs + 10.0 * jnp.maximum(jnp.abs(along) - L / 2, 0.0) ** 2
+
+    def local_energy(self, q_loc, params, data):
+        g = jnp.minimum(self.gaps(q_loc, params, data), 0.0)
+        return 0.5 * data["alpha"] * g * g
+
+    def _gap_np(self, q, params):
+        return np.asarray(self.gaps(np.asarray(q)[self.dofs], params, self.data))
+
+    def report(self, q, params):
+        pen = np.maximum(-self._gap_np(q, params), 0.0)
+        return {"active": int(np.sum(pen > 0)), "max_penetration_mm": float(pen.max(initial=0.0)),
+                "force_N": float(self.alpha * pen.sum())}
+
+    def point_fields(self, q, params, n_nodes):
+        g = self._gap_np(q, params)
+        gap, pres = np.zeros(n_nodes), np.zeros(n_nodes)
+        gap[self.nodes] = g
+        pres[self.nodes] = self.alpha * np.maximum(-g, 0.0) / self.data["area"]
+        return {f"{self.name}_gap_mm": gap, f"{self.name}_pressure_MPa": pres}

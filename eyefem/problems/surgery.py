@@ -1,0 +1,355 @@
+"""Scleral buckling surgery (seed 6.1, 6.2): the eye model, a buckle, sutures, staged.
+
+Stages:
+  1. ``pressurise``: surface pressure to the IOP (15 mmHg) on the wetted surface (wall
+     inside and lens), the cavity open;
+  2. ``tighten`` (encircling) or ``place`` (segmental): the cavity is closed at that
+     pressure and volume (P_ini, V_ini); the buckle is fitted snug on the pressurised
+     eye, then its rigid segments move radially by d = tightening / (2 pi) (the band
+     circumference shortened by ``tightening`` mm); optional drainage of fluid;
+  3. ``suture``: the sutures (bite -> buckle edge, tension-only bars) are tied at their
+     current length, then each bar is shortened by ``suture_tightening / 2`` mm.
+
+The design (tightening, suture width, buckle shift along the meridian, suture
+tightening) maps onto term params (``design_theta``), so the adjoint gives gradients of
+the outcomes with respect to it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from ..bars import AnchoredBars, Bars
+from ..buckle_contact import BuckleContact
+from ..buckles import KINDS, SPONGE_LENGTH, Buckle, suture_anchor_frame
+from ..casefile import Field, positive
+from ..cavity import WATER_BULK, FluidCavity, close_cavity
+from ..eyemodel import LEVELS, EyeGeometry, axial_length, build_eye
+from ..materials import MooneyRivlin
+from ..model import node_dofs, solid_model
+from ..output import write_csv, write_text
+from ..solver import Stage
+from ..surface import PressureLoad
+from ..sutures import generate_sutures
+from ..terms import NodeSprings
+from ..units import MMHG
+from .base import Setup
+
+SEED_MATERIALS = {  # neo-Hookean c (MPa), seed 6.1; limbus: mean of cornea and sclera
+    "cornea": 0.0333, "limbus": 0.0583, "sclera": 0.0833, "ciliary_body": 0.01,
+    "choroid": 0.0083, "retina": 0.0008, "optic_nerve": 0.05, "lens": 10.0}
+
+SURGERY_FIELDS = [
+    Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)}", lambda v: v in LEVELS,
+          f"one of {list(LEVELS)}"),
+    Field("buckle", str, "tire_flat", f"buckle kind: {', '.join(KINDS)}", lambda v: v in KINDS,
+          f"one of {list(KINDS)}"),
+    Field("buckle_distance", float, 12.0, "buckle centre behind the limbus (arc), mm "
+          "(position A = 12, B = 15)", lambda v: 2 <= v <= 20, "2 to 20 mm"),
+    Field("buckle_meridian_deg", float, 0.0, "meridian of a segmental buckle, degrees"),
+    Field("buckle_shift", float, 0.0, "extra posterior shift of the fitted buckle, mm "
+          "(a differentiable design variable)"),
+    Field("tightening", float, 5.0, "band circumference shortening, mm (weak 5, strong 10; "
+          "segmental: radial push of the sponge x 2 pi)", lambda v: 0 <= v <= 30, "0 to 30 mm"),
+    Field("suture_width", float, 9.0, "bite span across the buckle, mm", positive, "> 0"),
+    Field("n_sutures", int, 8, "number of sutures", positive, ">= 1"),
+    Field("suture_angle_deg", float, 0.0, "suture angle about the buckle normal, degrees"),
+    Field("suture_tightening", float, 0.6, "shortening of each suture loop when tied, mm "
+          "('the same suture tension' in every case)", lambda v: v >= 0, ">= 0"),
+    Field("suture_EA", float, 40.0, "suture axial stiffness E*A, N (5-0 polyester ~ 40)",
+          positive, "> 0"),
+    Field("iop_mmhg", float, 15.0, "pre-operative IOP, mmHg", positive, "> 0"),
+    Field("liquid_bulk", float, WATER_BULK, "liquid bulk modulus, MPa", positive, "> 0"),
+    Field("drain_volume", float, 0.0, "fluid drained during stage 2, mm^3 (= uL)",
+          lambda v: v >= 0, ">= 0"),
+    Field("zonule_E", float, 100.0, "zonule Young's modulus, MPa", positive, "> 0"),
+    Field("steps_pressurise", int, 2, "load steps of stage 1", positive, ">= 1"),
+    Field("steps_tighten", int, 8, "load steps of stage 2", positive, ">= 1"),
+    Field("steps_suture", int, 3, "load steps of stage 3", positive, ">= 1"),
+    Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
+          ">= 3"),
+]
+
+
+def _materials(materials):
+    out = {k: MooneyRivlin.from_terms(k, {"c10": c}) for k, c in SEED_MATERIALS.items()}
+    out.update(materials or {})
+    return out
+
+
+@dataclasses.dataclass
+class SurgeryParts:
+    """What the surgery problem is built from (kept for outputs and planning)."""
+
+    eye: object
+    buckle: Buckle
+    p: dict
+    sclera_nodes: np.ndarray
+    frame: tuple
+    layout: object = None
+
+
+def _sutures(parts: SurgeryParts, scale: float):
+    """Suture bars (AnchoredBars, tension-only) for the buckle fitted at radial scale
+    ``scale``: from each bite to the buckle's edge on its side; the anchors move with the
+    buckle (d inward, s posterior)."""
+    eye, b, p = parts.eye, parts.buckle, parts.p
+    g = eye.geometry
+    cen, acr, nrm, _ = parts.frame
+    mesh = eye.mesh
+    layout = generate_sutures(mesh.nodes, mesh.face_set("eye/sclera_outer"), cen, acr, nrm,
+                              width=p["suture_width"], angle_deg=p["suture_angle_deg"], n_bars=3,
+                              buckle_half_width=b.width / 2)
+    parts.layout = layout
+    R = g.scleral_radius * scale
+    _, _, ridge, _ = KINDS[b.kind]
+    anchors, nodes_a, xi_a, d1, d2 = [], [], [], [], []
+    for side, sgn in ((layout.bite_a, -1.0), (layout.bite_b, 1.0)):
+        if b.encircling:
+            top = (R + ridge + b.thickness) * nrm + sgn * 0.5 * b.width * acr
+            d1.append(-top / np.linalg.norm(top, axis=1, keepdims=True))
+            d2.append(np.stack([_meridian(t) for t in top]))
+        else:
+            n0, m0, _ = _sponge_frame(parts)
+            top = (R + b.width / 2) * nrm + sgn * 0.5 * b.width * acr
+            d1.append(np.tile(-n0, (len(top), 1)))
+            d2.append(np.tile(m0, (len(top), 1)))
+        anchors.append(top)
+        nodes_a.append(side.nodes)
+        xi_a.append(side.xi)
+    anchors, nodes_a, xi_a, d1, d2 = (np.concatenate(v) for v in (anchors, nodes_a, xi_a, d1, d2))
+    L0 = np.linalg.norm(anchors - np.einsum("na,nai->ni", _N(xi_a), mesh.nodes[nodes_a]), axis=1)
+    return AnchoredBars("sutures", nodes_a, xi_a, anchors, np.zeros(len(anchors), int), d1, d2,
+                        1, mesh.nodes, L0, EA=p["suture_EA"], tension_only=True)
+
+
+def _meridian(x):
+    """Unit meridian tangent (toward the posterior) at x (3,)."""
+    r = np.linalg.norm(x)
+    th, ph = np.arccos(x[2] / r), np.arctan2(x[1], x[0])
+    return np.array([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), -np.sin(th)])
+
+
+def _sponge_frame(parts: SurgeryParts):
+    """Sponge centre direction n0, meridian tangent m0 and axis (3,) each."""
+    b, g = parts.buckle, parts.eye.geometry
+    th, ph = b.centre_angle(g), np.radians(b.meridian_deg)
+    n0 = np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
+    m0 = np.array([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), -np.sin(th)])
+    e0 = np.array([-np.sin(ph), np.cos(ph), 0.0])
+    return n0, m0, (m0 if b.kind == "sponge_radial" else e0)
+
+
+def buckle_term(parts: SurgeryParts, scale: float) -> BuckleContact:
+    """The analytic buckle contact fitted at radial scale ``scale``."""
+    b, g = parts.buckle, parts.eye.geometry
+    R = g.scleral_radius * scale
+    w, _, ridge, rw = KINDS[b.kind]
+    if b.encircling:
+        return BuckleContact("buckle", parts.eye.mesh, "eye/sclera_outer", "ring", R,
+                             theta_b=b.centre_angle(g), width=w, ridge=ridge, ridge_width=rw,
+                             modulus=6 * SEED_MATERIALS["sclera"])
+    n0, m0, ax = _sponge_frame(parts)
+    return BuckleContact("buckle", parts.eye.mesh, "eye/sclera_outer", "sponge", R,
+                         n0=tuple(n0), m0=tuple(m0), axis=tuple(ax), sponge_radius=w / 2,
+                         sponge_length=SPONGE_LENGTH, modulus=6 * SEED_MATERIALS["sclera"])
+
+
+def _N(xi):
+    from ..bars import bilinear
+
+    return bilinear(xi)
+
+
+def surgery(p, materials):
+    """Build the surgery Setup from case parameters (see SURGERY_FIELDS)."""
+    eye = build_eye(EyeGeometry(), p["mesh"])
+    mesh = eye.mesh
+    faces = np.concatenate([mesh.face_set("eye/inner"), mesh.face_set("lens/surface")])
+    mesh = mesh.replace(face_sets={**mesh.face_sets, "wetted": faces},
+                        node_sets={**mesh.node_sets, "eye/sclera_outer":
+                                   np.unique(mesh.face_set("eye/sclera_outer"))})
+    eye = dataclasses.replace(eye, mesh=mesh)
+    g = eye.geometry
+    b = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
+    frame = suture_anchor_frame(b, g, p["n_sutures"])
+    parts = SurgeryParts(eye, b, p, mesh.node_set("eye/sclera_outer"), frame)
+    mats = _materials(materials)
+    lens_eq, zf, zxi = eye.zonule
+    zonule = Bars("zonule", np.repeat(lens_eq[:, None], 4, 1), zf, np.zeros((len(lens_eq), 2)),
+                  zxi, mesh.nodes, EA=p["zonule_E"] * g.zonule_area)
+    iop = PressureLoad("iop", mesh, "wetted", 0.0)
+    cavity = FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"])
+    sutures = _sutures(parts, 1.0)
+    buckle = buckle_term(parts, 1.0)
+    lens_hold = NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3)
+    model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
+                        (zonule, iop, cavity, buckle, sutures, lens_hold))
+    fix = node_dofs(mesh.node_set("eye/nerve_end"))
+    held = (fix, np.zeros(len(fix)))
+    p_iop = p["iop_mmhg"] * MMHG
+
+    def place_buckle(model, q, theta):
+        model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
+        x = mesh.nodes + q[: 3 * mesh.n_nodes].reshape(-1, 3)
+        s = parts.sclera_nodes[buckle_zone(parts)]
+        # snug: the buckle touches the most outward scleral node under it
+        scale = float(np.max(np.linalg.norm(x[s], axis=1) / np.linalg.norm(mesh.nodes[s], axis=1)))
+        sut, new_buckle = _sutures(parts, scale), buckle_term(parts, scale)
+        model = model.with_terms([new_buckle if t.name == "buckle" else sut if t.name == "sutures"
+                                  else t for t in model.terms])
+        parts.scale = scale
+        return model, q, theta
+
+    def tie_sutures(model, q, theta):
+        t = model.term("sutures")
+        L = np.asarray(t.lengths(np.asarray(q)[t.dofs], theta["sutures"], t.data))
+        return model, q, {**theta, "sutures": {**theta["sutures"], "L0": L}}
+
+    # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`
+    d = p["tightening"] / (2 * np.pi * (np.sin(b.centre_angle(g)) if b.encircling else 1.0))
+    motion = {"d": np.full(1, d), "s": np.full(1, p["buckle_shift"])}
+    base = ("solid", "zonule", "lens_springs")
+    stages = [
+        Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
+              active=base + ("iop",)),
+        Stage("tighten" if b.encircling else "place", p["steps_tighten"], held,
+              params={"buckle": motion, "sutures": motion,
+                      "cavity": {"dv": -p["drain_volume"]}},
+              active=base + ("cavity", "buckle"), before=place_buckle),
+        Stage("suture", p["steps_suture"], held,
+              params={"sutures": {"tightening": np.full(2 * p["n_sutures"],
+                                                        p["suture_tightening"] / 2)}},
+              active=base + ("cavity", "buckle", "sutures"), before=tie_sutures),
+    ]
+    last = {}
+
+    def probe(model, q, theta):
+        out = outcomes(parts, model, q, theta)
+        last["state"] = (model, q, theta)
+        return out
+
+    def finish(rows, out_dir, plots):
+        summary = stage_summary(rows)
+        write_csv(Path(out_dir) / "stages.csv", summary)
+        if plots and "state" in last:
+            pictures(parts, *last["state"], Path(out_dir))
+        final = summary[-1]
+        return {"iop_mmhg": final["iop_mmhg"], "indentation_mm": final["indentation_mm"],
+                "axial_length_change_mm": final["axial_length_change_mm"],
+                "volume_change_mm3": final["volume_change_mm3"],
+                "max_suture_force_N": final["max_suture_force_N"],
+                "iop_after_tightening_mmhg": summary[1]["iop_mmhg"] if len(summary) > 1 else None,
+                "elements": int(mesh.n_elem)}
+
+    setup = Setup("surgery", model, stages, probe, finish)
+    setup.parts = parts
+    return setup
+
+
+def _buckle_coords(parts: SurgeryParts):
+    """Across (a) and along coordinates (mm) of the outer scleral nodes relative to the
+    buckle centre line, and a mask of nodes within the buckle's length."""
+    eye, b = parts.eye, parts.buckle
+    g = eye.geometry
+    X = eye.mesh.nodes[parts.sclera_nodes]
+    th = np.arccos(np.clip(X[:, 2] / np.linalg.norm(X, axis=1), -1, 1))
+    if b.encircling:
+        return g.scleral_radius * (th - b.centre_angle(g)), np.ones(len(X), bool)
+    cen, acr, nrm, _ = suture_anchor_frame(b, g, 1)
+    v = X - cen[0]
+    return v @ acr[0], np.abs(v @ np.cross(nrm[0], acr[0])) < 2.0
+
+
+def buckle_zone(parts: SurgeryParts):
+    """Mask of the outer scleral nodes under the buckle."""
+    a, ok = _buckle_coords(parts)
+    if not parts.buckle.encircling:
+        cen, acr, nrm, _ = suture_anchor_frame(parts.buckle, parts.eye.geometry, 1)
+        v = parts.eye.mesh.nodes[parts.sclera_nodes] - cen[0]
+        ok = np.abs(v @ np.cross(nrm[0], acr[0])) < 5.0
+    return ok & (np.abs(a) < parts.buckle.width / 2)
+
+
+def indentation(parts: SurgeryParts, x) -> float:
+    """Buckle indentation height (mm): mean outer radius of the sclera 1.5-3 mm beside
+    the buckle minus that under its central half, in the buckle's cross-section
+    (encircling: all around; segmental: within 2 mm of the sponge centre)."""
+    b = parts.buckle
+    rho = np.linalg.norm(x[parts.sclera_nodes], axis=1)
+    a, ok = _buckle_coords(parts)
+    under = ok & (np.abs(a) < b.width / 4)
+    beside = ok & (np.abs(a) > b.width / 2 + 1.5) & (np.abs(a) < b.width / 2 + 3.0)
+    if not under.any() or not beside.any():
+        raise ValueError("indentation: no scleral nodes under or beside the buckle; refine the mesh")
+    return float(rho[beside].mean() - rho[under].mean())
+
+
+def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
+    """IOP (mmHg), cavity volume (mm^3), axial length (mm), indentation (mm), max suture force (N)."""
+    mesh = parts.eye.mesh
+    x = mesh.nodes + q[: 3 * mesh.n_nodes].reshape(-1, 3)
+    cav = model.term("cavity")
+    P, V = cav.pressures(q, theta["cavity"])
+    closed = theta["iop"]["p"] == 0.0  # close_cavity releases the surface load
+    iop = float(P[0]) if closed else float(theta["iop"]["p"])
+    L0 = axial_length(mesh, mesh.nodes)
+    forces = model.term("sutures").forces(q, theta["sutures"])
+    return {"iop_mmhg": iop / MMHG, "volume_mm3": float(V[0]),
+            "axial_length_mm": axial_length(mesh, x),
+            "axial_length_change_mm": axial_length(mesh, x) - L0,
+            "indentation_mm": indentation(parts, x),
+            "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
+            else 0.0}
+
+
+def stage_summary(rows) -> list[dict]:
+    """The last row of every stage, with the volume change since the cavity was closed."""
+    out, v_closed = [], None
+    for i, r in enumerate(rows):
+        if i + 1 == len(rows) or rows[i + 1]["stage"] != r["stage"]:
+            if v_closed is None:
+                v_closed = r["volume_mm3"]
+            out.append({"stage": r["stage"], "iop_mmhg": r["iop_mmhg"],
+                        "indentation_mm": r["indentation_mm"],
+                        "axial_length_mm": r["axial_length_mm"],
+                        "axial_length_change_mm": r["axial_length_change_mm"],
+                        "volume_change_mm3": r["volume_mm3"] - v_closed,
+                        "max_suture_force_N": r["max_suture_force_N"]})
+    return out
+
+
+def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path):
+    """Meridional section and outside view coloured by von Mises stress (PNG)."""
+    from ..pictures import plot_outside, plot_section
+
+    mesh = parts.eye.mesh
+    x = mesh.nodes + q[: 3 * mesh.n_nodes].reshape(-1, 3)
+    vm = model.terms[0].fields(q, theta["solid"])["von_mises"] / 1e-3  # kPa
+    normal = (0.0, 1.0, 0.0)
+    if not parts.buckle.encircling:
+        ph = np.radians(parts.buckle.meridian_deg)
+        normal = (-np.sin(ph), np.cos(ph), 0.0)
+    plot_section(out_dir / "section_von_mises.png", x, mesh.hexes, vm, normal=normal,
+                 title="meridional section", label="von Mises stress, kPa")
+    plot_outside(out_dir / "outside_von_mises.png", x, mesh.hexes, vm,
+                 title="outside view", label="von Mises stress, kPa")
+
+
+def write_comparison(summaries: dict, path_stem: Path):
+    """A table comparing cases: CSV and Markdown (path_stem.csv, path_stem.md)."""
+    keys = ["iop_after_tightening_mmhg", "iop_mmhg", "indentation_mm", "axial_length_change_mm",
+            "volume_change_mm3", "max_suture_force_N"]
+    rows = [{"case": k, **{c: v.get(c) for c in keys}} for k, v in summaries.items()]
+    write_csv(Path(str(path_stem) + ".csv"), rows)
+    head = "| case | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys) + "\n"
+    body = "".join("| " + r["case"] + " | " + " | ".join(
+        f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c]) for c in keys) + " |\n"
+        for r in rows)
+    write_text(Path(str(path_stem) + ".md"), head + body)
+
+
+PROBLEMS = {"surgery": (SURGERY_FIELDS, surgery)}
