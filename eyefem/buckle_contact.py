@@ -18,7 +18,13 @@ and d the radial tightening (the ring's circumference shortens by 2 pi d sin the
 Sponge: a cylinder (radius r_s, length L, axis t) whose axis passes through
 C = (R + r_s - d) n0 + s m0: g = |x - C - ((x - C) . t) t| - r_s + 10 max(|.t| - L/2, 0)^2.
 
-Energy 1/2 alpha <-g>^2 per node (the penalty as in eyefem.contact).
+Energy per node 1/2 alpha p^2 with the smoothed penetration p = eps softplus(-g / eps)
+(eps = ``smoothing`` mm): C-infinity, so a node touching down or lifting off does not
+make Newton's method cycle; for -g >> eps it is the plain penalty 1/2 alpha <-g>^2, at
+g = 0 it leaves a stand-off force alpha eps ln 2 (about 1e-3 N per node by default).
+The default penalty alpha = BUCKLE_PENALTY_FACTOR E h: stiff enough that penetrations
+stay a few micrometres under the buckle loads, soft enough to keep the Newton
+system well conditioned against the thin, soft scleral shell.
 """
 
 from __future__ import annotations
@@ -28,9 +34,19 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from .contact import PENALTY_FACTOR, node_areas
+from .contact import node_areas
 from .mesh import Mesh
 from .terms import Term
+
+
+BUCKLE_PENALTY_FACTOR = 10.0
+"""Default buckle penalty alpha = factor * E * h per node (N/mm)."""
+
+
+def smooth_penetration(g, eps):
+    """eps softplus(-g / eps) (mm), overflow-safe: the smoothed <-g>."""
+    z = -g / eps
+    return eps * (jnp.maximum(z, 0.0) + jnp.log1p(jnp.exp(-jnp.abs(z))))
 
 
 def ring_profile(a, width, ridge, ridge_width):
@@ -55,6 +71,7 @@ class BuckleContact(Term):
         centre direction n0 (3,), meridian tangent m0 (3,) and axis (3,).
       width, ridge, ridge_width: ring profile, mm; sponge_radius, sponge_length: mm.
       modulus: Young's modulus of the sclera (default penalty), MPa; penalty: N/mm.
+      smoothing: eps of the smoothed penetration, mm.
     """
 
     name: str
@@ -73,6 +90,7 @@ class BuckleContact(Term):
     sponge_length: float = 10.0
     modulus: float = 0.5
     penalty: float | None = None
+    smoothing: float = 2e-3
 
     def __post_init__(self):
         if self.shape not in ("ring", "sponge"):
@@ -80,9 +98,13 @@ class BuckleContact(Term):
                              "'sponge'")
         nodes = self.mesh.node_set(self.node_set)
         area, h = node_areas(self.mesh, nodes)
-        alpha = self.penalty if self.penalty is not None else PENALTY_FACTOR * self.modulus * h
+        alpha = (self.penalty if self.penalty is not None
+                 else BUCKLE_PENALTY_FACTOR * self.modulus * h)
         if not alpha > 0:
             raise ValueError(f"buckle contact '{self.name}': penalty {alpha} N/mm; must be > 0")
+        if not self.smoothing > 0:
+            raise ValueError(f"buckle contact '{self.name}': smoothing {self.smoothing} mm; "
+                             "must be > 0")
         object.__setattr__(self, "nodes", nodes)
         object.__setattr__(self, "alpha", float(alpha))
         object.__setattr__(self, "dofs", 3 * nodes[:, None] + np.arange(3))
@@ -117,20 +139,28 @@ class BuckleContact(Term):
         return dist - rs + 10.0 * jnp.maximum(jnp.abs(along) - L / 2, 0.0) ** 2
 
     def local_energy(self, q_loc, params, data):
-        g = jnp.minimum(self.gaps(q_loc, params, data), 0.0)
-        return 0.5 * data["alpha"] * g * g
+        p = smooth_penetration(self.gaps(q_loc, params, data), self.smoothing)
+        return 0.5 * data["alpha"] * p * p
 
     def _gap_np(self, q, params):
         return np.asarray(self.gaps(np.asarray(q)[self.dofs], params, self.data))
 
     def report(self, q, params):
-        pen = np.maximum(-self._gap_np(q, params), 0.0)
+        g = self._gap_np(q, params)
+        pen = np.maximum(-g, 0.0)
         return {"active": int(np.sum(pen > 0)), "max_penetration_mm": float(pen.max(initial=0.0)),
-                "force_N": float(self.alpha * pen.sum())}
+                "force_N": float(self.contact_forces(g).sum())}
+
+    def contact_forces(self, g):
+        """Normal contact force magnitudes (n,), N, at gaps g (n,) mm: alpha p dp/d(-g)."""
+        from scipy.special import expit
+
+        z = -np.asarray(g) / self.smoothing
+        return self.alpha * np.asarray(smooth_penetration(g, self.smoothing)) * expit(z)
 
     def point_fields(self, q, params, n_nodes):
         g = self._gap_np(q, params)
         gap, pres = np.zeros(n_nodes), np.zeros(n_nodes)
         gap[self.nodes] = g
-        pres[self.nodes] = self.alpha * np.maximum(-g, 0.0) / self.data["area"]
+        pres[self.nodes] = self.contact_forces(g) / self.data["area"]
         return {f"{self.name}_gap_mm": gap, f"{self.name}_pressure_MPa": pres}

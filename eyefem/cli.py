@@ -33,6 +33,7 @@ def cmd_run(args) -> int:
     from .casefile import CaseError, load_case
     from .problems import PROBLEMS
     from .problems.base import run_setup
+    from .checkpoint import CheckpointError
     from .solver import ConvergenceError
 
     try:
@@ -46,10 +47,15 @@ def cmd_run(args) -> int:
                                      case.problem, setup.model.mesh.n_elem, setup.model.n_dof, out)
     try:
         res = run_setup(setup, out, case.solver, vtu=case.output["vtu"] and not args.no_vtu,
-                        plots=case.output["plots"])
+                        plots=case.output["plots"], resume=args.resume,
+                        key=repr((case.problem, case.parameters, case.materials)))
     except ConvergenceError as exc:
-        print(f"eyefem: {exc}\nOutputs of the converged steps are in {out}", file=sys.stderr)
+        print(f"eyefem: {exc}\nOutputs of the converged steps are in {out}; after fixing the "
+              "cause, --resume continues after the last completed stage", file=sys.stderr)
         return 3
+    except CheckpointError as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2
     summary = {"case": str(case.path), "title": case.title, **res.summary}
     from .output import write_text
 
@@ -128,6 +134,8 @@ def main(argv=None) -> int:
     p.add_argument("case")
     p.add_argument("--out", help="output directory (default from the case file)")
     p.add_argument("--no-vtu", action="store_true", help="skip the VTU series")
+    p.add_argument("--resume", action="store_true",
+                   help="continue after the last completed stage (checkpoint in the output dir)")
     p.set_defaults(fn=cmd_run)
     p = sub.add_parser("verify-tangents", help="autodiff vs hand-coded vs finite-difference tangents")
     p.add_argument("--seed", type=int, default=0)

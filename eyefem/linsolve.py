@@ -203,15 +203,21 @@ class SaddlePointSolver:
     def _uzawa(self, f, g):
         y = np.zeros(self.B.shape[1])
         Dg = self.B @ (self.D * g)
+        prev = np.inf
         for it in range(self.max_uzawa):
             x = self._solve_aug(f + Dg - self.B @ y)
             c = self.B.T @ x - g
             y = y + self.D * c
-            if np.linalg.norm(self.B @ (self.D * c)) <= self.tol * max(
-                    np.linalg.norm(f), np.linalg.norm(self.B @ y), 1e-300):
+            err = np.linalg.norm(self.B @ (self.D * c))
+            if err <= self.tol * max(np.linalg.norm(f), np.linalg.norm(self.B @ y), 1e-300):
+                self.iterations = it
+                return x, y
+            if not err < prev:
                 break
-        self.iterations = it
-        return x, y
+            prev = err
+        raise LinearSolveError(
+            f"the tangent is indefinite on the incompressible modes (Uzawa stalled after {it + 1} "
+            "iterations): the state is unstable or far from equilibrium")
 
     def _apply_K(self, x):
         """(K + low rank) x, without the augmentation."""

@@ -149,17 +149,20 @@ class _StepFailed(Exception):
 
 
 def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOptions,
-           active=None, vref=1.0):
-    """Solve one step. Returns (model, q, iterations, residual, solver).
+           active=None, vref=1.0, fscale=0.0):
+    """Solve one step. Returns (model, q, iterations, residual, solver, reference force).
 
     The model is returned because dynamic terms (contact) are re-paired every iteration.
 
     q is the state at the previous step; dq_prescribed (n_dof,) the increment of the
-    prescribed dofs (zero elsewhere), taken with a consistent linear predictor.
+    prescribed dofs (zero elsewhere), taken with a consistent linear predictor. The
+    force tolerance is relative to the largest of the step's initial out-of-balance
+    force, the reactions and ``fscale`` (the stage's typical step force), so a cut step
+    is not held to a tighter absolute tolerance than a full one.
     """
     free = asm.free_primal
     mult = asm.mult
-    fref = 0.0
+    fref = fscale
     solver = None
     q = q.copy()
     if np.any(dq_prescribed):
@@ -187,7 +190,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                   " (pairs frozen)" if frozen else "")
         if nf <= opts.rtol * fref + opts.atol and nm <= opts.vtol:
             if not frozen:
-                return model, q, it, nf, solver
+                return model, q, it, nf, solver, fref
             repaired = model.update(q, theta)  # the pairing at the converged state
             r2 = repaired.gradient(q, theta, active)
             nf2 = np.linalg.norm(r2[free])
@@ -195,7 +198,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
             fc = np.linalg.norm(repaired.gradient(q, theta, dyn)[free]) if dyn else 0.0
             if nf2 <= opts.contact_rtol * max(fref, fc) + opts.atol:
                 asm.model = repaired
-                return repaired, q, it, nf2, solver
+                return repaired, q, it, nf2, solver, fref
             model, r, rf, nf, frozen = repaired, r2, r2[free], nf2, False
             asm.model = model
         elif nf <= opts.contact_freeze * fref and any(t.dynamic for t in model.terms):
@@ -225,6 +228,8 @@ def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, enabled):
         m = np.hypot(np.linalg.norm(r[asm.free_primal]) / max(fref, 1e-300),
                      np.linalg.norm(r[asm.mult]) / vref if len(asm.mult) else 0.0)
         if m < m0:
+            if alpha < 1.0:
+                log.debug("  line search: step length %g", alpha)
             return qa
         if best is None or m < best[0]:
             best = (m, qa)
@@ -236,12 +241,17 @@ def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, enabled):
 def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
           options: NewtonOptions = NewtonOptions(),
           on_step: Callable[[StepRecord, Model, np.ndarray, Any], None] | None = None,
-          on_stage_end: Callable[[int, Model, np.ndarray, Any], None] | None = None) -> Solution:
+          on_stage_end: Callable[[int, Model, np.ndarray, Any, list], None] | None = None,
+          completed: Sequence[tuple[np.ndarray, Any]] = ()) -> Solution:
     """Run a load path from q0 (default zero) with design theta (default model.theta0()).
 
     ``on_step(record, model, q, theta)`` is called after every converged step (outputs,
-    progress); ``on_stage_end(index, model, q, theta)`` after every completed stage
-    (checkpoints). Raises ConvergenceError with the last converged state on failure.
+    progress); ``on_stage_end(index, model, q, theta, starts)`` after every completed
+    stage, with ``starts`` the (q, theta) at the start of every stage so far (what a
+    checkpoint needs). To resume, pass ``completed`` = those starts of the stages already
+    done and q0/theta = the state at their end: their ``before`` hooks are replayed on
+    the model (not re-solved) and the load path goes on with the next stage. Raises
+    ConvergenceError with the last converged state on failure.
     """
     check_x64()
     q = np.zeros(model.n_dof) if q0 is None else np.array(q0, dtype=np.float64)
@@ -249,7 +259,14 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
     history: list[StepRecord] = []
     vref = float(sum(np.sum(t.data["dv"]) for t in model.terms if "dv" in t.data)) or 1.0
     asm, last_solver, stage = None, None, None
+    starts = list(completed)
+    for (q_s, theta_s), done in zip(completed, stages):
+        if done.before is not None:
+            model, _, _ = done.before(model, np.array(q_s), theta_s)
     for i_stage, stage in enumerate(stages):
+        if i_stage < len(completed):
+            continue
+        starts.append((q.copy(), theta))
         if stage.before is not None:
             model, q, theta = stage.before(model, q, theta)
         dofs, targets = stage.prescribed
@@ -262,7 +279,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
         for name, p in stage.params.items():
             model.term(name)
             theta_end[name] = {**theta[name], **p}
-        t, dt, step, cuts = 0.0, 1.0 / stage.n_steps, 0, 0
+        t, dt, step, cuts, step_refs = 0.0, 1.0 / stage.n_steps, 0, 0, []
         while t < 1.0 - 1e-12:
             t_new = min(1.0, t + dt)
             th = _lerp(theta_start, theta_end, t_new)
@@ -270,8 +287,9 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
             dqp[dofs] = start_vals + t_new * (targets - start_vals) - q[dofs]
             tic = time.perf_counter()
             try:
-                model_new, q_new, its, res, slv = newton(model, asm, q, th, dqp, options,
-                                                         stage.active, vref)
+                fscale = float(np.median(step_refs)) if step_refs else 0.0
+                model_new, q_new, its, res, slv, fref = newton(model, asm, q, th, dqp, options,
+                                                               stage.active, vref, fscale)
             except _StepFailed as exc:
                 cuts += 1
                 if cuts > options.max_cuts:
@@ -285,6 +303,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
                             stage.name, t_new, exc, dt)
                 continue
             step += 1
+            step_refs.append(fref / (dt * stage.n_steps))  # per nominal step
             t, q, theta, model = t_new, q_new, th, model_new
             last_solver = slv
             rec = StepRecord(stage.name, step, t, its, res, time.perf_counter() - tic)
@@ -293,12 +312,12 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
                      stage.name, step, t, its, res, rec.wall)
             if on_step is not None:
                 on_step(rec, model, q, theta)
-            if cuts and its <= 6:
+            if cuts and its <= 8:
                 dt = min(1.0 / stage.n_steps, dt * 2.0)
                 cuts = max(cuts - 1, 0)
         theta = theta_end
         if on_stage_end is not None:
-            on_stage_end(i_stage, model, q, theta)
+            on_stage_end(i_stage, model, q, theta, starts)
     if asm is not None:
         asm.model = model
     return Solution(model, q, theta, history, asm, last_solver,

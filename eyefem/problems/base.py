@@ -15,6 +15,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .. import checkpoint
 from ..model import Model
 from ..output import SeriesWriter, write_csv
 from ..solver import NewtonOptions, Solution, Stage, solve
@@ -71,13 +72,28 @@ def cell_and_point_fields(model: Model, q, theta):
 
 
 def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOptions(), *,
-              vtu: bool = True, plots: bool = True) -> RunResult:
-    """Solve a setup, writing outputs after each converged step (atomically)."""
+              vtu: bool = True, plots: bool = True, key: str = "", resume: bool = False
+              ) -> RunResult:
+    """Solve a setup, writing outputs after each converged step (atomically).
+
+    After every completed stage a checkpoint is written to ``out_dir``; with
+    ``resume=True`` the run continues after the last completed stage of the checkpoint
+    (``key`` identifies the case, so a checkpoint of another case is refused).
+    """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     writer = SeriesWriter(out_dir, setup.name)
     tic = time.perf_counter()
+    key = checkpoint.fingerprint(key, setup.name, setup.model.n_dof, len(setup.stages))
+    q0, theta0, completed = setup.q0, None, ()
+    if resume:
+        ck = checkpoint.load(out_dir, key)
+        rows[:] = ck["rows"]
+        writer.entries = list(ck["vtu_entries"])
+        q0, theta0, completed = ck["q"], ck["theta"], ck["starts"]
+        log.info("resuming %s after stage %d ('%s') from %s", setup.name, ck["stage"] + 1,
+                 setup.stages[ck["stage"]].name, out_dir / checkpoint.FILENAME)
 
     def on_step(rec, model, q, theta):
         row = {"stage": rec.stage, "step": rec.step, "t": rec.t, "iterations": rec.iterations,
@@ -90,7 +106,14 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
             point, cell = cell_and_point_fields(model, q, theta)
             writer.add(float(len(rows)), model.mesh.nodes, model.mesh.hexes, point, cell)
 
-    sol = solve(setup.model, setup.stages, q0=setup.q0, options=options, on_step=on_step)
+    def on_stage_end(i, model, q, theta, starts):
+        checkpoint.save(out_dir, key=key, stage=i, q=q, theta=theta, starts=starts, rows=rows,
+                        vtu_entries=writer.entries)
+
+    sol = solve(setup.model, setup.stages, q0=q0, theta=theta0, options=options,
+                on_step=on_step, on_stage_end=on_stage_end, completed=completed)
+    if not sol.history:  # resumed after the last stage: nothing left to solve
+        setup.probe(sol.model, sol.q, sol.theta)
     summary = setup.finish(rows, out_dir, plots)
     summary["wall_s"] = time.perf_counter() - tic
     summary["newton_iterations"] = int(sum(r.iterations for r in sol.history))

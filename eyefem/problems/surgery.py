@@ -300,23 +300,26 @@ def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
     forces = model.term("sutures").forces(q, theta["sutures"])
     return {"iop_mmhg": iop / MMHG, "volume_mm3": float(V[0]),
             "axial_length_mm": axial_length(mesh, x),
-            "axial_length_change_mm": axial_length(mesh, x) - L0,
+            "axial_length_change_unloaded_mm": axial_length(mesh, x) - L0,
             "indentation_mm": indentation(parts, x),
             "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
             else 0.0}
 
 
 def stage_summary(rows) -> list[dict]:
-    """The last row of every stage, with the volume change since the cavity was closed."""
-    out, v_closed = [], None
+    """The last row of every stage, with the volume and axial length changes since the
+    end of the first stage (the pressurised pre-operative eye)."""
+    out, v_closed, l_preop = [], None, None
     for i, r in enumerate(rows):
         if i + 1 == len(rows) or rows[i + 1]["stage"] != r["stage"]:
             if v_closed is None:
                 v_closed = r["volume_mm3"]
+            if l_preop is None:
+                l_preop = r["axial_length_mm"]
             out.append({"stage": r["stage"], "iop_mmhg": r["iop_mmhg"],
                         "indentation_mm": r["indentation_mm"],
                         "axial_length_mm": r["axial_length_mm"],
-                        "axial_length_change_mm": r["axial_length_change_mm"],
+                        "axial_length_change_mm": r["axial_length_mm"] - l_preop,
                         "volume_change_mm3": r["volume_mm3"] - v_closed,
                         "max_suture_force_N": r["max_suture_force_N"]})
     return out
