@@ -134,6 +134,8 @@ class AnchoredBars(Term):
       dirs, dirs2: (n, 3) motion directions of the anchors; n_bodies: number of bodies;
       node_xyz (n_nodes, 3) reference nodes;
       L0 (n,) tied lengths, mm; EA: N; tension_only (sutures: True).
+      extra_dof: global dof of a free radial motion of the (single) body added to d, or
+        -1 (see buckle_contact).
     """
 
     name: str
@@ -148,6 +150,7 @@ class AnchoredBars(Term):
     L0: np.ndarray
     EA: float | np.ndarray = 1.0
     tension_only: bool = True
+    extra_dof: int = -1
 
     def __post_init__(self):
         na = np.asarray(self.nodes_a, np.int64).reshape(-1, 4)
@@ -160,7 +163,12 @@ class AnchoredBars(Term):
         if np.any(EA <= 0):
             raise ValueError(f"bars '{self.name}': axial stiffness EA must be > 0 N")
         nb = self.n_bodies
-        object.__setattr__(self, "dofs", (3 * na[:, :, None] + np.arange(3)).reshape(n, 12))
+        dofs = (3 * na[:, :, None] + np.arange(3)).reshape(n, 12)
+        if self.extra_dof >= 0:
+            if nb != 1:
+                raise ValueError(f"bars '{self.name}': a free body motion needs n_bodies = 1")
+            dofs = np.concatenate([dofs, np.full((n, 1), self.extra_dof)], axis=1)
+        object.__setattr__(self, "dofs", dofs)
         object.__setattr__(self, "params", {"EA": EA, "tightening": np.zeros(n), "L0": L0,
                                             "xi": np.asarray(self.xi_a, float).reshape(n, 2),
                                             "d": np.zeros(nb), "s": np.zeros(nb)})
@@ -169,11 +177,14 @@ class AnchoredBars(Term):
             "dir": np.asarray(self.dirs, float), "dir2": np.asarray(self.dirs2, float)})
 
     def static_key(self):
-        return (self.tension_only,)
+        return (self.tension_only, self.extra_dof >= 0)
 
     def lengths(self, q_loc, params, data):
-        xa = embedded_positions(data["X"], q_loc.reshape(-1, 4, 3), params["xi"])
-        xb = (data["anchor"] + params["d"][data["body"]][:, None] * data["dir"]
+        xa = embedded_positions(data["X"], q_loc[:, :12].reshape(-1, 4, 3), params["xi"])
+        d = params["d"][data["body"]]
+        if self.extra_dof >= 0:
+            d = d + q_loc[:, 12]
+        xb = (data["anchor"] + d[:, None] * data["dir"]
               + params["s"][data["body"]][:, None] * data["dir2"])
         return jnp.sqrt(jnp.sum((xb - xa) ** 2, axis=1))
 

@@ -9,14 +9,26 @@ Encircling ring (band or tire) about the globe centre, in spherical coordinates
 (r = |x|, polar angle tau): across-coordinate a = R (tau - theta_b) - s (mm, s: shift of
 the buckle toward the posterior), inner surface radius
 
-    S(a) = R + ridge - h(a) + lift(a) - d,      g = S(a) - r   (g < 0: penetration)
+    S(a) = R - k b(a) + lift(a) - d,      g = S(a) - r   (g < 0: penetration)
 
-with h the ridge (cosine flanks 0.5 mm wide), lift the upturned edges (0.3 mm over the
-last 0.5 mm, growing quadratically beyond, so contact fades out smoothly past the edge)
-and d the radial tightening (the ring's circumference shortens by 2 pi d sin theta_b).
+with b the ridge shape (1 on the ridge, quintic smoothstep flanks 0.5 mm wide, 0 beyond:
+twice differentiable, so the response to a buckle shift is smooth) and k its
+current protrusion (param "ridge", ramped from 0 when the tire is seated on its flat
+base), lift the upturned edges (0.3 mm over the last 0.5 mm, growing cubically
+beyond, so contact fades out smoothly past the edge) and d the radial tightening (the
+ring's circumference shortens by 2 pi d sin theta_b).
 
 Sponge: a cylinder (radius r_s, length L, axis t) whose axis passes through
 C = (R + r_s - d) n0 + s m0: g = |x - C - ((x - C) . t) t| - r_s + 10 max(|.t| - L/2, 0)^2.
+
+A radial sponge lies along the meridian and follows the globe's curvature (``curved``):
+its centre line is the arc of radius rho0 = R + r_s - d about the globe centre in the
+plane of n0 and m0, g = sqrt((rho - rho0)^2 + w^2) - r_s + 10 max(|psi| rho0 - L/2, 0)^2
+with (rho, psi) the polar coordinates of x in that plane (psi from n0, shifted by
+s / rho0) and w its distance from the plane.
+
+With ``extra_dof`` the buckle's radial position is also an unknown: d = param d + q[extra]
+(a segmental sponge pulled in by its sutures finds its own depth).
 
 Energy per node 1/2 alpha p^2 with the smoothed penetration p = eps softplus(-g / eps)
 (eps = ``smoothing`` mm): C-infinity, so a node touching down or lifting off does not
@@ -50,12 +62,13 @@ def smooth_penetration(g, eps):
 
 
 def ring_profile(a, width, ridge, ridge_width):
-    """Inner-surface offset of a ring above R (mm) at across-coordinates a (jax or numpy)."""
+    """Inner-surface offset of a ring above R (mm) at across-coordinates a (jax or numpy):
+    -ridge on the ridge, 0 on the flat base, rising at the edges."""
     aa = jnp.abs(a)
     t = jnp.clip((aa - (ridge_width / 2 - 0.5)) / 0.5, 0.0, 1.0)
-    h = ridge * 0.5 * (1 + jnp.cos(jnp.pi * t))
-    lift = 0.3 * (jnp.maximum(aa - (width / 2 - 0.5), 0.0) / 0.5) ** 2
-    return ridge - h + lift
+    bump = jnp.where(ridge_width > 0, 1.0 - t**3 * (10.0 - 15.0 * t + 6.0 * t**2), 0.0)
+    lift = 0.3 * (jnp.maximum(aa - (width / 2 - 0.5), 0.0) / 0.5) ** 3
+    return -ridge * bump + lift
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -63,7 +76,8 @@ class BuckleContact(Term):
     """Frictionless penalty contact of scleral nodes with an analytic rigid buckle.
 
     Args:
-      name: term name; params {"d": (1,) inward motion, mm; "s": (1,) posterior shift, mm}.
+      name: term name; params {"d": (1,) inward motion, mm; "s": (1,) posterior shift, mm;
+        "ridge": (1,) current ridge protrusion, mm (ramp it to ``ridge``)}.
       mesh: the mesh; node_set: candidate (outer scleral) nodes.
       shape: "ring" or "sponge".
       radius: R, the scleral radius the buckle was fitted to, mm.
@@ -72,6 +86,8 @@ class BuckleContact(Term):
       width, ridge, ridge_width: ring profile, mm; sponge_radius, sponge_length: mm.
       modulus: Young's modulus of the sclera (default penalty), MPa; penalty: N/mm.
       smoothing: eps of the smoothed penetration, mm.
+      extra_dof: global dof of the buckle's free radial motion (mm, inward), or -1.
+      curved: sponge only: its axis is the arc along the meridian (a radial sponge).
     """
 
     name: str
@@ -91,6 +107,8 @@ class BuckleContact(Term):
     modulus: float = 0.5
     penalty: float | None = None
     smoothing: float = 2e-3
+    extra_dof: int = -1
+    curved: bool = False
 
     def __post_init__(self):
         if self.shape not in ("ring", "sponge"):
@@ -107,8 +125,12 @@ class BuckleContact(Term):
                              "must be > 0")
         object.__setattr__(self, "nodes", nodes)
         object.__setattr__(self, "alpha", float(alpha))
-        object.__setattr__(self, "dofs", 3 * nodes[:, None] + np.arange(3))
-        object.__setattr__(self, "params", {"d": np.zeros(1), "s": np.zeros(1)})
+        dofs = 3 * nodes[:, None] + np.arange(3)
+        if self.extra_dof >= 0:
+            dofs = np.concatenate([dofs, np.full((len(nodes), 1), self.extra_dof)], axis=1)
+        object.__setattr__(self, "dofs", dofs)
+        object.__setattr__(self, "params", {"d": np.zeros(1), "s": np.zeros(1),
+                                            "ridge": np.zeros(1)})
         geo = np.array([self.radius, self.theta_b, self.width, self.ridge, self.ridge_width,
                         self.sponge_radius, self.sponge_length])
         object.__setattr__(self, "data", {
@@ -117,21 +139,30 @@ class BuckleContact(Term):
             "frame": np.array([self.n0, self.m0, self.axis], float)})
 
     def static_key(self):
-        return (self.shape,)
+        return (self.shape, self.extra_dof >= 0, self.curved)
 
     def gaps(self, q_loc, params, data):
         """Signed gaps (n,), mm (negative: penetration)."""
-        x = data["X"] + q_loc
-        R, th, w, ridge, rw, rs, L = (data["geo"][i] for i in range(7))
+        x = data["X"] + q_loc[:, :3]
+        R, th, w, _, rw, rs, L = (data["geo"][i] for i in range(7))
         d, s = params["d"][0], params["s"][0]
+        if self.extra_dof >= 0:
+            d = d + q_loc[:, 3]
         if self.shape == "ring":
             r = jnp.sqrt(jnp.sum(x * x, axis=1))
             tau = jnp.arccos(jnp.clip(x[:, 2] / r, -1.0, 1.0))
             a = R * (tau - th) - s
-            prof = ring_profile(a, w, ridge, rw)
+            prof = ring_profile(a, w, params["ridge"][0], rw)
             return R + prof - d - r
         n0, m0, t = data["frame"][0], data["frame"][1], data["frame"][2]
-        C = (R + rs - d) * n0 + s * m0
+        if self.curved:
+            rho0 = R + rs - d
+            u, v, w = x @ n0, x @ m0, x @ jnp.cross(n0, m0)
+            rho = jnp.sqrt(u * u + v * v)
+            psi = jnp.arctan2(v, u) - s / rho0
+            dist = jnp.sqrt((rho - rho0) ** 2 + w * w + 1e-30)
+            return dist - rs + 10.0 * jnp.maximum(jnp.abs(psi) * rho0 - L / 2, 0.0) ** 2
+        C = jnp.asarray(R + rs - d)[..., None] * n0 + s * m0
         v = x - C
         along = v @ t
         rad = v - along[:, None] * t

@@ -1,4 +1,5 @@
-"""Command line: ``eyefem run CASE``, ``eyefem verify-tangents``, ``eyefem cases``.
+"""Command line: ``eyefem run CASE``, ``eyefem compare CASES``, ``eyefem verify-tangents``,
+``eyefem cases``, ``eyefem describe PROBLEM``, ``eyefem new-case PROBLEM``.
 
 The entry point switches JAX to float64 and sets up logging (one line per load step);
 the library itself never prints.
@@ -39,6 +40,10 @@ def cmd_run(args) -> int:
     try:
         case = load_case(args.case, _schemas())
         out = Path(args.out or case.output["directory"])
+        if args.mesh:
+            if "mesh" not in case.parameters:
+                raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; drop --mesh")
+            case.parameters["mesh"] = args.mesh
         setup = PROBLEMS[case.problem][1](case.parameters, case.materials)
     except (CaseError, ValueError, KeyError) as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
@@ -66,6 +71,21 @@ def cmd_run(args) -> int:
             print(f"  {k:<32} {v:.6g}" if isinstance(v, float) else f"  {k:<32} {v}")
     print(f"  results in {out}/")
     return 0
+
+
+def cmd_compare(args) -> int:
+    from .casefile import CaseError
+    from .compare import compare
+    from .solver import ConvergenceError
+
+    try:
+        summaries = compare(args.cases, Path(args.out), mesh=args.mesh, reuse=args.reuse)
+    except (CaseError, ValueError, ConvergenceError) as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2 if not isinstance(exc, ConvergenceError) else 3
+    print(Path(args.out, "comparison.md").read_text())
+    print(f"results in {args.out}/")
+    return 0 if summaries else 2
 
 
 def cmd_verify(args) -> int:
@@ -136,7 +156,14 @@ def main(argv=None) -> int:
     p.add_argument("--no-vtu", action="store_true", help="skip the VTU series")
     p.add_argument("--resume", action="store_true",
                    help="continue after the last completed stage (checkpoint in the output dir)")
+    p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, default)")
     p.set_defaults(fn=cmd_run)
+    p = sub.add_parser("compare", help="run several cases and tabulate/plot their outcomes")
+    p.add_argument("cases", nargs="+", help="case files")
+    p.add_argument("--mesh", help="override the mesh level of every case")
+    p.add_argument("--out", default="results/compare", help="output root (one folder per case)")
+    p.add_argument("--reuse", action="store_true", help="skip cases whose summary.json exists")
+    p.set_defaults(fn=cmd_compare)
     p = sub.add_parser("verify-tangents", help="autodiff vs hand-coded vs finite-difference tangents")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(fn=cmd_verify)

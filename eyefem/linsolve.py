@@ -187,8 +187,8 @@ class SaddlePointSolver:
             Sp = B.T @ w
             pSp = p @ Sp
             if pSp <= 0:
-                log.debug("Schur CG: negative curvature, switching to Uzawa")
-                return self._uzawa(f, g)
+                log.debug("Schur CG: negative curvature; direct solve of the saddle point")
+                return self._kkt_solve(f, g)
             alpha = rz / pSp
             y = y + alpha * p
             x = x - alpha * w
@@ -200,24 +200,37 @@ class SaddlePointSolver:
         self.iterations = it
         return x, y
 
-    def _uzawa(self, f, g):
-        y = np.zeros(self.B.shape[1])
-        Dg = self.B @ (self.D * g)
-        prev = np.inf
-        for it in range(self.max_uzawa):
-            x = self._solve_aug(f + Dg - self.B @ y)
-            c = self.B.T @ x - g
-            y = y + self.D * c
-            err = np.linalg.norm(self.B @ (self.D * c))
-            if err <= self.tol * max(np.linalg.norm(f), np.linalg.norm(self.B @ y), 1e-300):
-                self.iterations = it
-                return x, y
-            if not err < prev:
-                break
-            prev = err
-        raise LinearSolveError(
-            f"the tangent is indefinite on the incompressible modes (Uzawa stalled after {it + 1} "
-            "iterations): the state is unstable or far from equilibrium")
+    def _kkt_solve(self, f, g):
+        """Direct solve of the whole saddle-point system [[K_aug, B], [B^T, -eps]] (symmetric
+        indefinite factorisation; eps ~ 1e-12 of K's diagonal keeps the pivots defined),
+        with the low-rank terms by Woodbury and two refinements against the exact system.
+        Used when K_aug is indefinite (the Schur complement CG meets negative curvature)."""
+        B = self.B
+        n, m = B.shape
+        if getattr(self, "_kkt", None) is None:
+            eps = 1e-12 * float(np.abs(self.K_aug.diagonal()).mean())
+            A = sp.bmat([[self.K_aug, B], [B.T, -eps * sp.eye(m)]], format="csr")
+            self._kkt = factorize(A, self.backend)
+            if self.low_rank:
+                Vk = np.vstack([self.V, np.zeros((m, self.V.shape[1]))])
+                self._kkt_KiV = self._kkt.solve(Vk).reshape(Vk.shape)
+                self._kkt_cap = np.linalg.inv(np.diag(1.0 / self.alpha) + Vk.T @ self._kkt_KiV)
+
+        def apply_inverse(r):
+            z = self._kkt.solve(r)
+            if self.low_rank:
+                z = z - self._kkt_KiV @ (self._kkt_cap @ (self.V.T @ z[:n]))
+            return z
+
+        rhs = np.concatenate([f + B @ (self.D * g), g])
+        z = apply_inverse(rhs)
+        for _ in range(2):
+            x, y = z[:n], z[n:]
+            kx = self.K_aug @ x + (self.V @ (self.alpha * (self.V.T @ x)) if self.low_rank else 0.0)
+            res = rhs - np.concatenate([kx + B @ y, B.T @ x])
+            z = z + apply_inverse(res)
+        self.iterations = -1
+        return z[:n], z[n:]
 
     def _apply_K(self, x):
         """(K + low rank) x, without the augmentation."""
@@ -233,7 +246,8 @@ class SaddlePointSolver:
 
         Conjugate gradients on the Schur complement S = B^T K_aug^-1 B of the augmented
         system, preconditioned by D (S is close to D^-1): one back-solve per iteration.
-        Falls back to Uzawa iterations if S shows negative curvature (indefinite K).
+        Falls back to a direct symmetric-indefinite factorisation of the whole saddle-point
+        system if S shows negative curvature (K_aug indefinite).
         """
         self.n_solves += 1
         if self.B is None:

@@ -144,10 +144,10 @@ class Model:
             return self
         return Model(self.mesh, new, self.n_dof)
 
-    def report(self, q, theta) -> dict:
-        """Scalar outputs of every term, keyed 'term/quantity'."""
+    def report(self, q, theta, active=None) -> dict:
+        """Scalar outputs of every (active) term, keyed 'term/quantity'."""
         out = {}
-        for t in self.terms:
+        for t in self._active(active):
             for k, v in t.report(q, theta[t.name]).items():
                 out[f"{t.name}/{k}"] = v
         return out

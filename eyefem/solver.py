@@ -41,6 +41,8 @@ class NewtonOptions:
       contact_freeze: contact pairs (dynamic terms) are re-paired every iteration until
         the force residual falls below contact_freeze x the reference, then frozen for
         quadratic convergence; at convergence they are re-paired once more.
+      extrapolate: start each step's Newton iterations from the secant extrapolation of
+        the two previous converged states of the stage (from the last state if that fails).
       contact_rtol: the residual after that final re-pairing must be below contact_rtol x
         max(reference, norm of the contact forces) (a node at a surface edge or on a facet
         edge may flip without end; this bounds the force such a flip leaves unbalanced),
@@ -57,6 +59,7 @@ class NewtonOptions:
     beta: float = 1e4
     contact_freeze: float = 1e-3
     contact_rtol: float = 1e-4
+    extrapolate: bool = False
 
     def __post_init__(self):
         for f in ("rtol", "vtol", "atol", "beta", "contact_freeze", "contact_rtol"):
@@ -279,17 +282,28 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
         for name, p in stage.params.items():
             model.term(name)
             theta_end[name] = {**theta[name], **p}
-        t, dt, step, cuts, step_refs = 0.0, 1.0 / stage.n_steps, 0, 0, []
+        t, dt, step, cuts, step_refs, prev = 0.0, 1.0 / stage.n_steps, 0, 0, [], None
         while t < 1.0 - 1e-12:
             t_new = min(1.0, t + dt)
             th = _lerp(theta_start, theta_end, t_new)
-            dqp = np.zeros(model.n_dof)
-            dqp[dofs] = start_vals + t_new * (targets - start_vals) - q[dofs]
             tic = time.perf_counter()
+            fscale = float(np.median(step_refs)) if step_refs else 0.0
+            starts_q = [q]
+            if options.extrapolate and prev is not None:  # secant predictor along the path
+                starts_q.insert(0, q + (q - prev[0]) * ((t_new - t) / (t - prev[1])))
             try:
-                fscale = float(np.median(step_refs)) if step_refs else 0.0
-                model_new, q_new, its, res, slv, fref = newton(model, asm, q, th, dqp, options,
-                                                               stage.active, vref, fscale)
+                for k, q_start in enumerate(starts_q):
+                    dqp = np.zeros(model.n_dof)
+                    dqp[dofs] = start_vals + t_new * (targets - start_vals) - q_start[dofs]
+                    try:
+                        model_new, q_new, its, res, slv, fref = newton(
+                            model, asm, q_start, th, dqp, options, stage.active, vref, fscale)
+                        break
+                    except _StepFailed as exc:
+                        if k + 1 == len(starts_q):
+                            raise
+                        log.debug("step from the extrapolated state failed (%s); retrying from "
+                                  "the last converged state", exc)
             except _StepFailed as exc:
                 cuts += 1
                 if cuts > options.max_cuts:
@@ -303,7 +317,8 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
                             stage.name, t_new, exc, dt)
                 continue
             step += 1
-            step_refs.append(fref / (dt * stage.n_steps))  # per nominal step
+            step_refs.append(fref)
+            prev = (q, t)
             t, q, theta, model = t_new, q_new, th, model_new
             last_solver = slv
             rec = StepRecord(stage.name, step, t, its, res, time.perf_counter() - tic)

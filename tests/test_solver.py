@@ -96,6 +96,29 @@ def test_saddle_point_solve_is_exact():
                                rtol=1e-8, atol=1e-10)
 
 
+def test_saddle_point_solve_with_indefinite_block_uses_the_direct_kkt_solve():
+    """K + B D B^T indefinite (a strongly negative mode that the augmentation does not
+    cover): the Schur CG meets negative curvature and the direct KKT solve still returns
+    the exact solution."""
+    rng = np.random.default_rng(7)
+    n, m = 30, 5
+    A = sp.random(n, n, density=0.3, random_state=8)
+    K = (A @ A.T + sp.eye(n)).tocsr()
+    B = sp.random(n, m, density=0.4, random_state=9).tocsr() + sp.eye(n, m)
+    w = B.toarray() @ np.ones(m)
+    K = (K - 50.0 * sp.csr_matrix(np.outer(w, w))).tocsr()  # strongly negative along w
+    f, g = rng.standard_normal(n), rng.standard_normal(m)
+    v = rng.standard_normal(n)
+    Kd = sp.bmat([[K, B], [B.T, None]]).toarray()
+    Kd[:n, :n] += 2.0 * np.outer(v, v)
+    ref = np.linalg.solve(Kd, np.concatenate([f, g]))
+    for backend in available_backends():
+        s = SaddlePointSolver(K, B, np.full(m, 10.0), [(2.0, v)], augmented=False, backend=backend)
+        x, y = s.solve(f, g)
+        assert s.iterations == -1  # the direct path was taken
+        np.testing.assert_allclose(np.concatenate([x, y]), ref, rtol=1e-8, atol=1e-10)
+
+
 def test_pressure_potential_gradient_is_follower_load():
     """d/dx of p * sum V_f over a closed surface is p * integral N n da (and V is exact)."""
     mesh = generators.box(2.0, 1.0, 1.5, 2, 1, 2)

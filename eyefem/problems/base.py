@@ -95,11 +95,13 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
         log.info("resuming %s after stage %d ('%s') from %s", setup.name, ck["stage"] + 1,
                  setup.stages[ck["stage"]].name, out_dir / checkpoint.FILENAME)
 
+    active = {s.name: s.active for s in setup.stages}
+
     def on_step(rec, model, q, theta):
         row = {"stage": rec.stage, "step": rec.step, "t": rec.t, "iterations": rec.iterations,
                "residual_N": rec.residual}
         row.update(setup.probe(model, q, theta))
-        row.update(model.report(q, theta))
+        row.update(model.report(q, theta, active.get(rec.stage)))
         rows.append(row)
         write_csv(out_dir / f"{setup.name}_history.csv", rows)
         if vtu:

@@ -90,26 +90,35 @@ class SurgeryParts:
     sclera_nodes: np.ndarray
     frame: tuple
     layout: object = None
+    scale: float = 1.0
+    d_per_mm: float = 0.0
+    extra_dof: int = -1
 
 
-def _sutures(parts: SurgeryParts, scale: float):
+def suture_layout(parts: SurgeryParts, width: float):
+    """Bites of the sutures for a suture width (mm), on the reference outer sclera."""
+    b, p, mesh = parts.buckle, parts.p, parts.eye.mesh
+    cen, acr, nrm, _ = parts.frame
+    return generate_sutures(mesh.nodes, mesh.face_set("eye/sclera_outer"), cen, acr, nrm,
+                            width=width, angle_deg=p["suture_angle_deg"], n_bars=3,
+                            buckle_half_width=b.width / 2)
+
+
+def suture_term(parts: SurgeryParts, scale: float, width: float | None = None):
     """Suture bars (AnchoredBars, tension-only) for the buckle fitted at radial scale
     ``scale``: from each bite to the buckle's edge on its side; the anchors move with the
-    buckle (d inward, s posterior)."""
+    buckle (d inward, s posterior). ``width``: suture width, mm (default: the case's)."""
     eye, b, p = parts.eye, parts.buckle, parts.p
     g = eye.geometry
     cen, acr, nrm, _ = parts.frame
     mesh = eye.mesh
-    layout = generate_sutures(mesh.nodes, mesh.face_set("eye/sclera_outer"), cen, acr, nrm,
-                              width=p["suture_width"], angle_deg=p["suture_angle_deg"], n_bars=3,
-                              buckle_half_width=b.width / 2)
+    layout = suture_layout(parts, p["suture_width"] if width is None else width)
     parts.layout = layout
     R = g.scleral_radius * scale
-    _, _, ridge, _ = KINDS[b.kind]
     anchors, nodes_a, xi_a, d1, d2 = [], [], [], [], []
     for side, sgn in ((layout.bite_a, -1.0), (layout.bite_b, 1.0)):
-        if b.encircling:
-            top = (R + ridge + b.thickness) * nrm + sgn * 0.5 * b.width * acr
+        if b.encircling:  # the tire is seated on its flat base; its ridge protrudes inward
+            top = (R + b.thickness) * nrm + sgn * 0.5 * b.width * acr
             d1.append(-top / np.linalg.norm(top, axis=1, keepdims=True))
             d2.append(np.stack([_meridian(t) for t in top]))
         else:
@@ -123,7 +132,8 @@ def _sutures(parts: SurgeryParts, scale: float):
     anchors, nodes_a, xi_a, d1, d2 = (np.concatenate(v) for v in (anchors, nodes_a, xi_a, d1, d2))
     L0 = np.linalg.norm(anchors - np.einsum("na,nai->ni", _N(xi_a), mesh.nodes[nodes_a]), axis=1)
     return AnchoredBars("sutures", nodes_a, xi_a, anchors, np.zeros(len(anchors), int), d1, d2,
-                        1, mesh.nodes, L0, EA=p["suture_EA"], tension_only=True)
+                        1, mesh.nodes, L0, EA=p["suture_EA"], tension_only=True,
+                        extra_dof=parts.extra_dof)
 
 
 def _meridian(x):
@@ -151,11 +161,12 @@ def buckle_term(parts: SurgeryParts, scale: float) -> BuckleContact:
     if b.encircling:
         return BuckleContact("buckle", parts.eye.mesh, "eye/sclera_outer", "ring", R,
                              theta_b=b.centre_angle(g), width=w, ridge=ridge, ridge_width=rw,
-                             modulus=6 * SEED_MATERIALS["sclera"])
+                             modulus=6 * SEED_MATERIALS["sclera"], extra_dof=parts.extra_dof)
     n0, m0, ax = _sponge_frame(parts)
     return BuckleContact("buckle", parts.eye.mesh, "eye/sclera_outer", "sponge", R,
                          n0=tuple(n0), m0=tuple(m0), axis=tuple(ax), sponge_radius=w / 2,
-                         sponge_length=SPONGE_LENGTH, modulus=6 * SEED_MATERIALS["sclera"])
+                         sponge_length=SPONGE_LENGTH, modulus=6 * SEED_MATERIALS["sclera"],
+                         extra_dof=parts.extra_dof, curved=b.kind == "sponge_radial")
 
 
 def _N(xi):
@@ -176,20 +187,24 @@ def surgery(p, materials):
     g = eye.geometry
     b = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
     frame = suture_anchor_frame(b, g, p["n_sutures"])
-    parts = SurgeryParts(eye, b, p, mesh.node_set("eye/sclera_outer"), frame)
+    parts = SurgeryParts(eye, b, p, mesh.node_set("eye/sclera_outer"), frame,
+                         extra_dof=3 * mesh.n_nodes + mesh.n_elem)
     mats = _materials(materials)
     lens_eq, zf, zxi = eye.zonule
     zonule = Bars("zonule", np.repeat(lens_eq[:, None], 4, 1), zf, np.zeros((len(lens_eq), 2)),
                   zxi, mesh.nodes, EA=p["zonule_E"] * g.zonule_area)
     iop = PressureLoad("iop", mesh, "wetted", 0.0)
     cavity = FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"])
-    sutures = _sutures(parts, 1.0)
+    sutures = suture_term(parts, 1.0)
     buckle = buckle_term(parts, 1.0)
     lens_hold = NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3)
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
-                        (zonule, iop, cavity, buckle, sutures, lens_hold))
+                        (zonule, iop, cavity, buckle, sutures, lens_hold), n_extra_dofs=1)
     fix = node_dofs(mesh.node_set("eye/nerve_end"))
-    held = (fix, np.zeros(len(fix)))
+    # the buckle's own radial motion (extra dof) is held, except a segmental buckle's
+    # while its sutures are tightened: they pull it in against the sclera
+    held = (np.r_[fix, parts.extra_dof], np.zeros(len(fix) + 1))
+    held_eye = (fix, np.zeros(len(fix)))
     p_iop = p["iop_mmhg"] * MMHG
 
     def place_buckle(model, q, theta):
@@ -198,7 +213,7 @@ def surgery(p, materials):
         s = parts.sclera_nodes[buckle_zone(parts)]
         # snug: the buckle touches the most outward scleral node under it
         scale = float(np.max(np.linalg.norm(x[s], axis=1) / np.linalg.norm(mesh.nodes[s], axis=1)))
-        sut, new_buckle = _sutures(parts, scale), buckle_term(parts, scale)
+        sut, new_buckle = suture_term(parts, scale), buckle_term(parts, scale)
         model = model.with_terms([new_buckle if t.name == "buckle" else sut if t.name == "sutures"
                                   else t for t in model.terms])
         parts.scale = scale
@@ -210,17 +225,18 @@ def surgery(p, materials):
         return model, q, {**theta, "sutures": {**theta["sutures"], "L0": L}}
 
     # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`
-    d = p["tightening"] / (2 * np.pi * (np.sin(b.centre_angle(g)) if b.encircling else 1.0))
-    motion = {"d": np.full(1, d), "s": np.full(1, p["buckle_shift"])}
+    parts.d_per_mm = 1.0 / (2 * np.pi * (np.sin(b.centre_angle(g)) if b.encircling else 1.0))
+    motion = {"d": np.full(1, p["tightening"] * parts.d_per_mm), "s": np.full(1, p["buckle_shift"])}
+    ridge = {"ridge": np.full(1, KINDS[b.kind][2])}
     base = ("solid", "zonule", "lens_springs")
     stages = [
         Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
               active=base + ("iop",)),
         Stage("tighten" if b.encircling else "place", p["steps_tighten"], held,
-              params={"buckle": motion, "sutures": motion,
+              params={"buckle": {**motion, **ridge}, "sutures": motion,
                       "cavity": {"dv": -p["drain_volume"]}},
               active=base + ("cavity", "buckle"), before=place_buckle),
-        Stage("suture", p["steps_suture"], held,
+        Stage("suture", p["steps_suture"], held if b.encircling else held_eye,
               params={"sutures": {"tightening": np.full(2 * p["n_sutures"],
                                                         p["suture_tightening"] / 2)}},
               active=base + ("cavity", "buckle", "sutures"), before=tie_sutures),
@@ -302,6 +318,7 @@ def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
             "axial_length_mm": axial_length(mesh, x),
             "axial_length_change_unloaded_mm": axial_length(mesh, x) - L0,
             "indentation_mm": indentation(parts, x),
+            "buckle_free_motion_mm": float(q[parts.extra_dof]),
             "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
             else 0.0}
 
@@ -340,19 +357,6 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path):
                  title="meridional section", label="von Mises stress, kPa")
     plot_outside(out_dir / "outside_von_mises.png", x, mesh.hexes, vm,
                  title="outside view", label="von Mises stress, kPa")
-
-
-def write_comparison(summaries: dict, path_stem: Path):
-    """A table comparing cases: CSV and Markdown (path_stem.csv, path_stem.md)."""
-    keys = ["iop_after_tightening_mmhg", "iop_mmhg", "indentation_mm", "axial_length_change_mm",
-            "volume_change_mm3", "max_suture_force_N"]
-    rows = [{"case": k, **{c: v.get(c) for c in keys}} for k, v in summaries.items()]
-    write_csv(Path(str(path_stem) + ".csv"), rows)
-    head = "| case | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys) + "\n"
-    body = "".join("| " + r["case"] + " | " + " | ".join(
-        f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c]) for c in keys) + " |\n"
-        for r in rows)
-    write_text(Path(str(path_stem) + ".md"), head + body)
 
 
 PROBLEMS = {"surgery": (SURGERY_FIELDS, surgery)}

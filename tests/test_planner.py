@@ -1,0 +1,39 @@
+"""The planner reaches an indentation target on the coarse case 1 (slow: a few minutes)."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from optimize import objectives as obj
+from optimize.plan import main as plan_main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_objectives_are_zero_inside_and_grow_outside():
+    o = {"indentation_mm": 0.8, "iop_mmhg": 18.0, "axial_length_change_mm": 0.2,
+         "max_suture_force_N": 0.5}
+    assert float(obj.target_indentation(0.8)(o)) == 0.0
+    assert float(obj.iop_window(10, 21)(o)) == 0.0
+    assert float(obj.iop_window(10, 16)(o)) == pytest.approx(4.0)  # (18 - 16)^2 / 1^2
+    assert float(obj.axial_length_limit(0.1)(o)) == pytest.approx(1.0)
+    assert float(obj.suture_force_limit(0.4)(o)) == pytest.approx(6.25)  # (0.1 / 0.04)^2
+    with pytest.raises(ValueError, match="empty"):
+        obj.iop_window(21, 10)
+    with pytest.raises(ValueError, match="no objective"):
+        obj.total([])
+
+
+@pytest.mark.slow
+def test_planner_reaches_the_target_indentation(tmp_path):
+    rc = plan_main([str(ROOT / "cases/surgery/case1.toml"), "--mesh", "coarse",
+                    "--target-indentation", "0.8", "--iop-max", "25", "--vars",
+                    "tightening,suture_width", "--iterations", "15", "--lr", "0.1",
+                    "--tol", "0.05", "--out", str(tmp_path)])
+    summary = json.loads((tmp_path / "plan_summary.json").read_text())
+    assert rc == 0 and summary["converged"]
+    # objective < 0.05 means |indentation - 0.8| < 0.05 * sqrt(0.05) = 0.011 mm
+    assert summary["outcomes"]["indentation_mm"] == pytest.approx(0.8, abs=0.012)
+    for f in ("plan_history.csv", "plan.png", "planned_case.toml"):
+        assert (tmp_path / f).exists()
