@@ -158,9 +158,9 @@ class Assembler:
         ok = (r >= 0) & (c >= 0)
         return sp.csr_matrix((H.ravel()[ok], (r[ok], c[ok])), shape=(self.n_p, self.n_p))
 
-    def solver(self, K, B, D, low_rank, backend=None) -> SaddlePointSolver:
-        """Factorise the assembled tangent."""
-        return SaddlePointSolver(K, B, D, low_rank, augmented=True, backend=backend)
+    def solver(self, K, B, D, low_rank, backend=None, **kw) -> SaddlePointSolver:
+        """Factorise the assembled tangent (kw: SaddlePointSolver's shift, indefinite)."""
+        return SaddlePointSolver(K, B, D, low_rank, augmented=True, backend=backend, **kw)
 
     def reduce(self, v):
         """Split a global vector (n_dof,) into (free primal (n_p,), multipliers (n_m,))."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -136,6 +137,9 @@ class AnchoredBars(Term):
       L0 (n,) tied lengths, mm; EA: N; tension_only (sutures: True).
       extra_dof: global dof of a free radial motion of the (single) body added to d, or
         -1 (see buckle_contact).
+      smoothing: a tension-only bar's stretch is eps softplus(stretch / eps) (eps in mm):
+        C-infinity, so Newton does not cycle on sutures that are just taut (as every
+        suture is when it is tied); the force of a bar at zero stretch is EA/L0 eps ln 2.
     """
 
     name: str
@@ -151,6 +155,7 @@ class AnchoredBars(Term):
     EA: float | np.ndarray = 1.0
     tension_only: bool = True
     extra_dof: int = -1
+    smoothing: float = 2e-4
 
     def __post_init__(self):
         na = np.asarray(self.nodes_a, np.int64).reshape(-1, 4)
@@ -190,15 +195,25 @@ class AnchoredBars(Term):
 
     def _stretch(self, q_loc, params, data):
         s = self.lengths(q_loc, params, data) - (params["L0"] - params["tightening"])
-        return jnp.maximum(s, 0.0) if self.tension_only else s
+        if not self.tension_only:
+            return s
+        e = self.smoothing
+        return e * (jnp.maximum(s / e, 0.0) + jnp.log1p(jnp.exp(-jnp.abs(s / e))))
 
     def local_energy(self, q_loc, params, data):
         return 0.5 * params["EA"] / params["L0"] * self._stretch(q_loc, params, data) ** 2
 
+    def axial_forces(self, q_loc, params, data):
+        """Axial force per bar (n,), N: dE/dl (JAX-traceable)."""
+        s = self.lengths(q_loc, params, data) - (params["L0"] - params["tightening"])
+        k = params["EA"] / params["L0"]
+        if not self.tension_only:
+            return k * s
+        return k * self._stretch(q_loc, params, data) * jax.nn.sigmoid(s / self.smoothing)
+
     def forces(self, q, params):
         """Axial force per bar (n,), N (positive in tension)."""
-        s = self._stretch(jnp.asarray(q)[self.dofs], params, self.data)
-        return np.asarray(params["EA"] / params["L0"] * s)
+        return np.asarray(self.axial_forces(jnp.asarray(q)[self.dofs], params, self.data))
 
     def report(self, q, params):
         f = self.forces(q, params)

@@ -207,10 +207,7 @@ class SurgerySimulator:
             return jnp.linalg.norm(x[0] - x[1]) - self.axial_preop
 
         def suture_force(q, theta):
-            p = theta["sutures"]
-            ql = q[sut.dofs]
-            s = sut.lengths(ql, p, sut.data) - (p["L0"] - p["tightening"])
-            return p["EA"][i_max] / p["L0"][i_max] * jnp.maximum(s[i_max], 0.0)
+            return sut.axial_forces(q[sut.dofs], theta["sutures"], sut.data)[i_max]
 
         return {"iop_mmhg": iop, "indentation_mm": indentation, "axial_length_change_mm": axial,
                 "max_suture_force_N": suture_force}

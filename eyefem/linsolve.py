@@ -32,6 +32,11 @@ class LinearSolveError(RuntimeError):
     """A linear solve failed or its residual is too large."""
 
 
+class NegativeCurvature(LinearSolveError):
+    """The displacement block is indefinite on the incompressible modes (raised when the
+    solver was asked to report it rather than solve the indefinite system exactly)."""
+
+
 def available_backends() -> list[str]:
     """Backends that can be used on this machine."""
     out = []
@@ -137,6 +142,10 @@ class SaddlePointSolver:
       augmented: True if K already includes B D B^T (assembled element by element).
       backend: factorisation backend.
       tol: relative residual required of every solve.
+      shift: the displacement block is factorised as K_aug + shift * |diag(K_aug)|
+        (a Levenberg-Marquardt shift for modified Newton steps; 0: exact).
+      indefinite: "kkt" solves an indefinite system exactly (direct factorisation of the
+        whole saddle point), "raise" raises NegativeCurvature.
     """
 
     K: sp.spmatrix
@@ -147,11 +156,15 @@ class SaddlePointSolver:
     backend: str | None = None
     tol: float = 1e-9
     max_uzawa: int = 30
+    shift: float = 0.0
+    indefinite: str = "kkt"
 
     def __post_init__(self):
         K = self.K
         if self.B is not None and not self.augmented:
             K = K + self.B @ sp.diags(self.D) @ self.B.T
+        if self.shift:
+            K = K + self.shift * sp.diags(np.abs(K.diagonal()))
         self.K_aug = sp.csr_matrix(K)
         self.fact = factorize(self.K_aug, self.backend)
         if self.low_rank:
@@ -187,6 +200,8 @@ class SaddlePointSolver:
             Sp = B.T @ w
             pSp = p @ Sp
             if pSp <= 0:
+                if self.indefinite == "raise":
+                    raise NegativeCurvature("negative curvature of the tangent")
                 log.debug("Schur CG: negative curvature; direct solve of the saddle point")
                 return self._kkt_solve(f, g)
             alpha = rz / pSp

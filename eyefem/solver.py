@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from .assembly import Assembler
-from .linsolve import LinearSolveError
+from .linsolve import LinearSolveError, NegativeCurvature
 from .model import Model, check_x64
 
 log = logging.getLogger(__name__)
@@ -41,6 +41,8 @@ class NewtonOptions:
       contact_freeze: contact pairs (dynamic terms) are re-paired every iteration until
         the force residual falls below contact_freeze x the reference, then frozen for
         quadratic convergence; at convergence they are re-paired once more.
+      modified_newton: while the force residual is above modified_newton x the reference,
+        an indefinite tangent is shifted to positive definite (modified Newton step).
       extrapolate: start each step's Newton iterations from the secant extrapolation of
         the two previous converged states of the stage (from the last state if that fails).
       contact_rtol: the residual after that final re-pairing must be below contact_rtol x
@@ -60,9 +62,10 @@ class NewtonOptions:
     contact_freeze: float = 1e-3
     contact_rtol: float = 1e-4
     extrapolate: bool = False
+    modified_newton: float = 1e-2
 
     def __post_init__(self):
-        for f in ("rtol", "vtol", "atol", "beta", "contact_freeze", "contact_rtol"):
+        for f in ("rtol", "vtol", "atol", "beta", "contact_freeze", "contact_rtol", "modified_newton"):
             if not getattr(self, f) > 0:
                 raise ValueError(f"NewtonOptions.{f} = {getattr(self, f)}; must be > 0")
         if self.max_iter < 1 or self.max_cuts < 0:
@@ -210,8 +213,8 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
             break
         _, K, B, D, lr = asm.assemble(q, theta, active)
         try:
-            solver = asm.solver(K, B, D, lr, opts.backend)
-            x, y = solver.solve(-rf, -rm)
+            x, y, solver = _direction(asm, K, B, D, lr, rf, rm, opts,
+                                      far=nf > opts.modified_newton * fref)
         except LinearSolveError as exc:
             raise _StepFailed(str(exc)) from exc
         dq = asm.expand(x, y)
@@ -219,6 +222,27 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                          vref, opts.line_search)
     raise _StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
                       f"reference {fref:.3e} N, volume residual {nm:.2e})")
+
+
+def _direction(asm, K, B, D, lr, rf, rm, opts, far):
+    """Newton direction. Far from convergence an indefinite tangent (negative curvature
+    on the incompressible modes: an unstable state or a poor iterate) gets a modified
+    Newton step, K + mu |diag K| with mu = 1e-4, 1e-3, ... until it is positive: a
+    descent direction that leaves saddle points. Near convergence the exact (possibly
+    indefinite) system is solved, so the convergence stays quadratic."""
+    if far:
+        for mu in (0.0, 1e-4, 1e-3, 1e-2, 1e-1):
+            try:
+                solver = asm.solver(K, B, D, lr, opts.backend, shift=mu, indefinite="raise")
+                x, y = solver.solve(-rf, -rm)
+                if mu:
+                    log.debug("  modified Newton step (shift %g)", mu)
+                return x, y, solver
+            except NegativeCurvature:
+                continue
+    solver = asm.solver(K, B, D, lr, opts.backend)
+    x, y = solver.solve(-rf, -rm)
+    return x, y, solver
 
 
 def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, enabled):
