@@ -41,7 +41,8 @@ def run_case(path, out_dir, *, mesh=None, reuse=False, vtu=False) -> dict:
     done = out_dir / "summary.json"
     if reuse and done.exists():
         s = json.loads(done.read_text())
-        if s.get("case") == str(case.path) and s.get("mesh") == params.get("mesh"):
+        same_case = Path(s.get("case", "")).resolve() == Path(case.path).resolve()
+        if same_case and s.get("mesh") == params.get("mesh"):
             log.info("%s: reusing %s", case.path, done)
             return s
     setup = PROBLEMS[case.problem][1](params, case.materials)

@@ -38,7 +38,7 @@ import numpy as np
 from .adjoint import value_and_grad
 from .cavity import _state_kernel
 from .problems.surgery import SURGERY_FIELDS, surgery, suture_layout, suture_term
-from .solver import NewtonOptions, Solution, Stage, solve
+from .solver import ConvergenceError, NewtonOptions, Solution, Stage, solve
 from .units import MMHG
 
 log = logging.getLogger(__name__)
@@ -131,7 +131,19 @@ class SurgerySimulator:
 
     # --- forward ------------------------------------------------------------------
     def run(self, design: dict | None = None, *, warm: bool = True) -> Result:
-        """Solve stages 2 and 3 for a design (missing variables: the case's values)."""
+        """Solve stages 2 and 3 for a design (missing variables: the case's values).
+
+        Warm started from the previous design's converged states when there is one; if
+        that continuation fails, the design is solved again along the full load path."""
+        if warm and self.last is not None:
+            try:
+                return self._run(design, warm=True)
+            except ConvergenceError as exc:
+                log.warning("warm start failed (%s); solving the design from the "
+                            "pre-operative state", str(exc).splitlines()[0])
+        return self._run(design, warm=False)
+
+    def _run(self, design, *, warm):
         design = {**self.design0(), **(design or {})}
         for k in design:
             if k not in DESIGN_VARIABLES:
@@ -156,12 +168,11 @@ class SurgerySimulator:
                          q0=prev.sol2.q, theta=start, options=self.options)
         th3 = self._tied(sut, sol2.q, sol2.theta, design)
         same_faces = prev is not None and np.array_equal(prev.sutures.nodes_a, sut.nodes_a)
-        if same_faces:
+        if same_faces:  # continuation of every param from the previous design's state
             sol3 = solve(model, [Stage("suture", 1, self.stage3.prescribed,
-                                       params={"sutures": th3["sutures"]},
+                                       params={k: th3[k] for k in ("buckle", "cavity", "sutures")},
                                        active=self.stage3.active)],
-                         q0=prev.sol3.q, theta={**th3, "sutures": prev.sol3.theta["sutures"]},
-                         options=self.options)
+                         q0=prev.sol3.q, theta=prev.sol3.theta, options=self.options)
         else:
             untied = {**th3, "sutures": {**th3["sutures"], "tightening": 0 * th3["sutures"]["tightening"]}}
             sol3 = solve(model, [Stage("suture", self.stage3.n_steps, self.stage3.prescribed,
