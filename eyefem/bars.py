@@ -198,7 +198,7 @@ class AnchoredBars(Term):
         if not self.tension_only:
             return s
         e = self.smoothing
-        return e * (jnp.maximum(s / e, 0.0) + jnp.log1p(jnp.exp(-jnp.abs(s / e))))
+        return e * jnp.logaddexp(s / e, 0.0)  # overflow-safe softplus, exact slope at 0
 
     def local_energy(self, q_loc, params, data):
         return 0.5 * params["EA"] / params["L0"] * self._stretch(q_loc, params, data) ** 2

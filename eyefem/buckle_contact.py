@@ -57,8 +57,7 @@ BUCKLE_PENALTY_FACTOR = 10.0
 
 def smooth_penetration(g, eps):
     """eps softplus(-g / eps) (mm), overflow-safe: the smoothed <-g>."""
-    z = -g / eps
-    return eps * (jnp.maximum(z, 0.0) + jnp.log1p(jnp.exp(-jnp.abs(z))))
+    return eps * jnp.logaddexp(-g / eps, 0.0)
 
 
 def ring_profile(a, width, ridge, ridge_width):

@@ -5,8 +5,8 @@
 
 Each iteration solves the case at the current design (warm started from the previous
 converged states), computes the adjoint gradients of the outcomes the objective reads,
-and takes a projected Adam step on the design variables scaled to [0, 1] by their
-bounds. Writes into --out: plan_history.csv (every iteration), plan.png (objective,
+and takes a projected Adam step (decaying step size) on the design variables scaled
+to [0, 1] by their bounds. Writes into --out: plan_history.csv (every iteration), plan.png (objective,
 IOP and indentation against iteration), planned_case.toml (the case with the best
 design) and plan_summary.json.
 """
@@ -69,7 +69,8 @@ def plan(sim, objective_terms, names, *, bounds=None, iterations=20, learning_ra
       names: design variables to optimise (others stay at the case's values).
       bounds: name -> (low, high); default BOUNDS.
       iterations: maximum number of simulations.
-      learning_rate: Adam step in the [0, 1]-scaled variables.
+      learning_rate: first Adam step in the [0, 1]-scaled variables (decays by 0.8 per
+        iteration to 5% of it).
       tol: stop when the objective falls below tol.
       on_iteration: callback(row) after every iteration (progress, files).
     """
@@ -88,7 +89,10 @@ def plan(sim, objective_terms, names, *, bounds=None, iterations=20, learning_ra
     f_total = obj.total(objective_terms)
     uses = sorted({u for t in objective_terms for u in t.uses})
     df_do = jax.grad(lambda o: f_total(o))
-    opt = optax.adam(learning_rate)
+    # the step decays (x 0.8 per iteration) so that Adam's momentum settles on the target
+    # instead of circling it
+    opt = optax.adam(optax.exponential_decay(learning_rate, transition_steps=1, decay_rate=0.8,
+                                             end_value=0.05 * learning_rate))
     state = opt.init(z)
     history, best = [], None
     for it in range(iterations):

@@ -30,10 +30,11 @@ def test_planner_reaches_the_target_indentation(tmp_path):
     rc = plan_main([str(ROOT / "cases/surgery/case1.toml"), "--mesh", "coarse",
                     "--target-indentation", "0.8", "--iop-max", "25", "--vars",
                     "tightening,suture_width", "--iterations", "15", "--lr", "0.1",
-                    "--tol", "0.05", "--out", str(tmp_path)])
+                    "--tol", "0.25", "--out", str(tmp_path)])
     summary = json.loads((tmp_path / "plan_summary.json").read_text())
     assert rc == 0 and summary["converged"]
-    # objective < 0.05 means |indentation - 0.8| < 0.05 * sqrt(0.05) = 0.011 mm
-    assert summary["outcomes"]["indentation_mm"] == pytest.approx(0.8, abs=0.012)
+    # objective < 0.25 means |indentation - 0.8| < 0.05 * sqrt(0.25) = 0.025 mm (and IOP <= 25.5)
+    assert summary["outcomes"]["indentation_mm"] == pytest.approx(0.8, abs=0.026)
+    assert summary["outcomes"]["iop_mmhg"] < 25.5
     for f in ("plan_history.csv", "plan.png", "planned_case.toml"):
         assert (tmp_path / f).exists()

@@ -1,0 +1,111 @@
+"""Analytic buckle contact and anchored suture bars: closed-form gaps, invariance, and
+autodiff residual/tangent against central finite differences (smoothed penalties)."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from eyefem import generators
+from eyefem.bars import AnchoredBars
+from eyefem.buckle_contact import BuckleContact, ring_profile, smooth_penetration
+
+R = 10.0
+
+
+@pytest.fixture(scope="module")
+def shell():
+    return generators.spherical_shell(R - 0.5, 0.5, 4, 1)
+
+
+def _ring(shell, **kw):
+    return BuckleContact("b", shell, "outer", "ring", R, theta_b=np.pi / 2, width=7.0, ridge=0.75,
+                         ridge_width=3.0, modulus=0.5, **kw)
+
+
+def test_ring_gap_is_the_closed_form_radial_distance(shell):
+    t = _ring(shell)
+    X = t.data["X"]
+    params = {"d": np.array([0.2]), "s": np.array([0.0]), "ridge": np.array([0.0])}
+    g = np.asarray(t.gaps(np.zeros_like(X), params, t.data))
+    tau = np.arccos(X[:, 2] / np.linalg.norm(X, axis=1))
+    a = R * (tau - np.pi / 2)
+    flat = np.abs(a) < 3.0  # on the flat base, away from the lifted edges
+    np.testing.assert_allclose(g[flat], R - 0.2 - np.linalg.norm(X[flat], axis=1), atol=1e-12)
+    # the ridge protrudes by its height on its crest and not at all beyond its flanks
+    assert float(ring_profile(0.0, 7.0, 0.75, 3.0)) == pytest.approx(-0.75)
+    assert float(ring_profile(2.0, 7.0, 0.75, 3.0)) == pytest.approx(0.0)
+
+
+def test_ring_gap_is_invariant_under_rotation_about_the_axis(shell):
+    t = _ring(shell)
+    rng = np.random.default_rng(0)
+    u = 0.05 * rng.standard_normal(t.data["X"].shape)
+    params = {"d": np.array([0.3]), "s": np.array([0.1]), "ridge": np.array([0.5])}
+    c, s = np.cos(0.7), np.sin(0.7)
+    Q = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    x = t.data["X"] + u
+    rot = {**t.data, "X": t.data["X"] @ Q.T}
+    g1 = np.asarray(t.gaps(u, params, t.data))
+    g2 = np.asarray(t.gaps(x @ Q.T - rot["X"], params, rot))
+    np.testing.assert_allclose(g1, g2, atol=1e-12)
+
+
+def test_smoothed_penetration_is_the_penalty_deep_in_and_vanishes_outside():
+    eps = 2e-3
+    assert float(smooth_penetration(jnp.asarray(-0.1), eps)) == pytest.approx(0.1, rel=1e-12)
+    assert float(smooth_penetration(jnp.asarray(0.05), eps)) < 1e-12
+    assert float(smooth_penetration(jnp.asarray(0.0), eps)) == pytest.approx(eps * np.log(2))
+
+
+def _fd_check(term, q_loc, params):
+    """Autodiff local gradient and Hessian against central differences of the energy."""
+    g, H = term.local_grad_hess(jnp.asarray(q_loc), params, term.data)
+    g, H = np.asarray(g), np.asarray(H)
+    e = lambda ql: np.asarray(term.local_energy(jnp.asarray(ql), params, term.data))  # noqa: E731
+    grad = lambda ql: np.asarray(term.local_grad_hess(jnp.asarray(ql), params, term.data)[0])  # noqa: E731
+    h = 1e-6
+    k = q_loc.shape[1]
+    for j in range(k):
+        dq = np.zeros_like(q_loc)
+        dq[:, j] = h
+        fd_g = (e(q_loc + dq) - e(q_loc - dq)) / (2 * h)
+        fd_H = (grad(q_loc + dq) - grad(q_loc - dq)) / (2 * h)
+        np.testing.assert_allclose(g[:, j], fd_g, rtol=1e-6, atol=1e-9 * max(1, np.abs(g).max()))
+        np.testing.assert_allclose(H[:, :, j], fd_H, rtol=1e-5, atol=1e-7 * max(1, np.abs(H).max()))
+
+
+@pytest.mark.parametrize("shape", ["ring", "sponge", "curved sponge"])
+def test_buckle_contact_gradient_and_tangent_match_finite_differences(shell, shape):
+    if shape == "ring":
+        t = _ring(shell, extra_dof=3 * shell.n_nodes)
+    else:
+        t = BuckleContact("b", shell, "outer", "sponge", R, n0=(1.0, 0, 0), m0=(0, 0, -1.0),
+                          axis=(0, 0, -1.0), sponge_radius=2.5, sponge_length=10.0, modulus=0.5,
+                          extra_dof=3 * shell.n_nodes, curved=shape == "curved sponge")
+    rng = np.random.default_rng(1)
+    q_loc = np.concatenate([0.05 * rng.standard_normal((len(t.nodes), 3)),
+                            np.full((len(t.nodes), 1), 0.2)], axis=1)  # extra dof: sunk 0.2 mm
+    params = {"d": np.array([0.1]), "s": np.array([0.2]), "ridge": np.array([0.4])}
+    pen = -np.asarray(t.gaps(q_loc, params, t.data))
+    assert (pen > 0.01).any() and (pen < -0.01).any()  # some nodes in contact, some clear
+    _fd_check(t, q_loc, params)
+
+
+def test_anchored_sutures_gradient_tangent_and_force(shell):
+    faces = shell.face_set("outer")[:3]
+    rng = np.random.default_rng(2)
+    n = len(faces)
+    xi = rng.uniform(-0.8, 0.8, (n, 2))
+    anchors = shell.nodes[faces].mean(axis=1) * 1.1
+    dirs = -anchors / np.linalg.norm(anchors, axis=1, keepdims=True)
+    t = AnchoredBars("s", faces, xi, anchors, np.zeros(n, int), dirs, np.tile([0, 0, 1.0], (n, 1)),
+                     1, shell.nodes, L0=np.ones(n), EA=40.0, extra_dof=3 * shell.n_nodes)
+    q_loc = np.concatenate([0.05 * rng.standard_normal((n, 12)), np.full((n, 1), 0.1)], axis=1)
+    params = {**t.params, "L0": np.asarray(t.lengths(q_loc, t.params, t.data)) - np.r_[0.02, 0.0, -0.02],
+              "tightening": np.zeros(n)}
+    _fd_check(t, q_loc, params)
+    # the force is dE/dl: taut bar ~ EA/L0 * stretch, slack bar ~ 0
+    f = np.asarray(t.axial_forces(jnp.asarray(q_loc), params, t.data))
+    k = 40.0 / params["L0"]
+    assert f[0] == pytest.approx(k[0] * 0.02, rel=1e-3)
+    assert f[2] < 1e-12 and f[1] == pytest.approx(k[1] * 2e-4 * np.log(2) * 0.5, rel=1e-9)
