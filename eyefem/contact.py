@@ -370,7 +370,8 @@ class SurfaceContact(Term):
         g, _, _ = self._gaps(q)
         pen = np.maximum(-g, 0.0)
         return {"active": int(np.sum(pen > 0)) if self.mode == "sliding" else self.n_pairs,
-                "max_penetration_mm": float(pen.max(initial=0.0))}
+                "max_penetration_mm": float(pen.max(initial=0.0)),
+                "force_N": float(self.alpha * params["scale"] * pen.sum())}
 
     def point_fields(self, q, params, n_nodes):
         g, node, area = self._gaps(q)

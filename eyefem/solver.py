@@ -171,6 +171,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
     fref = fscale
     solver = None
     q = q.copy()
+    asm.model = model  # after a failed try the assembler holds that try's contact pairing
     if np.any(dq_prescribed):
         r, K, B, D, lr = asm.assemble(q, theta, active)
         hv = model.hvp(q, dq_prescribed, theta, active)
