@@ -89,15 +89,21 @@ class _Pardiso:
                hash(self.A.indices.tobytes()))
         entry = _PARDISO_BY_PATTERN.get(key)
         if entry is None:
-            if len(_PARDISO_BY_PATTERN) > 8:  # patterns change with contact: keep a few
-                old = _PARDISO_BY_PATTERN.pop(next(iter(_PARDISO_BY_PATTERN)))
-                old["solver"].free_memory(everything=True)
-            solver = pypardiso.PyPardisoSolver(mtype=-2)
-            entry = {"solver": solver, "owner": None}
-            self._call(solver, 11)
-            _PARDISO_BY_PATTERN[key] = entry
-        self.entry = entry
+            entry = {"solver": pypardiso.PyPardisoSolver(mtype=-2), "owner": None, "freed": True}
+        self.key, self.entry = key, entry
         self._factorize()
+
+    def _analyse(self):
+        """Symbolic analysis of this pattern; evicts the oldest pattern beyond a few
+        (patterns change with contact and suture layouts). An evicted pattern's
+        factorisation kept for an adjoint solve is analysed again when it is used."""
+        if len(_PARDISO_BY_PATTERN) > 8:
+            old = _PARDISO_BY_PATTERN.pop(next(iter(_PARDISO_BY_PATTERN)))
+            old["solver"].free_memory(everything=True)
+            old["freed"], old["owner"] = True, None
+        self._call(self.entry["solver"], 11)
+        self.entry["freed"] = False
+        _PARDISO_BY_PATTERN[self.key] = self.entry
 
     def _call(self, solver, phase, b=None):
         import pypardiso
@@ -110,6 +116,8 @@ class _Pardiso:
             raise LinearSolveError(f"Pardiso failed (phase {phase}): {exc}") from exc
 
     def _factorize(self):
+        if self.entry["freed"]:
+            self._analyse()
         self._call(self.entry["solver"], 22)
         self.entry["owner"] = id(self)
 

@@ -257,3 +257,24 @@ def test_cli_reports_unreachable_load_without_partial_files(tmp_path):
     assert not (out / "summary.json").exists()
     leftovers = [p for p in out.rglob("*") if p.name.startswith(".")]
     assert leftovers == []
+
+
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
+def test_pardiso_factorisation_kept_for_an_adjoint_survives_pattern_eviction():
+    """A planner makes more sparsity patterns than Pardiso instances are kept; an old
+    factorisation (held for an adjoint solve) must still solve after its pattern's
+    instance was evicted and freed."""
+    from eyefem.linsolve import factorize
+
+    rng = np.random.default_rng(3)
+
+    def spd(n, density):
+        A = sp.random(n, n, density=density, random_state=rng)
+        return (A @ A.T + n * sp.identity(n)).tocsr()
+
+    A0 = spd(40, 0.05)
+    f0 = factorize(A0, "pardiso")
+    for k in range(12):  # new patterns: the first one's instance is evicted
+        factorize(spd(40 + k + 1, 0.05), "pardiso")
+    b = rng.standard_normal(40)
+    assert np.allclose(A0 @ f0.solve(b), b, rtol=1e-10, atol=1e-10)
