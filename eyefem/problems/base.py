@@ -22,6 +22,9 @@ from ..solver import NewtonOptions, Solution, Stage, solve
 
 log = logging.getLogger(__name__)
 
+_LOGGED = ("pressure_mmHg", "volume_mm3", "/active", "max_penetration_mm")
+"""Report quantities echoed in the step log (cavities, contact); all go to the CSV."""
+
 
 @dataclasses.dataclass
 class Setup:
@@ -101,8 +104,13 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
         row = {"stage": rec.stage, "step": rec.step, "t": rec.t, "iterations": rec.iterations,
                "residual_N": rec.residual}
         row.update(setup.probe(model, q, theta))
-        row.update(model.report(q, theta, active.get(rec.stage)))
+        report = model.report(q, theta, active.get(rec.stage))
+        row.update(report)
         rows.append(row)
+        logged = [f"{k} {v:.9g}" if k.endswith("volume_mm3") else f"{k} {v:.5g}"
+                  for k, v in report.items() if k.endswith(_LOGGED)]
+        if logged:
+            log.info("    %s", ", ".join(logged))
         write_csv(out_dir / f"{setup.name}_history.csv", rows)
         if vtu:
             point, cell = cell_and_point_fields(model, q, theta)
