@@ -22,7 +22,7 @@ from ..solver import NewtonOptions, Solution, Stage, solve
 
 log = logging.getLogger(__name__)
 
-_LOGGED = ("pressure_mmHg", "volume_mm3", "/active", "max_penetration_mm")
+_LOGGED = ("pressure_mmHg", "volume_mm3", "/active", "max_penetration_mm", "/force_N")
 """Report quantities echoed in the step log (cavities, contact); all go to the CSV."""
 
 
