@@ -44,9 +44,14 @@ def cmd_run(args) -> int:
             if "mesh" not in case.parameters:
                 raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; drop --mesh")
             case.parameters["mesh"] = args.mesh
-        setup = PROBLEMS[case.problem][1](case.parameters, case.materials)
     except (CaseError, ValueError, KeyError) as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
+        return 2
+    try:
+        setup = PROBLEMS[case.problem][1](case.parameters, case.materials)
+    except (ValueError, KeyError) as exc:  # the builder rejected a parameter or material
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"eyefem: {case.path} [parameters]/[materials]: {msg}", file=sys.stderr)
         return 2
     logging.getLogger(__name__).info("case %s (%s): %d elements, %d dofs -> %s", case.path,
                                      case.problem, setup.model.mesh.n_elem, setup.model.n_dof, out)

@@ -105,3 +105,19 @@ def test_band_squeezes_the_container_and_raises_its_pressure(container):
     assert abs(last["liquid/volume_mm3"] / rows[0]["liquid/volume_mm3"] - 1) < 1e-5
     # the supports stand on mirror planes; what they carry is the faceted contact's torque
     assert s["max_support_reaction_N"] < 0.03 * s["band_tension_N"]
+
+
+def test_bad_example_parameters_name_the_file_and_leave_no_output(tmp_path, capsys):
+    from eyefem.cli import main as cli_main
+
+    text = (ROOT / "cases/examples/pipes.toml").read_text()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace("steps = 6", "steps = 6\nn_circ = 12"))
+    out = tmp_path / "out"
+    assert cli_main(["-q", "run", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "n_circ = 12" in err and "multiple of 8" in err
+    bad.write_text(text.replace("[materials.wall]", "[materials.walls]"))
+    assert cli_main(["-q", "run", str(bad), "--out", str(out)]) == 2
+    assert "unknown material 'walls'" in capsys.readouterr().err
+    assert not out.exists()
