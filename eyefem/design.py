@@ -49,6 +49,7 @@ DESIGN_VARIABLES = {
     "suture_width": "bite span across the buckle, mm",
     "suture_tightening": "shortening of each suture loop when tied, mm",
     "drain_volume": "fluid drained during stage 2, mm^3",
+    "band_tension": "tension of a pulled encircling band (cases with band_tension > 0), N",
 }
 OUTCOMES = {
     "iop_mmhg": "post-operative IOP (cavity pressure), mmHg",
@@ -105,6 +106,8 @@ class SurgerySimulator:
         self._apex, self._pole = mesh.node_set("eye/apex")[0], mesh.node_set("eye/pole")[0]
         self.axial_preop = float(np.linalg.norm(x1[self._apex] - x1[self._pole]))
         self.last: Result | None = None
+        self.pulled = any(t.name == "band_pull" for t in self.model.terms)
+        self._stage2_params = ("buckle", "cavity") + (("band_pull",) if self.pulled else ())
 
     # --- design -> params ---------------------------------------------------------
     def design0(self) -> dict:
@@ -117,6 +120,8 @@ class SurgerySimulator:
         th["buckle"] = {**base["buckle"], **motion, "ridge": self.stage2.params["buckle"]["ridge"]}
         th["sutures"] = {**sut.params, **motion}
         th["cavity"] = {**base["cavity"], "dv": -design["drain_volume"]}
+        if self.pulled:
+            th["band_pull"] = {"f": design["band_tension"]}
         return th
 
     def _tied(self, sut, q2, theta2, design):
@@ -148,29 +153,35 @@ class SurgerySimulator:
         for k in design:
             if k not in DESIGN_VARIABLES:
                 raise ValueError(f"unknown design variable '{k}'; known: {sorted(DESIGN_VARIABLES)}")
+        fixed = "tightening" if self.pulled else "band_tension"
+        if design[fixed] != self.params[fixed]:
+            raise ValueError(
+                f"design variable '{fixed}' = {design[fixed]} cannot vary in this case: "
+                + ("its band is pulled by a tension (band_tension > 0); vary band_tension"
+                   if self.pulled else "its band shortening is prescribed; make a case with "
+                   "band_tension > 0 and tightening = 0 to vary the tension"))
         sut = suture_term(self.parts, self.parts.scale, design["suture_width"])
         model = self._model(sut)
         held = self.stage2.prescribed
         th2 = self._theta2(design, sut, self.theta2_start)
         prev = self.last if warm else None
         if prev is None:
-            start = {**th2, "buckle": self.theta2_start["buckle"],
-                     "cavity": self.theta2_start["cavity"]}
+            start = {**th2, **{k: self.theta2_start[k] for k in self._stage2_params}}
             sol2 = solve(model, [Stage("tighten", self.stage2.n_steps, held,
-                                       params={k: th2[k] for k in ("buckle", "cavity")},
+                                       params={k: th2[k] for k in self._stage2_params},
                                        active=self.stage2.active)],
                          q0=self.q1, theta=start, options=self.options)
         else:
             start = {**prev.sol2.theta, "sutures": th2["sutures"]}
             sol2 = solve(model, [Stage("tighten", 1, held,
-                                       params={k: th2[k] for k in ("buckle", "cavity")},
+                                       params={k: th2[k] for k in self._stage2_params},
                                        active=self.stage2.active)],
                          q0=prev.sol2.q, theta=start, options=self.options)
         th3 = self._tied(sut, sol2.q, sol2.theta, design)
         same_faces = prev is not None and np.array_equal(prev.sutures.nodes_a, sut.nodes_a)
         if same_faces:  # continuation of every param from the previous design's state
             sol3 = solve(model, [Stage("suture", 1, self.stage3.prescribed,
-                                       params={k: th3[k] for k in ("buckle", "cavity", "sutures")},
+                                       params={k: th3[k] for k in self._stage2_params + ("sutures",)},
                                        active=self.stage3.active)],
                          q0=prev.sol3.q, theta=prev.sol3.theta, options=self.options)
         else:
@@ -250,6 +261,7 @@ class SurgerySimulator:
                                           for g in (g2, g3))),
                 "suture_tightening": 0.5 * float(np.sum(g3["sutures"]["tightening"])),
                 "drain_volume": -total("cavity", "dv"),
+                "band_tension": total("band_pull", "f") if self.pulled else 0.0,
             }
             out[name] = {k: float(v) for k, v in out[name].items()}
         return out

@@ -173,3 +173,36 @@ class NodeSprings(Term):
     def report(self, q, params):
         f = params["k"] * np.linalg.norm(np.asarray(q)[self.dofs], axis=1)
         return {"max_force_N": float(f.max()) if len(f) else 0.0}
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class DofForce(Term):
+    """A generalised force doing work on one unknown: energy -f * gain * q[dof].
+
+    Used to pull an encircling band with a prescribed tension: the unknown is the
+    band's free radial motion (mm) and gain converts it to circumference shortening,
+    so f is the tension (N) and the work is tension x shortening.
+
+    Args: name; dof: global dof index; gain: mm of the work-conjugate motion per unit
+    of q[dof]; params {"f"}: the force, N.
+    """
+
+    name: str
+    dof: int
+    gain: float = 1.0
+    params: dict = dataclasses.field(default_factory=dict)
+    data: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.dof < 0:
+            raise ValueError(f"force '{self.name}': dof {self.dof}; must be >= 0")
+        object.__setattr__(self, "dofs", np.array([[int(self.dof)]], np.int64))
+        object.__setattr__(self, "params", {"f": 0.0})
+        object.__setattr__(self, "data", {"gain": np.full(1, float(self.gain))})
+
+    def local_energy(self, q_loc, params, data):
+        return -params["f"] * data["gain"] * q_loc[:, 0]
+
+    def report(self, q, params):
+        return {"force_N": float(params["f"]),
+                "motion_mm": float(self.gain * np.asarray(q)[self.dof])}

@@ -34,6 +34,7 @@ BOUNDS = {  # default bounds of the design variables
     "suture_width": (None, 14.0),  # lower bound: the buckle width + 1 mm
     "suture_tightening": (0.0, 1.5),
     "drain_volume": (0.0, 200.0),
+    "band_tension": (0.0, 1.0),  # N; only in cases whose band is pulled (band_tension > 0)
 }
 
 

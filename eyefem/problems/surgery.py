@@ -34,7 +34,7 @@ from ..output import write_csv, write_text
 from ..solver import Stage
 from ..surface import PressureLoad
 from ..sutures import generate_sutures
-from ..terms import NodeSprings
+from ..terms import DofForce, NodeSprings
 from ..units import MMHG
 from .base import Setup
 
@@ -54,6 +54,9 @@ SURGERY_FIELDS = [
           "(a differentiable design variable)"),
     Field("tightening", float, 5.0, "band circumference shortening, mm (weak 5, strong 10; "
           "segmental: radial push of the sponge x 2 pi)", lambda v: 0 <= v <= 30, "0 to 30 mm"),
+    Field("band_tension", float, 0.0, "encircling band pulled with this tension instead of a "
+          "prescribed shortening (then tightening must be 0), N; 0: shortening prescribed",
+          lambda v: v >= 0, ">= 0"),
     Field("suture_width", float, 9.0, "bite span across the buckle, mm", positive, "> 0"),
     Field("n_sutures", int, 8, "number of sutures", positive, ">= 1"),
     Field("suture_angle_deg", float, 0.0, "suture angle about the buckle normal, degrees"),
@@ -198,8 +201,18 @@ def surgery(p, materials):
     sutures = suture_term(parts, 1.0)
     buckle = buckle_term(parts, 1.0)
     lens_hold = NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3)
+    # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`
+    parts.d_per_mm = 1.0 / (2 * np.pi * (np.sin(b.centre_angle(g)) if b.encircling else 1.0))
+    pulled = p["band_tension"] > 0
+    if pulled and not b.encircling:
+        raise ValueError(f"band_tension = {p['band_tension']} N needs an encircling buckle "
+                         f"(buckle = '{p['buckle']}' is segmental); set band_tension = 0")
+    if pulled and p["tightening"] != 0:
+        raise ValueError(f"band_tension = {p['band_tension']} N and tightening = "
+                         f"{p['tightening']} mm: give one; set tightening = 0 to pull the band")
+    extra = (DofForce("band_pull", parts.extra_dof, gain=1.0 / parts.d_per_mm),) if pulled else ()
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
-                        (zonule, iop, cavity, buckle, sutures, lens_hold), n_extra_dofs=1)
+                        (zonule, iop, cavity, buckle, sutures, lens_hold) + extra, n_extra_dofs=1)
     fix = node_dofs(mesh.node_set("eye/nerve_end"))
     # the buckle's own radial motion (extra dof) is held, except a segmental buckle's
     # while its sutures are tightened: they pull it in against the sclera
@@ -224,22 +237,23 @@ def surgery(p, materials):
         L = np.asarray(t.lengths(np.asarray(q)[t.dofs], theta["sutures"], t.data))
         return model, q, {**theta, "sutures": {**theta["sutures"], "L0": L}}
 
-    # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`
-    parts.d_per_mm = 1.0 / (2 * np.pi * (np.sin(b.centre_angle(g)) if b.encircling else 1.0))
     motion = {"d": np.full(1, p["tightening"] * parts.d_per_mm), "s": np.full(1, p["buckle_shift"])}
     ridge = {"ridge": np.full(1, KINDS[b.kind][2])}
     base = ("solid", "zonule", "lens_springs")
+    # a pulled band (force control) moves freely: its radial motion is an unknown
+    held_band = held_eye if pulled else held
+    pull = {"band_pull": {"f": p["band_tension"]}} if pulled else {}
     stages = [
         Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
               active=base + ("iop",)),
-        Stage("tighten" if b.encircling else "place", p["steps_tighten"], held,
+        Stage("tighten" if b.encircling else "place", p["steps_tighten"], held_band,
               params={"buckle": {**motion, **ridge}, "sutures": motion,
-                      "cavity": {"dv": -p["drain_volume"]}},
-              active=base + ("cavity", "buckle"), before=place_buckle),
-        Stage("suture", p["steps_suture"], held if b.encircling else held_eye,
+                      "cavity": {"dv": -p["drain_volume"]}, **pull},
+              active=base + ("cavity", "buckle") + tuple(pull), before=place_buckle),
+        Stage("suture", p["steps_suture"], held_band if b.encircling else held_eye,
               params={"sutures": {"tightening": np.full(2 * p["n_sutures"],
                                                         p["suture_tightening"] / 2)}},
-              active=base + ("cavity", "buckle", "sutures"), before=tie_sutures),
+              active=base + ("cavity", "buckle", "sutures") + tuple(pull), before=tie_sutures),
     ]
     last = {}
 
@@ -319,6 +333,8 @@ def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
             "axial_length_change_unloaded_mm": axial_length(mesh, x) - L0,
             "indentation_mm": indentation(parts, x),
             "buckle_free_motion_mm": float(q[parts.extra_dof]),
+            "band_shortening_mm": (parts.p["tightening"] + float(q[parts.extra_dof]) / parts.d_per_mm
+                                   if parts.buckle.encircling else 0.0),
             "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
             else 0.0}
 
