@@ -69,6 +69,23 @@ class _SuperLU:
 _PARDISO_BY_PATTERN: dict = {}
 
 
+PARDISO_IPARM = {1: 1, 2: 2, 8: 0, 10: 8, 11: 0, 13: 0, 21: 1, 25: 2}
+"""Pardiso settings (1-based iparm): 1 = 1 (these instead of the defaults), 2 = 2 (METIS
+ordering), 8 = 0 (no automatic iterative refinement: with the defaults every back-solve
+ran two refinement steps, 2.5x its cost, without a more accurate result; the callers
+check residuals and refine where it matters), 10 = 8 (pivot perturbation 1e-8), 11 = 13
+= 0 (no scaling or matching: symmetric), 21 = 1 (Bunch-Kaufman pivoting), 25 = 2
+(parallel forward/backward solve). Measured on the 12k-hex shell tangent (2 cores):
+one back-solve 0.053 s -> 0.016 s, same residual (7e-9)."""
+
+
+def _new_pardiso(pypardiso):
+    solver = pypardiso.PyPardisoSolver(mtype=-2)
+    for i, v in PARDISO_IPARM.items():
+        solver.iparm[i - 1] = v
+    return solver
+
+
 class _Pardiso:
     """MKL Pardiso, real symmetric indefinite mode (mtype -2) on the upper triangle.
 
@@ -89,7 +106,7 @@ class _Pardiso:
                hash(self.A.indices.tobytes()))
         entry = _PARDISO_BY_PATTERN.get(key)
         if entry is None:
-            entry = {"solver": pypardiso.PyPardisoSolver(mtype=-2), "owner": None, "freed": True}
+            entry = {"solver": _new_pardiso(pypardiso), "owner": None, "freed": True}
         self.key, self.entry = key, entry
         self._factorize()
 
@@ -150,6 +167,7 @@ class SaddlePointSolver:
       augmented: True if K already includes B D B^T (assembled element by element).
       backend: factorisation backend.
       tol: relative residual required of every solve.
+      cg_rtol: the Schur-complement CG stops at this constraint residual, relative.
       shift: the displacement block is factorised as K_aug + shift * |diag(K_aug)|
         (a Levenberg-Marquardt shift for modified Newton steps; 0: exact).
       indefinite: "kkt" solves an indefinite system exactly (direct factorisation of the
@@ -163,6 +181,7 @@ class SaddlePointSolver:
     augmented: bool = True
     backend: str | None = None
     tol: float = 1e-9
+    cg_rtol: float = 1e-12
     max_uzawa: int = 30
     shift: float = 0.0
     indefinite: str = "kkt"
@@ -202,7 +221,7 @@ class SaddlePointSolver:
         rz = r @ z
         scale = max(np.linalg.norm(D * g), np.linalg.norm(D * (B.T @ x)), 1e-300)
         for it in range(self.max_uzawa):
-            if np.sqrt(abs(rz)) <= 1e-3 * self.tol * scale:
+            if np.sqrt(abs(rz)) <= self.cg_rtol * scale:
                 break
             w = self._solve_aug(B @ p)  # K_aug^-1 B p
             Sp = B.T @ w
