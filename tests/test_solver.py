@@ -278,3 +278,22 @@ def test_pardiso_factorisation_kept_for_an_adjoint_survives_pattern_eviction():
         factorize(spd(40 + k + 1, 0.05), "pardiso")
     b = rng.standard_normal(40)
     assert np.allclose(A0 @ f0.solve(b), b, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
+def test_pardiso_runs_with_the_project_settings_and_solves_indefinite_systems():
+    """PARDISO_IPARM is in effect (no automatic iterative refinement: Pardiso reports 0
+    refinement steps) and an indefinite symmetric system is still solved accurately."""
+    from eyefem.linsolve import PARDISO_IPARM, factorize
+
+    rng = np.random.default_rng(5)
+    n = 60
+    A = sp.random(n, n, density=0.1, random_state=rng)
+    A = (A + A.T + sp.diags(rng.choice([-1.0, 1.0], n) * (2.0 + rng.random(n)))).tocsr()
+    f = factorize(A, "pardiso")
+    b = rng.standard_normal(n)
+    x = f.solve(b)
+    assert np.linalg.norm(A @ x - b) <= 1e-10 * np.linalg.norm(b)
+    iparm = f.entry["solver"].iparm
+    assert [iparm[i - 1] for i in PARDISO_IPARM] == list(PARDISO_IPARM.values())
+    assert iparm[6] == 0  # iterative refinement steps performed in the last solve
