@@ -119,20 +119,28 @@ class Bars(Term):
         return {"max_force_N": float(f.max()) if len(f) else 0.0}
 
 
+def rotate_z(x, angle):
+    """Points x (n, 3) turned by ``angle`` (rad; scalar or (n,)) about the z axis."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1], x[:, 2]], axis=1)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class AnchoredBars(Term):
     """Bars from embedded points to anchors that move with rigid bodies (sutures over a
     rigid buckle).
 
     End a: a point in a face (nodes_a (n, 4), params xi (n, 2)); end b: an anchor at
-    anchor_xyz (n, 3) moved by d[body] * dir + s[body] * dir2 (the buckle's motion,
-    params "d", "s" (n_bodies,); dir, dir2 (n, 3) per anchor). Energy EA / (2 L0) (l - (L0 - tightening))^2 with the
+    anchor_xyz (n, 3) moved by d[body] * dir + s[body] * dir2 + dr[body] * dir3 (the
+    buckle's motion, params "d", "s", "dr" (n_bodies,); dir, dir2, dir3 (n, 3) per anchor)
+    and then turned by rot[body] (rad) about the z axis. Energy EA / (2 L0) (l - (L0 - tightening))^2 with the
     tied length L0 (n,) and the tightening (n,) (mm) params: the suture is tied snug at
     the state where it is made, then shortened.
 
     Args:
       name; nodes_a; xi_a (n, 2); anchor_xyz (n, 3); body (n,) body index of each anchor;
       dirs, dirs2: (n, 3) motion directions of the anchors; n_bodies: number of bodies;
+      dirs3: (n, 3) anchor motion per unit change of the fitted buckle radius (default 0);
       node_xyz (n_nodes, 3) reference nodes;
       L0 (n,) tied lengths, mm; EA: N; tension_only (sutures: True).
       extra_dof: global dof of a free radial motion of the (single) body added to d, or
@@ -156,6 +164,7 @@ class AnchoredBars(Term):
     tension_only: bool = True
     extra_dof: int = -1
     smoothing: float = 2e-4
+    dirs3: np.ndarray | None = None
 
     def __post_init__(self):
         na = np.asarray(self.nodes_a, np.int64).reshape(-1, 4)
@@ -176,10 +185,13 @@ class AnchoredBars(Term):
         object.__setattr__(self, "dofs", dofs)
         object.__setattr__(self, "params", {"EA": EA, "tightening": np.zeros(n), "L0": L0,
                                             "xi": np.asarray(self.xi_a, float).reshape(n, 2),
-                                            "d": np.zeros(nb), "s": np.zeros(nb)})
+                                            "d": np.zeros(nb), "s": np.zeros(nb),
+                                            "dr": np.zeros(nb), "rot": np.zeros(nb)})
+        dir3 = np.zeros((n, 3)) if self.dirs3 is None else np.asarray(self.dirs3, float)
         object.__setattr__(self, "data", {"X": self.node_xyz[na], "anchor": np.asarray(
             self.anchor_xyz, float), "body": np.asarray(self.body, np.int64),
-            "dir": np.asarray(self.dirs, float), "dir2": np.asarray(self.dirs2, float)})
+            "dir": np.asarray(self.dirs, float), "dir2": np.asarray(self.dirs2, float),
+            "dir3": dir3})
 
     def static_key(self):
         return (self.tension_only, self.extra_dof >= 0)
@@ -189,8 +201,10 @@ class AnchoredBars(Term):
         d = params["d"][data["body"]]
         if self.extra_dof >= 0:
             d = d + q_loc[:, 12]
-        xb = (data["anchor"] + d[:, None] * data["dir"]
-              + params["s"][data["body"]][:, None] * data["dir2"])
+        b = data["body"]
+        xb = (data["anchor"] + d[:, None] * data["dir"] + params["s"][b][:, None] * data["dir2"]
+              + params["dr"][b][:, None] * data["dir3"])
+        xb = rotate_z(xb, params["rot"][b])
         return jnp.sqrt(jnp.sum((xb - xa) ** 2, axis=1))
 
     def _stretch(self, q_loc, params, data):

@@ -30,6 +30,11 @@ s / rho0) and w its distance from the plane.
 With ``extra_dof`` the buckle's radial position is also an unknown: d = param d + q[extra]
 (a segmental sponge pulled in by its sutures finds its own depth).
 
+Two more params move the fitted buckle without rebuilding the term, so that the design
+gradients see them (eyefem.design): "dr" adds to the fitted radius R (a snug fit on an
+eye inflated differently), "rot" turns the buckle about the eye axis z (rad; a
+segmental buckle's meridian): the gap of x is the gap of Rz(-rot) x.
+
 Energy per node 1/2 alpha p^2 with the smoothed penetration p = eps softplus(-g / eps)
 (eps = ``smoothing`` mm): C-infinity, so a node touching down or lifting off does not
 make Newton's method cycle; for -g >> eps it is the plain penalty 1/2 alpha <-g>^2, at
@@ -46,6 +51,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
+from .bars import rotate_z
 from .contact import node_areas
 from .mesh import Mesh
 from .terms import Term
@@ -76,7 +82,8 @@ class BuckleContact(Term):
 
     Args:
       name: term name; params {"d": (1,) inward motion, mm; "s": (1,) posterior shift, mm;
-        "ridge": (1,) current ridge protrusion, mm (ramp it to ``ridge``)}.
+        "ridge": (1,) current ridge protrusion, mm (ramp it to ``ridge``); "dr": (1,)
+        change of the fitted radius R, mm; "rot": (1,) turn about the z axis, rad}.
       mesh: the mesh; node_set: candidate (outer scleral) nodes.
       shape: "ring" or "sponge".
       radius: R, the scleral radius the buckle was fitted to, mm.
@@ -129,7 +136,8 @@ class BuckleContact(Term):
             dofs = np.concatenate([dofs, np.full((len(nodes), 1), self.extra_dof)], axis=1)
         object.__setattr__(self, "dofs", dofs)
         object.__setattr__(self, "params", {"d": np.zeros(1), "s": np.zeros(1),
-                                            "ridge": np.zeros(1)})
+                                            "ridge": np.zeros(1), "dr": np.zeros(1),
+                                            "rot": np.zeros(1)})
         geo = np.array([self.radius, self.theta_b, self.width, self.ridge, self.ridge_width,
                         self.sponge_radius, self.sponge_length])
         object.__setattr__(self, "data", {
@@ -142,8 +150,9 @@ class BuckleContact(Term):
 
     def gaps(self, q_loc, params, data):
         """Signed gaps (n,), mm (negative: penetration)."""
-        x = data["X"] + q_loc[:, :3]
+        x = rotate_z(data["X"] + q_loc[:, :3], -params["rot"][0])
         R, th, w, _, rw, rs, L = (data["geo"][i] for i in range(7))
+        R = R + params["dr"][0]
         d, s = params["d"][0], params["s"][0]
         if self.extra_dof >= 0:
             d = d + q_loc[:, 3]

@@ -176,6 +176,49 @@ class NodeSprings(Term):
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
+class TwistSpring(Term):
+    """A torsional spring on the mean twist of a ring of nodes about the z axis.
+
+    twist = sum_i (X_i x u_i)_z / sum_i rho_i^2 (rad; rho_i = distance of X_i from the
+    axis: the rigid rotation that best fits u), energy 1/2 k twist^2. A deformation
+    with no net twist (any symmetric one) stores nothing and feels no force.
+
+    Args: name; nodes (n,) node ids; xyz (n, 3) their reference positions, mm;
+      k: torsional stiffness, N mm/rad (params {"k"}).
+    """
+
+    name: str
+    nodes: np.ndarray
+    xyz: np.ndarray
+    k: float = 1.0
+
+    def __post_init__(self):
+        n = np.asarray(self.nodes, np.int64).ravel()
+        X = np.asarray(self.xyz, np.float64).reshape(len(n), 3)
+        rho2 = float(np.sum(X[:, 0] ** 2 + X[:, 1] ** 2))
+        if self.k < 0 or not rho2 > 0:
+            raise ValueError(f"twist spring '{self.name}': k = {self.k} N mm/rad (must be >= 0) "
+                             f"on {len(n)} nodes at sum rho^2 = {rho2} mm^2 (must be > 0)")
+        object.__setattr__(self, "dofs", (3 * n[:, None] + np.arange(3)).reshape(1, -1))
+        object.__setattr__(self, "params", {"k": float(self.k)})
+        # d twist / d u: (-y, x, 0) / sum rho^2 per node
+        w = np.stack([-X[:, 1], X[:, 0], np.zeros(len(n))], axis=1) / rho2
+        object.__setattr__(self, "data", {"w": w.reshape(1, -1)})
+
+    def twist(self, q):
+        """Mean twist of the ring (rad) at q (n_dof,)."""
+        return float(np.asarray(q)[self.dofs[0]] @ self.data["w"][0])
+
+    def local_energy(self, q_loc, params, data):
+        t = jnp.sum(q_loc * data["w"], axis=1)
+        return 0.5 * params["k"] * t * t
+
+    def report(self, q, params):
+        t = self.twist(q)
+        return {"twist_deg": float(np.degrees(t)), "moment_Nmm": params["k"] * t}
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class DofForce(Term):
     """A generalised force doing work on one unknown: energy -f * gain * q[dof].
 

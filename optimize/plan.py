@@ -35,6 +35,7 @@ BOUNDS = {  # default bounds of the design variables
     "suture_tightening": (0.0, 1.5),
     "drain_volume": (0.0, 200.0),
     "band_tension": (0.0, 1.0),  # N; only in cases whose band is pulled (band_tension > 0)
+    "buckle_meridian_deg": (None, None),  # segmental only: the case's meridian +- 20 degrees
 }
 
 
@@ -48,12 +49,15 @@ class PlanResult:
 
 
 def bounds_for(sim, names, overrides=None) -> dict:
-    """(low, high) per design variable; the suture width starts 1 mm wider than the buckle."""
+    """(low, high) per design variable; the suture width starts 1 mm wider than the buckle,
+    a segmental buckle's meridian stays within 20 degrees of the case's."""
     out = {}
     for n in names:
         lo, hi = (overrides or {}).get(n, BOUNDS[n])
         if n == "suture_width" and lo is None:
             lo = sim.parts.buckle.width + 1.0
+        if n == "buckle_meridian_deg" and lo is None:
+            lo, hi = sim.meridian0 - 20.0, sim.meridian0 + 20.0
         if not lo < hi:
             raise ValueError(f"bounds of '{n}': [{lo}, {hi}] is empty")
         out[n] = (float(lo), float(hi))
@@ -77,11 +81,14 @@ def plan(sim, objective_terms, names, *, bounds=None, iterations=20, learning_ra
     """
     import optax
 
-    from eyefem.design import DESIGN_VARIABLES
+    from eyefem.design import MATERIAL_VARIABLES, SURGICAL_VARIABLES
 
     for n in names:
-        if n not in DESIGN_VARIABLES:
-            raise ValueError(f"unknown design variable '{n}'; choose from {sorted(DESIGN_VARIABLES)}")
+        if n in MATERIAL_VARIABLES:
+            raise ValueError(f"'{n}' is a material constant, not a surgical choice; its gradient "
+                             "is for sensitivity studies (SurgerySimulator.gradients)")
+        if n not in SURGICAL_VARIABLES:
+            raise ValueError(f"unknown design variable '{n}'; choose from {sorted(SURGICAL_VARIABLES)}")
     bnd = bounds_for(sim, names, bounds)
     lo = np.array([bnd[n][0] for n in names])
     hi = np.array([bnd[n][1] for n in names])

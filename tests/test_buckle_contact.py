@@ -25,7 +25,7 @@ def _ring(shell, **kw):
 def test_ring_gap_is_the_closed_form_radial_distance(shell):
     t = _ring(shell)
     X = t.data["X"]
-    params = {"d": np.array([0.2]), "s": np.array([0.0]), "ridge": np.array([0.0])}
+    params = {**t.params, "d": np.array([0.2]), "s": np.array([0.0]), "ridge": np.array([0.0])}
     g = np.asarray(t.gaps(np.zeros_like(X), params, t.data))
     tau = np.arccos(X[:, 2] / np.linalg.norm(X, axis=1))
     a = R * (tau - np.pi / 2)
@@ -40,7 +40,7 @@ def test_ring_gap_is_invariant_under_rotation_about_the_axis(shell):
     t = _ring(shell)
     rng = np.random.default_rng(0)
     u = 0.05 * rng.standard_normal(t.data["X"].shape)
-    params = {"d": np.array([0.3]), "s": np.array([0.1]), "ridge": np.array([0.5])}
+    params = {**t.params, "d": np.array([0.3]), "s": np.array([0.1]), "ridge": np.array([0.5])}
     c, s = np.cos(0.7), np.sin(0.7)
     Q = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
     x = t.data["X"] + u
@@ -85,10 +85,53 @@ def test_buckle_contact_gradient_and_tangent_match_finite_differences(shell, sha
     rng = np.random.default_rng(1)
     q_loc = np.concatenate([0.05 * rng.standard_normal((len(t.nodes), 3)),
                             np.full((len(t.nodes), 1), 0.2)], axis=1)  # extra dof: sunk 0.2 mm
-    params = {"d": np.array([0.1]), "s": np.array([0.2]), "ridge": np.array([0.4])}
+    params = {**t.params, "d": np.array([0.1]), "s": np.array([0.2]), "ridge": np.array([0.4]),
+              "dr": np.array([0.05]), "rot": np.array([0.03])}
     pen = -np.asarray(t.gaps(q_loc, params, t.data))
     assert (pen > 0.01).any() and (pen < -0.01).any()  # some nodes in contact, some clear
     _fd_check(t, q_loc, params)
+
+
+def _sponge(shell, radius=R):
+    return BuckleContact("b", shell, "outer", "sponge", radius, n0=(1.0, 0, 0), m0=(0, 0, -1.0),
+                         axis=(0, 0, -1.0), sponge_radius=2.5, sponge_length=10.0, modulus=0.5,
+                         curved=True)
+
+
+def test_fit_and_turn_params_equal_a_buckle_built_there(shell):
+    """Param dr equals a buckle fitted at R + dr; param rot equals the nodes turned back by
+    rot about the z axis (so a design can move the buckle without rebuilding it)."""
+    from eyefem.bars import rotate_z
+
+    t, t2 = _sponge(shell), _sponge(shell, R + 0.3)
+    X = t.data["X"]
+    rng = np.random.default_rng(4)
+    q = 0.05 * rng.standard_normal(X.shape)
+    p = {**t.params, "d": np.array([0.2])}
+    g_fit = np.asarray(t.gaps(q, {**p, "dr": np.array([0.3])}, t.data))
+    np.testing.assert_allclose(g_fit, np.asarray(t2.gaps(q, p, t2.data)), atol=1e-12)
+    ang = 0.4
+    x_turned = np.asarray(rotate_z(X + q, ang))
+    g_rot = np.asarray(t.gaps(x_turned - X, {**p, "rot": np.array([ang])}, t.data))
+    np.testing.assert_allclose(g_rot, np.asarray(t.gaps(q, p, t.data)), atol=1e-12)
+    assert np.abs(np.asarray(t.gaps(x_turned - X, p, t.data)) - g_rot).max() > 0.1  # it matters
+
+
+def test_anchored_bar_anchor_follows_fit_and_turn_params(shell):
+    """An anchor moved by dr along dir3 and turned by rot about z (closed form)."""
+    faces = shell.face_set("outer")[:2]
+    anchors = np.array([[11.0, 0.0, 1.0], [0.0, 11.0, -1.0]])
+    d3 = anchors / np.linalg.norm(anchors, axis=1, keepdims=True)
+    t = AnchoredBars("s", faces, np.zeros((2, 2)), anchors, np.zeros(2, int), np.zeros((2, 3)),
+                     np.zeros((2, 3)), 1, shell.nodes, L0=np.ones(2), dirs3=d3)
+    xa = shell.nodes[faces].mean(axis=1)  # xi = 0: the face centre
+    a = 0.3
+    p = {**t.params, "dr": np.array([0.5]), "rot": np.array([a])}
+    xb = anchors + 0.5 * d3
+    xb = np.stack([np.cos(a) * xb[:, 0] - np.sin(a) * xb[:, 1],
+                   np.sin(a) * xb[:, 0] + np.cos(a) * xb[:, 1], xb[:, 2]], axis=1)
+    np.testing.assert_allclose(np.asarray(t.lengths(np.zeros((2, 12)), p, t.data)),
+                               np.linalg.norm(xb - xa, axis=1), rtol=1e-13)
 
 
 def test_anchored_sutures_gradient_tangent_and_force(shell):
@@ -99,9 +142,11 @@ def test_anchored_sutures_gradient_tangent_and_force(shell):
     anchors = shell.nodes[faces].mean(axis=1) * 1.1
     dirs = -anchors / np.linalg.norm(anchors, axis=1, keepdims=True)
     t = AnchoredBars("s", faces, xi, anchors, np.zeros(n, int), dirs, np.tile([0, 0, 1.0], (n, 1)),
-                     1, shell.nodes, L0=np.ones(n), EA=40.0, extra_dof=3 * shell.n_nodes)
+                     1, shell.nodes, L0=np.ones(n), EA=40.0, extra_dof=3 * shell.n_nodes,
+                     dirs3=np.tile([1.0, 0, 0], (n, 1)))
     q_loc = np.concatenate([0.05 * rng.standard_normal((n, 12)), np.full((n, 1), 0.1)], axis=1)
-    params = {**t.params, "L0": np.asarray(t.lengths(q_loc, t.params, t.data)) - np.r_[0.02, 0.0, -0.02],
+    base = {**t.params, "dr": np.array([0.1]), "rot": np.array([0.05])}
+    params = {**base, "L0": np.asarray(t.lengths(q_loc, base, t.data)) - np.r_[0.02, 0.0, -0.02],
               "tightening": np.zeros(n)}
     _fd_check(t, q_loc, params)
     # the force is dE/dl: taut bar ~ EA/L0 * stretch, slack bar ~ 0

@@ -10,11 +10,15 @@ import pytest
 
 from eyefem.design import DESIGN_VARIABLES, OUTCOMES, SurgerySimulator, default_parameters
 
-H = {"tightening": 1e-3, "buckle_shift": 1e-3, "suture_width": 1e-3, "suture_tightening": 1e-3}
-"""Central-difference steps, mm. The IOP is stiff in the cavity volume (K / V_ini =
-0.35 MPa/mm^3), so its roundoff (about 1e-8 mmHg) caps how small a step can be: at
-h = 1e-4 it alone makes 1e-4 relative error. Steps of 1e-3 with Richardson
-extrapolation (h and 2h) leave truncation and roundoff both near 1e-5."""
+H = {"tightening": 1e-3, "buckle_shift": 1e-3, "suture_width": 1e-3, "suture_tightening": 1e-3,
+     "c10_sclera": 1e-4, "liquid_bulk": 100.0, "suture_EA": 1.0, "zonule_E": 1.0,
+     "c10_retina": 1e-4, "buckle_meridian_deg": 2e-3}
+"""Central-difference steps (mm, MPa, N, degrees). The IOP is stiff in the cavity volume
+(K / V_ini = 0.35 MPa/mm^3), so its roundoff (about 1e-8 mmHg) caps how small a step can
+be: at h = 1e-4 mm it alone makes 1e-4 relative error. Steps of 1e-3 mm with Richardson
+extrapolation (h and 2h) leave truncation and roundoff both near 1e-5. Material steps
+change the outcome by 1e-5 or more; the meridian step is 0.4 um at the sclera, below
+the 2 um contact smoothing length over which the response bends."""
 
 
 @pytest.fixture(scope="module")
@@ -48,13 +52,35 @@ def test_base_outcomes_are_plausible(base):
     assert o["max_suture_force_N"] > 0.0
 
 
-@pytest.mark.parametrize("var", ["tightening", "buckle_shift", "suture_width", "suture_tightening"])
-def test_adjoint_gradient_matches_central_differences(base, var):
-    sim, res, grads = base
+def _check_against_fd(sim, res, grads, var, outcomes=OUTCOMES):
     fd = _fd(sim, res, var, H[var])
-    for out in OUTCOMES:
-        ad = grads[out][var]
-        assert ad == pytest.approx(fd[out], rel=1e-4, abs=1e-7), (out, var)
+    for out in outcomes:
+        assert grads[out][var] == pytest.approx(fd[out], rel=1e-4, abs=1e-7), (out, var)
+
+
+@pytest.mark.parametrize("var", ["tightening", "buckle_shift", "suture_width", "suture_tightening",
+                                 "suture_EA"])
+def test_adjoint_gradient_matches_central_differences(base, var):
+    _check_against_fd(*base, var)
+
+
+def test_material_gradient_through_the_preoperative_stage_matches_central_differences(base):
+    """c10 of the sclera changes the pressurised eye (stage 1) and so the closed cavity's
+    volume, the buckle's snug fit and the pre-operative axial length: the adjoint chains
+    through stage 1 (three adjoint solves) and matches full re-simulations."""
+    sim, res, grads = base
+    _check_against_fd(sim, res, grads, "c10_sclera")
+    assert grads["iop_mmhg"]["c10_sclera"] > 0  # a stiffer wall: the same squeeze, more pressure
+
+
+def test_liquid_bulk_modulus_gradient_matches_central_differences(base):
+    """The IOP's response to K is small (the cavity volume hardly changes after
+    closing), so only the other outcomes are above the IOP's roundoff at any usable
+    step; the IOP's is checked for sign (a stiffer liquid: more pressure per squeeze)."""
+    sim, res, grads = base
+    _check_against_fd(sim, res, grads, "liquid_bulk",
+                      [o for o in OUTCOMES if o != "iop_mmhg"])
+    assert grads["iop_mmhg"]["liquid_bulk"] > 0
 
 
 def test_drained_volume_lowers_the_iop_at_the_liquid_bulk_modulus_rate(base):
@@ -90,6 +116,40 @@ def test_band_pull_term_is_the_work_of_the_tension():
         DofForce("pull", -1)
 
 
+def test_torsion_spring_holds_the_net_twist_with_the_given_stiffness_and_nothing_else():
+    """The orbit's torsional hold: a small rigid twist delta about the optical axis stores
+    1/2 K delta^2 (K the case's globe_torsion, N mm/rad); a displacement with no net twist
+    (radial, axial, and azimuthal in opposite senses on two halves) stores nothing; the
+    gradient is K twist d twist/du with d twist/du = (-y, x, 0) / sum rho^2 (hand-coded)."""
+    import jax
+    import numpy as np
+
+    from eyefem.eyemodel import EyeGeometry, build_eye
+    from eyefem.problems.surgery import torsion_spring
+
+    mesh = build_eye(EyeGeometry(), "coarse").mesh
+    outer = np.unique(mesh.face_set("eye/sclera_outer"))
+    t = torsion_spring(mesh, outer, 7.0)
+    X = mesh.nodes
+    delta = 1e-3
+    u_twist = delta * np.stack([-X[:, 1], X[:, 0], np.zeros(len(X))], axis=1)
+    assert float(t.energy(u_twist.ravel(), t.params, t.data, t.dofs)) == pytest.approx(
+        0.5 * 7.0 * delta**2, rel=1e-12)
+    assert t.report(u_twist.ravel(), t.params)["twist_deg"] == pytest.approx(np.degrees(delta))
+    rho = np.hypot(X[:, 0], X[:, 1])
+    ephi = np.stack([-X[:, 1], X[:, 0], np.zeros(len(X))], axis=1) / np.maximum(rho, 1e-9)[:, None]
+    u_sym = (np.stack([0.1 * X[:, 0], 0.1 * X[:, 1], 0.05 * np.cos(rho)], axis=1)
+             + 0.02 * np.sign(X[:, 1])[:, None] * ephi)  # y > 0 turns one way, y < 0 the other
+    assert float(t.energy(u_sym.ravel(), t.params, t.data, t.dofs)) == pytest.approx(0.0, abs=1e-20)
+    rng = np.random.default_rng(0)
+    q_loc = rng.standard_normal(t.dofs.shape)
+    Xr = X[t.nodes]
+    w = np.stack([-Xr[:, 1], Xr[:, 0], np.zeros(len(Xr))], axis=1).ravel() / np.sum(Xr[:, :2] ** 2)
+    g_hand = 7.0 * (q_loc[0] @ w) * w
+    g_ad = jax.grad(lambda q: t.local_energy(q, t.params, t.data).sum())(q_loc)
+    np.testing.assert_allclose(np.asarray(g_ad)[0], g_hand, rtol=1e-12, atol=1e-15)
+
+
 @pytest.mark.slow
 def test_pulled_band_tension_gradient_matches_central_differences():
     """A band pulled by 0.25 N (force control: its shortening is an unknown) shortens by
@@ -108,6 +168,33 @@ def test_pulled_band_tension_gradient_matches_central_differences():
     assert grads["iop_mmhg"]["band_tension"] > 0  # pulling harder raises the IOP
     with pytest.raises(ValueError, match="'tightening' = 1.0 cannot vary"):
         sim.run({"tightening": 1.0})
+
+
+@pytest.mark.slow
+def test_segmental_meridian_and_stage1_material_gradients_match_central_differences():
+    """A radial sponge (fitted at meridian 0) turned to 3 degrees, off the mesh's
+    symmetry plane (there every meridian derivative vanishes): d outcomes / d meridian
+    (buckle and sutures turned, bites moved over the scleral faces), and two constants
+    of the pre-operative eye (retina c10, zonule E), against central differences."""
+    p = default_parameters(mesh="coarse", buckle="sponge_radial", tightening=2.0,
+                           steps_tighten=4, steps_suture=2)
+    sim = SurgerySimulator(p)
+    res = sim.run({"buckle_meridian_deg": 3.0})
+    grads = sim.gradients(res)
+    for var in ("buckle_meridian_deg", "c10_retina", "zonule_E"):
+        _check_against_fd(sim, res, grads, var)
+    # the indentation is measured at the case's buckle position (the break): turning the
+    # buckle away from it lowers it
+    assert grads["indentation_mm"]["buckle_meridian_deg"] < 0
+
+
+def test_meridian_cannot_vary_for_an_encircling_buckle(base):
+    sim, res, grads = base
+    assert all(grads[o]["buckle_meridian_deg"] == 0.0 for o in OUTCOMES)
+    with pytest.raises(ValueError, match="'buckle_meridian_deg' = 10.0 cannot vary.*no meridian"):
+        sim.run({**res.design, "buckle_meridian_deg": 10.0})
+    with pytest.raises(ValueError, match="'c10_sclera' = -1.0; a material constant must be > 0"):
+        sim.run({**res.design, "c10_sclera": -1.0})
 
 
 def test_band_tension_cannot_vary_in_a_displacement_controlled_case(base):

@@ -25,6 +25,16 @@ def test_objectives_are_zero_inside_and_grow_outside():
         obj.total([])
 
 
+def test_planner_refuses_material_constants_and_unknown_variables():
+    from optimize.plan import plan
+
+    terms = [obj.target_indentation(1.0)]
+    with pytest.raises(ValueError, match="'c10_sclera' is a material constant"):
+        plan(None, terms, ["c10_sclera"])
+    with pytest.raises(ValueError, match="unknown design variable 'width'"):
+        plan(None, terms, ["width"])
+
+
 @pytest.mark.slow
 def test_planner_reaches_the_target_indentation(tmp_path):
     rc = plan_main([str(ROOT / "cases/surgery/case1.toml"), "--mesh", "coarse",

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from ..bars import AnchoredBars, Bars
@@ -34,7 +35,7 @@ from ..output import write_csv, write_text
 from ..solver import Stage
 from ..surface import PressureLoad
 from ..sutures import generate_sutures
-from ..terms import DofForce, NodeSprings
+from ..terms import DofForce, NodeSprings, TwistSpring
 from ..units import MMHG
 from .base import Setup
 
@@ -69,6 +70,9 @@ SURGERY_FIELDS = [
     Field("drain_volume", float, 0.0, "fluid drained during stage 2, mm^3 (= uL)",
           lambda v: v >= 0, ">= 0"),
     Field("zonule_E", float, 100.0, "zonule Young's modulus, MPa", positive, "> 0"),
+    Field("globe_torsion", float, 7.0, "the orbit's hold on the globe's torsion about the "
+          "optical axis (extraocular muscles, Tenon's capsule), N mm/rad; 0: the nerve stub "
+          "alone", lambda v: v >= 0, ">= 0"),
     Field("steps_pressurise", int, 2, "load steps of stage 1", positive, ">= 1"),
     Field("steps_tighten", int, 8, "load steps of stage 2", positive, ">= 1"),
     Field("steps_suture", int, 3, "load steps of stage 3", positive, ">= 1"),
@@ -98,27 +102,34 @@ class SurgeryParts:
     extra_dof: int = -1
 
 
-def suture_layout(parts: SurgeryParts, width: float):
-    """Bites of the sutures for a suture width (mm), on the reference outer sclera."""
+def suture_layout(parts: SurgeryParts, width: float, meridian_deg: float | None = None):
+    """Bites of the sutures for a suture width (mm), on the reference outer sclera; a
+    segmental buckle turned to ``meridian_deg`` (default: its own meridian)."""
     b, p, mesh = parts.buckle, parts.p, parts.eye.mesh
     cen, acr, nrm, _ = parts.frame
+    if meridian_deg is not None and meridian_deg != b.meridian_deg:
+        turned = dataclasses.replace(b, meridian_deg=meridian_deg)
+        cen, acr, nrm, _ = suture_anchor_frame(turned, parts.eye.geometry, p["n_sutures"])
     return generate_sutures(mesh.nodes, mesh.face_set("eye/sclera_outer"), cen, acr, nrm,
                             width=width, angle_deg=p["suture_angle_deg"], n_bars=3,
                             buckle_half_width=b.width / 2)
 
 
-def suture_term(parts: SurgeryParts, scale: float, width: float | None = None):
+def suture_term(parts: SurgeryParts, scale: float, width: float | None = None,
+                meridian_deg: float | None = None):
     """Suture bars (AnchoredBars, tension-only) for the buckle fitted at radial scale
     ``scale``: from each bite to the buckle's edge on its side; the anchors move with the
-    buckle (d inward, s posterior). ``width``: suture width, mm (default: the case's)."""
+    buckle (d inward, s posterior, dr: fitted radius; rot: turn about the eye axis).
+    ``width``: suture width, mm (default: the case's); ``meridian_deg``: bites of the
+    segmental buckle turned to that meridian (its anchors are turned by the param rot)."""
     eye, b, p = parts.eye, parts.buckle, parts.p
     g = eye.geometry
     cen, acr, nrm, _ = parts.frame
     mesh = eye.mesh
-    layout = suture_layout(parts, p["suture_width"] if width is None else width)
+    layout = suture_layout(parts, p["suture_width"] if width is None else width, meridian_deg)
     parts.layout = layout
     R = g.scleral_radius * scale
-    anchors, nodes_a, xi_a, d1, d2 = [], [], [], [], []
+    anchors, nodes_a, xi_a, d1, d2, d3 = [], [], [], [], [], []
     for side, sgn in ((layout.bite_a, -1.0), (layout.bite_b, 1.0)):
         if b.encircling:  # the tire is seated on its flat base; its ridge protrudes inward
             top = (R + b.thickness) * nrm + sgn * 0.5 * b.width * acr
@@ -130,13 +141,15 @@ def suture_term(parts: SurgeryParts, scale: float, width: float | None = None):
             d1.append(np.tile(-n0, (len(top), 1)))
             d2.append(np.tile(m0, (len(top), 1)))
         anchors.append(top)
+        d3.append(nrm)  # d top / d R
         nodes_a.append(side.nodes)
         xi_a.append(side.xi)
-    anchors, nodes_a, xi_a, d1, d2 = (np.concatenate(v) for v in (anchors, nodes_a, xi_a, d1, d2))
+    anchors, nodes_a, xi_a, d1, d2, d3 = (np.concatenate(v) for v in
+                                          (anchors, nodes_a, xi_a, d1, d2, d3))
     L0 = np.linalg.norm(anchors - np.einsum("na,nai->ni", _N(xi_a), mesh.nodes[nodes_a]), axis=1)
     return AnchoredBars("sutures", nodes_a, xi_a, anchors, np.zeros(len(anchors), int), d1, d2,
                         1, mesh.nodes, L0, EA=p["suture_EA"], tension_only=True,
-                        extra_dof=parts.extra_dof)
+                        extra_dof=parts.extra_dof, dirs3=d3)
 
 
 def _meridian(x):
@@ -201,6 +214,7 @@ def surgery(p, materials):
     sutures = suture_term(parts, 1.0)
     buckle = buckle_term(parts, 1.0)
     lens_hold = NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3)
+    torsion = torsion_spring(mesh, parts.sclera_nodes, p["globe_torsion"])
     # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`
     parts.d_per_mm = 1.0 / (2 * np.pi * (np.sin(b.centre_angle(g)) if b.encircling else 1.0))
     pulled = p["band_tension"] > 0
@@ -212,7 +226,8 @@ def surgery(p, materials):
                          f"{p['tightening']} mm: give one; set tightening = 0 to pull the band")
     extra = (DofForce("band_pull", parts.extra_dof, gain=1.0 / parts.d_per_mm),) if pulled else ()
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
-                        (zonule, iop, cavity, buckle, sutures, lens_hold) + extra, n_extra_dofs=1)
+                        (zonule, iop, cavity, buckle, sutures, lens_hold, torsion) + extra,
+                        n_extra_dofs=1)
     fix = node_dofs(mesh.node_set("eye/nerve_end"))
     # the buckle's own radial motion (extra dof) is held, except a segmental buckle's
     # while its sutures are tightened: they pull it in against the sclera
@@ -222,10 +237,7 @@ def surgery(p, materials):
 
     def place_buckle(model, q, theta):
         model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
-        x = mesh.nodes + q[: 3 * mesh.n_nodes].reshape(-1, 3)
-        s = parts.sclera_nodes[buckle_zone(parts)]
-        # snug: the buckle touches the most outward scleral node under it
-        scale = float(np.max(np.linalg.norm(x[s], axis=1) / np.linalg.norm(mesh.nodes[s], axis=1)))
+        scale = float(snug_scale(parts, q))
         sut, new_buckle = suture_term(parts, scale), buckle_term(parts, scale)
         model = model.with_terms([new_buckle if t.name == "buckle" else sut if t.name == "sutures"
                                   else t for t in model.terms])
@@ -239,7 +251,7 @@ def surgery(p, materials):
 
     motion = {"d": np.full(1, p["tightening"] * parts.d_per_mm), "s": np.full(1, p["buckle_shift"])}
     ridge = {"ridge": np.full(1, KINDS[b.kind][2])}
-    base = ("solid", "zonule", "lens_springs")
+    base = ("solid", "zonule", "lens_springs", "torsion")
     # a pulled band (force control) moves freely: its radial motion is an unknown
     held_band = held_eye if pulled else held
     pull = {"band_pull": {"f": p["band_tension"]}} if pulled else {}
@@ -278,6 +290,40 @@ def surgery(p, materials):
     setup = Setup("surgery", model, stages, probe, finish)
     setup.parts = parts
     return setup
+
+
+def snug_scale(parts: SurgeryParts, q, node=None):
+    """Radial scale of a buckle fitted snug on the eye at state q (n_dof,): the largest
+    |x| / |X| of the outer scleral nodes under it (jax or numpy). ``node``: evaluate at
+    that node instead (the maximiser, for a derivative). See :func:`snug_node`."""
+    mesh = parts.eye.mesh
+    s = snug_node(parts, q) if node is None else node
+    x = mesh.nodes[s] + q[3 * s: 3 * s + 3]
+    return jnp.linalg.norm(x) / np.linalg.norm(mesh.nodes[s])
+
+
+def snug_node(parts: SurgeryParts, q) -> int:
+    """The outer scleral node under the buckle that the snug buckle touches (numpy q)."""
+    mesh = parts.eye.mesh
+    s = parts.sclera_nodes[buckle_zone(parts)]
+    x = mesh.nodes[s] + np.asarray(q)[: 3 * mesh.n_nodes].reshape(-1, 3)[s]
+    return int(s[np.argmax(np.linalg.norm(x, axis=1) / np.linalg.norm(mesh.nodes[s], axis=1))])
+
+
+def torsion_spring(mesh, sclera_nodes, stiffness: float) -> TwistSpring:
+    """The orbit's hold on the globe's twist about the optical axis z: a torsional spring
+    (N mm/rad) on the mean twist of the outer scleral ring at the equator.
+
+    On the nerve stub alone the globe twists almost freely (about 0.3 N mm/rad); the
+    passive stiffness of the extraocular muscles and orbital tissue is about 1 gram-force
+    per degree at the tendon insertions (Robinson, 1975), 7 N mm/rad at the scleral
+    radius. A state with no net twist (an encircling band; a segmental buckle on a
+    symmetry plane of the mesh) feels nothing; the spring holds the globe where a
+    segmental buckle breaks the symmetry (its meridian varied)."""
+    X = mesh.nodes[sclera_nodes]
+    rho = np.hypot(X[:, 0], X[:, 1])
+    ring = np.abs(X[:, 2] - X[np.argmax(rho), 2]) < 1e-6
+    return TwistSpring("torsion", sclera_nodes[ring], X[ring], k=stiffness)
 
 
 def _buckle_coords(parts: SurgeryParts):
