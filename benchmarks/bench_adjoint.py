@@ -3,9 +3,9 @@
 Solves a surgery case (encircling, flat tire; small tightening so that the forward run
 is short), then times at the converged state (median of repeats):
   - one Newton iteration: residual + tangent assembly + factorisation + solve;
-  - the gradient of one outcome (IOP) with respect to every design variable: two
-    adjoint solves (stages 2 and 3) with the reused factorisations + the vector-Jacobian
-    products (eyefem.design.SurgerySimulator.gradients);
+  - the gradient of one outcome (IOP) with respect to every design variable (surgical
+    and material): three adjoint solves (stages 3, 2 and 1) with the reused
+    factorisations + the vector-Jacobian products (eyefem.design.SurgerySimulator.gradients);
 and reports their ratio.
 
     python benchmarks/bench_adjoint.py --mesh default --repeats 3

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from eyefem.design import DESIGN_VARIABLES, OUTCOMES, SurgerySimulator, default_parameters
+from eyefem.solver import NewtonOptions
 
 H = {"tightening": 1e-3, "buckle_shift": 1e-3, "suture_width": 1e-3, "suture_tightening": 1e-3,
      "c10_sclera": 1e-4, "liquid_bulk": 100.0, "suture_EA": 1.0, "zonule_E": 1.0,
-     "c10_retina": 1e-4, "buckle_meridian_deg": 2e-3}
+     "c10_cornea": 1e-4, "buckle_meridian_deg": 2e-3}
 """Central-difference steps (mm, MPa, N, degrees). The IOP is stiff in the cavity volume
 (K / V_ini = 0.35 MPa/mm^3), so its roundoff (about 1e-8 mmHg) caps how small a step can
 be: at h = 1e-4 mm it alone makes 1e-4 relative error. Steps of 1e-3 mm with Richardson
@@ -175,14 +176,24 @@ def test_segmental_meridian_and_stage1_material_gradients_match_central_differen
     """A radial sponge (fitted at meridian 0) turned to 3 degrees, off the mesh's
     symmetry plane (there every meridian derivative vanishes): d outcomes / d meridian
     (buckle and sutures turned, bites moved over the scleral faces), and two constants
-    of the pre-operative eye (retina c10, zonule E), against central differences."""
+    of the pre-operative eye (cornea c10, zonule E), against central differences.
+
+    Newton is held to 1e-10 here: the IOP's derivatives are small remainders of the
+    cavity volume (the meridian's: 5e-6 mm^3 per degree) times K / V = 2600 mmHg/mm^3,
+    and at the default 1e-8 the differences scatter by 1e-4. Even so the IOP's central
+    differences for the two constants (changes of 1e-5..1e-4 mmHg) scatter by 4e-4 and
+    1.3e-3 (measured), so the IOP is held to 2e-3 for them."""
     p = default_parameters(mesh="coarse", buckle="sponge_radial", tightening=2.0,
                            steps_tighten=4, steps_suture=2)
-    sim = SurgerySimulator(p)
+    sim = SurgerySimulator(p, options=NewtonOptions(rtol=1e-10))
     res = sim.run({"buckle_meridian_deg": 3.0})
     grads = sim.gradients(res)
-    for var in ("buckle_meridian_deg", "c10_retina", "zonule_E"):
-        _check_against_fd(sim, res, grads, var)
+    _check_against_fd(sim, res, grads, "buckle_meridian_deg")
+    for var in ("c10_cornea", "zonule_E"):
+        fd = _fd(sim, res, var, H[var])
+        for out in OUTCOMES:
+            rel = 2e-3 if out == "iop_mmhg" else 1e-4
+            assert grads[out][var] == pytest.approx(fd[out], rel=rel), (out, var)
     # the indentation is measured at the case's buckle position (the break): turning the
     # buckle away from it lowers it
     assert grads["indentation_mm"]["buckle_meridian_deg"] < 0
