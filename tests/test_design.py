@@ -22,10 +22,15 @@ change the outcome by 1e-5 or more; the meridian step is 0.4 um at the sclera, b
 the 2 um contact smoothing length over which the response bends."""
 
 
+TIGHT = NewtonOptions(rtol=1e-10)
+"""Newton held to 1e-10 in these tests: at the default 1e-8 the IOP's central differences
+scatter by about 1e-4 (measured for suture_tightening: 1.2e-4), the size of the check."""
+
+
 @pytest.fixture(scope="module")
 def base():
     p = default_parameters(mesh="coarse", tightening=2.0, steps_tighten=4, steps_suture=2)
-    sim = SurgerySimulator(p)
+    sim = SurgerySimulator(p, options=TIGHT)
     res = sim.run()
     return sim, res, sim.gradients(res)
 
@@ -185,7 +190,7 @@ def test_segmental_meridian_and_stage1_material_gradients_match_central_differen
     1.3e-3 (measured), so the IOP is held to 2e-3 for them."""
     p = default_parameters(mesh="coarse", buckle="sponge_radial", tightening=2.0,
                            steps_tighten=4, steps_suture=2)
-    sim = SurgerySimulator(p, options=NewtonOptions(rtol=1e-10))
+    sim = SurgerySimulator(p, options=TIGHT)
     res = sim.run({"buckle_meridian_deg": 3.0})
     grads = sim.gradients(res)
     _check_against_fd(sim, res, grads, "buckle_meridian_deg")
