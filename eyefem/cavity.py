@@ -326,6 +326,11 @@ class FluidCavity(Term):
                                                          minlength=len(q))))
         return out
 
+    def low_rank_values(self, q, params) -> list:
+        """Volumes (mm^3) of the cavities in :meth:`low_rank` (those with K != 0)."""
+        _, V, alpha, _ = _state_kernel(jnp.asarray(q), params, self.data, self.dofs)
+        return [float(v) for v, a in zip(np.asarray(V), np.asarray(alpha)) if a != 0.0]
+
     # --- host-side state and outputs ---------------------------------------------------------
     def pressures(self, q, params) -> tuple[np.ndarray, np.ndarray]:
         """Pressures (n_cav,) MPa and volumes (n_cav,) mm^3 at q (numpy)."""

@@ -220,8 +220,12 @@ class SaddlePointSolver:
         p = z.copy()
         rz = r @ z
         scale = max(np.linalg.norm(D * g), np.linalg.norm(D * (B.T @ x)), 1e-300)
-        for it in range(self.max_uzawa):
+        for it in range(self.max_uzawa + 1):
             if np.sqrt(abs(rz)) <= self.cg_rtol * scale:
+                break
+            if it == self.max_uzawa:
+                log.debug("Schur CG: not converged in %d iterations (%.1e relative)",
+                          it, np.sqrt(abs(rz)) / scale)
                 break
             w = self._solve_aug(B @ p)  # K_aug^-1 B p
             Sp = B.T @ w

@@ -21,6 +21,7 @@ import numpy as np
 from .assembly import Assembler
 from .linsolve import LinearSolveError, NegativeCurvature
 from .model import Model, check_x64
+from .terms import Term
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +44,9 @@ class NewtonOptions:
         quadratic convergence; at convergence they are re-paired once more.
       modified_newton: while the force residual is above modified_newton x the reference,
         an indefinite tangent is shifted to positive definite (modified Newton step).
+      restore: when a full Newton step does not lower the residual, restore the trial
+        points' cavity volumes to their linear prediction (second-order correction; see
+        ``_Restoration``).
       extrapolate: start each step's Newton iterations from the secant extrapolation of
         the two previous converged states of the stage (from the last state if that fails).
       contact_rtol: the residual after that final re-pairing must be below contact_rtol x
@@ -63,6 +67,7 @@ class NewtonOptions:
     contact_rtol: float = 1e-4
     extrapolate: bool = False
     modified_newton: float = 1e-2
+    restore: bool = True
 
     def __post_init__(self):
         for f in ("rtol", "vtol", "atol", "beta", "contact_freeze", "contact_rtol", "modified_newton"):
@@ -219,8 +224,9 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         except LinearSolveError as exc:
             raise _StepFailed(str(exc)) from exc
         dq = asm.expand(x, y)
+        restore = _Restoration(model, q, dq, theta, active, asm, solver) if opts.restore else None
         q = _line_search(model, q, dq, theta, active, asm, np.hypot(nf / max(fref, 1e-300), nm), fref,
-                         vref, opts.line_search)
+                         vref, opts.line_search, restore)
     raise _StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
                       f"reference {fref:.3e} N, volume residual {nm:.2e})")
 
@@ -246,18 +252,96 @@ def _direction(asm, K, B, D, lr, rf, rm, opts, far):
     return x, y, solver
 
 
-def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, enabled):
-    best = None
-    for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625) if enabled else (1.0,):
-        qa = q + alpha * dq
+class _Restoration:
+    """Second-order restoration of the stiff low-rank quantities (cavity volumes) along a
+    Newton step.
+
+    A step that keeps a cavity's volume to first order changes it to second order, and the
+    liquid (K / V ~ 0.4 MPa/mm^3 for the eye) turns that into a pressure jump on every
+    wetted face: the residual norm then rejects a good step at every length (the Maratos
+    effect of constrained optimisation). The trial point q + a dq is moved along
+    w_j = K^-1 v_j (v_j = dV_j/dq, on the step's own factorisation) until every volume is
+    back at its linear prediction V_j(q) + a v_j . dq (a few chord iterations on the
+    volumes alone). Near convergence the correction is of second order and Newton's
+    quadratic convergence is kept.
+    """
+
+    def __init__(self, model, q, dq, theta, active, asm, solver):
+        self.terms = [t for t in model.terms if (active is None or t.name in active)
+                      and type(t).low_rank_values is not Term.low_rank_values]
+        self.q, self.dq, self.theta, self.asm, self.solver = q, dq, theta, asm, solver
+        self.ok = bool(self.terms) and solver is not None
+        self.W = None
+
+    def _setup(self):
+        """Volumes and their gradients at q, and w_j = K^-1 v_j (one solve per cavity)."""
+        self.c0 = self._values(self.q)
+        G = [np.asarray(v) for t in self.terms
+             for _, v in t.low_rank(self.q, self.theta[t.name], t.data, t.dofs)]
+        G = np.stack(G)
+        cols = []
+        for g in G:
+            x, y = self.solver.solve(g[self.asm.free_primal], np.zeros(len(self.asm.mult)))
+            cols.append(self.asm.expand(x, y))
+        self.W = np.stack(cols, 1)
+        self.J = G @ self.W
+        self.slope = G @ self.dq
+
+    def _values(self, q):
+        return np.array([c for t in self.terms for c in t.low_rank_values(q, self.theta[t.name])])
+
+    def __call__(self, qa, alpha):
+        """qa = q + alpha dq moved back to the linearly predicted volumes (None: failed)."""
+        if not self.ok:
+            return None
+        if self.W is None:
+            try:
+                self._setup()
+            except LinearSolveError as exc:  # e.g. negative curvature met by a new right-hand side
+                log.debug("  volume restoration skipped: %s", exc)
+                self.ok = False
+                return None
+        target = self.c0 + alpha * self.slope
+        s = np.zeros(len(target))
+        tol = 1e-12 * max(np.abs(target).max(), 1e-300)
+        for _ in range(6):
+            err = self._values(qa + self.W @ s) - target
+            if not np.all(np.isfinite(err)):
+                return None
+            if np.abs(err).max() <= tol:
+                break
+            s = s - np.linalg.solve(self.J, err)
+        return qa + self.W @ s
+
+
+def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, enabled, restore=None):
+    """Backtracking on the residual norm (merit: force residual / reference, volume
+    residual / solid volume). When the full step fails and the model has stiff low-rank
+    terms (closed cavities), the trials are restored to the linearised volumes
+    (:class:`_Restoration`). Returns the first trial that lowers the merit, else the best."""
+    def merit(qa):
         r = model.gradient(qa, theta, active)
         if not np.all(np.isfinite(r)):
+            return None
+        return np.hypot(np.linalg.norm(r[asm.free_primal]) / max(fref, 1e-300),
+                        np.linalg.norm(r[asm.mult]) / vref if len(asm.mult) else 0.0)
+
+    if enabled and restore is not None and restore.ok:
+        trials = [(1.0, False)] + [(a, True) for a in (1.0, 0.5, 0.25, 0.125, 0.0625)]
+    else:
+        trials = [(a, False) for a in ((1.0, 0.5, 0.25, 0.125, 0.0625) if enabled else (1.0,))]
+    best = None
+    for alpha, restored in trials:
+        qa = restore(q + alpha * dq, alpha) if restored else None
+        if qa is None:
+            qa, restored = q + alpha * dq, False
+        m = merit(qa)
+        if m is None:
             continue
-        m = np.hypot(np.linalg.norm(r[asm.free_primal]) / max(fref, 1e-300),
-                     np.linalg.norm(r[asm.mult]) / vref if len(asm.mult) else 0.0)
         if m < m0:
-            if alpha < 1.0:
-                log.debug("  line search: step length %g", alpha)
+            if alpha < 1.0 or restored:
+                log.debug("  line search: step length %g%s", alpha,
+                          " (volumes restored)" if restored else "")
             return qa
         if best is None or m < best[0]:
             best = (m, qa)

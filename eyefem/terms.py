@@ -104,6 +104,12 @@ class Term(abc.ABC):
         """
         return []
 
+    def low_rank_values(self, q, params) -> list:
+        """The scalars c_j(q) whose gradients are the low-rank vectors v_j (same order; a
+        cavity's volume, mm^3), for the solver's second-order restoration along a Newton
+        step (see ``eyefem.solver``). Default: none."""
+        return []
+
     def report(self, q: np.ndarray, params) -> dict:
         """Scalar outputs logged and written to CSV every step (e.g. cavity pressure)."""
         return {}

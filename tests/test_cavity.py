@@ -170,3 +170,74 @@ def test_ninety_cavities_in_one_model():
     assert np.all(np.diff(P) > 0)  # more squeeze, more pressure, box by box
     # the cavities are independent: box 45 alone gives the same pressure
     assert _squeeze_boxes([45])[0] == pytest.approx(P[45], rel=1e-7)
+
+
+@pytest.fixture(scope="module")
+def closed_shell():
+    """A pressurised spherical shell whose cavity is then closed (stiff liquid); the state,
+    theta and an assembler for the closed stage."""
+    from eyefem.assembly import Assembler
+    from eyefem.cavity import close_cavity
+
+    m = generators.spherical_shell(10.0, 1.0, 6, 1, material="wall")
+    m = m.replace(face_sets={**m.face_sets, "cavity": m.face_set("inner")})
+    press = PressureLoad("iop", m, "inner", 0.0)
+    cav = FluidCavity("cav", m, "cavity", bulk=0.05 * 1e6)
+    model = solid_model(m, {"wall": neo_hookean("wall", 0.025)}, (press, cav))
+    d = shell_rigid_constraints(m)
+    sol = solve(model, [Stage("pressurise", 2, (d, np.zeros(len(d))), params={"iop": {"p": 15 * MMHG}},
+                              active=("solid", "iop"))])
+    model, q, theta = close_cavity(sol.model, sol.q, sol.theta, "cav", "iop")
+    prescribed = np.zeros(model.n_dof, bool)
+    prescribed[d] = True
+    return model, q, theta, Assembler(model, prescribed), m
+
+
+def test_low_rank_values_are_the_volumes_whose_gradients_are_the_low_rank_vectors(closed_shell):
+    model, q, theta, asm, m = closed_shell
+    cav = model.term("cav")
+    (alpha, g), = cav.low_rank(q, theta["cav"], cav.data, cav.dofs)
+    (v,) = cav.low_rank_values(q, theta["cav"])
+    assert v == pytest.approx(float(cav.pressures(q, theta["cav"])[1][0]), rel=1e-14)
+    rng = np.random.default_rng(3)
+    e = rng.standard_normal(model.n_dof) * 1e-3
+    h = 1e-3
+    fd = (cav.low_rank_values(q + h * e, theta["cav"])[0]
+          - cav.low_rank_values(q - h * e, theta["cav"])[0]) / (2 * h)
+    assert fd == pytest.approx(g @ e, rel=1e-7)
+    # a cavity without liquid stiffness has no low-rank part and no value
+    soft = FluidCavity("soft", m, "cavity", bulk=0.0)
+    assert soft.low_rank(q, soft.params, soft.data, soft.dofs) == []
+    assert soft.low_rank_values(q, soft.params) == []
+
+
+def test_restoration_brings_the_volume_to_its_linear_prediction_at_second_order(closed_shell):
+    """The solver's second-order restoration (eyefem.solver._Restoration): a trial point
+    q + a dq is moved back to V(q) + a dV/dq . dq to roundoff, and the move shrinks as
+    |dq|^2 (it is a second-order correction, so Newton's quadratic convergence is kept)."""
+    from eyefem.solver import _Restoration
+
+    model, q, theta, asm, m = closed_shell
+    r, K, B, D, lr = asm.assemble(q, theta, None)
+    solver = asm.solver(K, B, D, lr)
+    cav = model.term("cav")
+    (_, g), = cav.low_rank(q, theta["cav"], cav.data, cav.dofs)
+    field = np.zeros(model.n_dof)  # a rough motion of the free nodes (mm)
+    field[asm.free_primal] = np.random.default_rng(0).standard_normal(len(asm.free_primal))
+    moves = []
+    for scale in (0.02, 0.01):
+        dq = scale * field
+        rest = _Restoration(model, q, dq, theta, None, asm, solver)
+        assert rest.ok
+        for alpha in (1.0, 0.5):
+            qa = q + alpha * dq
+            qr = rest(qa, alpha)
+            V0 = cav.low_rank_values(q, theta["cav"])[0]
+            Vr = cav.low_rank_values(qr, theta["cav"])[0]
+            assert Vr == pytest.approx(V0 + alpha * (g @ dq), rel=1e-11)
+            Va = cav.low_rank_values(qa, theta["cav"])[0]
+            assert abs(Va - (V0 + alpha * (g @ dq))) > 1e3 * abs(Vr - (V0 + alpha * (g @ dq)))
+        moves.append(np.linalg.norm(qr - qa))
+    assert moves[0] / moves[1] == pytest.approx(4.0, rel=0.05)
+    # a model without stiff low-rank terms has nothing to restore
+    assert not _Restoration(model, q, dq, theta, ("solid",), asm, solver).ok
