@@ -310,7 +310,10 @@ class _Restoration:
                 return None
             if np.abs(err).max() <= tol:
                 break
-            s = s - np.linalg.solve(self.J, err)
+            try:
+                s = s - np.linalg.solve(self.J, err)
+            except np.linalg.LinAlgError:  # K^-1 indefinite on the volume gradients
+                return None
         return qa + self.W @ s
 
 
