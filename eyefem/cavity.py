@@ -328,7 +328,8 @@ class FluidCavity(Term):
 
     def low_rank_values(self, q, params) -> list:
         """Volumes (mm^3) of the cavities in :meth:`low_rank` (those with K != 0)."""
-        _, V, alpha, _ = _state_kernel(jnp.asarray(q), params, self.data, self.dofs)
+        V = _volumes(jnp.asarray(q)[self.dofs], self.data)  # volumes only: no face gradients
+        alpha = _law(V, params)[2]
         return [float(v) for v, a in zip(np.asarray(V), np.asarray(alpha)) if a != 0.0]
 
     # --- host-side state and outputs ---------------------------------------------------------

@@ -333,11 +333,15 @@ def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, enabled, rest
         trials = [(1.0, False)] + [(a, True) for a in (1.0, 0.5, 0.25, 0.125, 0.0625)]
     else:
         trials = [(a, False) for a in ((1.0, 0.5, 0.25, 0.125, 0.0625) if enabled else (1.0,))]
-    best = None
+    best, tried = None, set()
     for alpha, restored in trials:
         qa = restore(q + alpha * dq, alpha) if restored else None
         if qa is None:
             qa, restored = q + alpha * dq, False
+        if not restored:
+            if alpha in tried:  # the restoration failed: this plain trial was evaluated
+                continue
+            tried.add(alpha)
         m = merit(qa)
         if m is None:
             continue
