@@ -113,8 +113,10 @@ class Assembler:
             slots[valid] = inv[off: off + len(valid)]
             self.patterns[name] = _TermPattern(prim, m, slots, valid, bs, bv)
 
-    def assemble(self, q, theta, active=None):
-        """Residual (n_dof,) and the factorisation-ready tangent pieces at q.
+    def assemble(self, q, theta, active=None, pressure_stiffness=True):
+        """Residual (n_dof,) and the factorisation-ready tangent pieces at q; with
+        ``pressure_stiffness`` False the tangent leaves out the Hessians of follower
+        pressures (terms marked ``pressure_stiffness``; their low-rank parts stay).
 
         Returns: (r, K (n_p, n_p) CSR including the condensation, B (n_p, n_m) or None,
         D (n_m,) or None, low_rank list of (alpha, v (n_p,))).
@@ -136,7 +138,8 @@ class Assembler:
                 if p.mult is not None:
                     D[self.mred[t.dofs[:, p.mult]]] = d
                     bdata += np.bincount(p.b_slots, b.ravel()[p.b_valid], minlength=len(bdata))
-                kdata += np.bincount(p.k_slots, Hpp.ravel(), minlength=len(kdata) + 1)[:-1]
+                if pressure_stiffness or not t.pressure_stiffness:
+                    kdata += np.bincount(p.k_slots, Hpp.ravel(), minlength=len(kdata) + 1)[:-1]
             r += np.bincount(t.dofs.ravel(), g.ravel(), minlength=model.n_dof)
             for al, v in t.low_rank(q, theta[t.name], t.data, t.dofs):
                 low_rank.append((al, np.asarray(v)[self.free_primal]))

@@ -228,6 +228,8 @@ class FluidCavity(Term):
     symmetry_planes: tuple[str, ...] = ()
     origin: tuple = (0.0, 0.0, 0.0)
 
+    pressure_stiffness = True
+
     def __post_init__(self):
         cavs, single = _as_cavity_list(self.face_sets)
         for ax in self.symmetry_planes:

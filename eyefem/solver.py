@@ -44,6 +44,12 @@ class NewtonOptions:
         quadratic convergence; at convergence they are re-paired once more.
       modified_newton: while the force residual is above modified_newton x the reference,
         an indefinite tangent is shifted to positive definite (modified Newton step).
+      pressure_stiffness: keep the follower pressures' load stiffness (-p d2V/dq2) in the
+        tangent far from convergence too (above modified_newton x the reference). Off
+        (the default), those steps use the tangent without it: on the default eye mesh
+        it nearly cancels the very soft retina's stiffness against wrinkling of the
+        wetted surface, and the first steps of a buckle's indentation ran along those
+        near-singular modes into inverted elements. Near convergence the tangent is exact.
       restore: when a full Newton step does not lower the residual, restore the trial
         points' cavity volumes to their linear prediction (second-order correction; see
         ``_Restoration``).
@@ -67,6 +73,7 @@ class NewtonOptions:
     contact_rtol: float = 1e-4
     extrapolate: bool = False
     modified_newton: float = 1e-2
+    pressure_stiffness: bool = False
     restore: bool = True
 
     def __post_init__(self):
@@ -217,10 +224,9 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
             frozen = True
         if it == opts.max_iter:
             break
-        _, K, B, D, lr = asm.assemble(q, theta, active)
         try:
-            x, y, solver = _direction(asm, K, B, D, lr, rf, rm, opts,
-                                      far=nf > opts.modified_newton * fref)
+            x, y, solver = _direction(asm, lambda exact: asm.assemble(q, theta, active, exact)[1:],
+                                      rf, rm, opts, far=nf > opts.modified_newton * fref)
         except LinearSolveError as exc:
             raise _StepFailed(str(exc)) from exc
         dq = asm.expand(x, y)
@@ -231,23 +237,39 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                       f"reference {fref:.3e} N, volume residual {nm:.2e})")
 
 
-def _direction(asm, K, B, D, lr, rf, rm, opts, far):
-    """Newton direction. Far from convergence an indefinite tangent (negative curvature
-    on the incompressible modes: an unstable state or a poor iterate) gets a modified
-    Newton step, K + mu |diag K| with mu = 1e-4, 1e-3, ... until it is positive: a
-    descent direction that leaves saddle points. Near convergence the exact (possibly
-    indefinite) system is solved, so the convergence stays quadratic."""
-    if far:
-        for mu in (0.0, 1e-4, 1e-3, 1e-2, 1e-1):
-            try:
-                solver = asm.solver(K, B, D, lr, opts.backend, shift=mu, indefinite="raise")
-                x, y = solver.solve(-rf, -rm)
-                if mu:
-                    log.debug("  modified Newton step (shift %g)", mu)
-                return x, y, solver
-            except NegativeCurvature:
-                continue
-    solver = asm.solver(K, B, D, lr, opts.backend)
+def _direction(asm, tangent, rf, rm, opts, far):
+    """Newton direction; ``tangent(exact)`` assembles (K, B, D, low_rank), exact or
+    without the follower pressures' load stiffness.
+
+    Near convergence (force residual below modified_newton x the reference) the exact
+    tangent is used when it is positive definite, so the convergence stays quadratic.
+    Far from it, or where the exact tangent shows negative curvature, a modified Newton
+    step: the tangent without the pressure stiffness (unless
+    ``NewtonOptions.pressure_stiffness``), shifted by mu |diag K| with mu = 0, 1e-4, 1e-3,
+    ... until it is positive: a descent direction that leaves saddle points. If none is,
+    the exact (indefinite) system is solved."""
+    cache = {}
+
+    def pieces(exact):
+        exact = exact or opts.pressure_stiffness
+        if exact not in cache:
+            cache[exact] = tangent(exact)
+        return cache[exact]
+
+    tries = ([] if far else [(True, 0.0)]) + [
+        (False, mu) for mu in (0.0, 1e-4, 1e-3, 1e-2, 1e-1)
+        if mu or far or not opts.pressure_stiffness]  # not the exact tangent twice
+    for exact, mu in tries:
+        try:
+            solver = asm.solver(*pieces(exact), opts.backend, shift=mu, indefinite="raise")
+            x, y = solver.solve(-rf, -rm)
+            if not exact or mu:
+                log.debug("  modified Newton step (%s, shift %g)", "without the pressure stiffness"
+                          if not opts.pressure_stiffness else "exact tangent", mu)
+            return x, y, solver
+        except NegativeCurvature:
+            continue
+    solver = asm.solver(*pieces(True), opts.backend)
     x, y = solver.solve(-rf, -rm)
     return x, y, solver
 

@@ -78,6 +78,8 @@ class PressureLoad(Term):
     pressure: float = 0.0
     origin: tuple = (0.0, 0.0, 0.0)
 
+    pressure_stiffness = True
+
     def __post_init__(self):
         faces = self.mesh.face_set(self.face_set)
         object.__setattr__(self, "dofs", face_dofs(faces))

@@ -54,6 +54,10 @@ class Term(abc.ABC):
     dynamic: bool = False
     """True if ``dofs`` change between Newton iterations (contact pairing): assembled
     without a precomputed pattern."""
+    pressure_stiffness: bool = False
+    """True if the Hessian is a follower pressure's load stiffness (-p d2V/dq2, a closed
+    cavity or a pressure load): the Newton solver leaves it out of its tangent far from
+    convergence (``NewtonOptions.pressure_stiffness``)."""
 
     @abc.abstractmethod
     def local_energy(self, q_loc, params, data):
@@ -182,46 +186,65 @@ class NodeSprings(Term):
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class TwistSpring(Term):
-    """A torsional spring on the mean twist of a ring of nodes about the z axis.
+class OrbitSpring(Term):
+    """Springs on the rigid-body motion of a ring of nodes: its best-fit small rotation
+    about the x, y, z axes through the ring's centroid c and its mean lateral (x, y)
+    translation.
 
-    twist = sum_i (X_i x u_i)_z / sum_i rho_i^2 (rad; rho_i = distance of X_i from the
-    axis: the rigid rotation that best fits u), energy 1/2 k twist^2. A deformation
-    with no net twist (any symmetric one) stores nothing and feels no force.
+    rotation theta = I^-1 sum_i r_i x u_i (rad; r_i = X_i - c, I = sum_i |r_i|^2 1 - r_i r_i^T:
+    the rigid rotation that best fits u), translation t = mean_i u_i (mm); energy
+    1/2 sum_a k_a theta_a^2 + 1/2 k_t (t_x^2 + t_y^2). A deformation with no net
+    rotation or lateral shift (any one symmetric about the x = 0 and y = 0 planes)
+    stores nothing and feels no force.
 
     Args: name; nodes (n,) node ids; xyz (n, 3) their reference positions, mm;
-      k: torsional stiffness, N mm/rad (params {"k"}).
+      k_rot: rotational stiffnesses about x, y, z, N mm/rad (3,); k_trans: lateral
+      stiffness, N/mm (params {"k": (5,)}: k_rot then k_trans twice).
     """
 
     name: str
     nodes: np.ndarray
     xyz: np.ndarray
-    k: float = 1.0
+    k_rot: tuple = (1.0, 1.0, 1.0)
+    k_trans: float = 0.0
 
     def __post_init__(self):
         n = np.asarray(self.nodes, np.int64).ravel()
-        X = np.asarray(self.xyz, np.float64).reshape(len(n), 3)
-        rho2 = float(np.sum(X[:, 0] ** 2 + X[:, 1] ** 2))
-        if self.k < 0 or not rho2 > 0:
-            raise ValueError(f"twist spring '{self.name}': k = {self.k} N mm/rad (must be >= 0) "
-                             f"on {len(n)} nodes at sum rho^2 = {rho2} mm^2 (must be > 0)")
+        r = np.asarray(self.xyz, np.float64).reshape(len(n), 3)
+        r = r - r.mean(axis=0)
+        inertia = np.sum(r * r) * np.eye(3) - r.T @ r
+        k = np.r_[np.asarray(self.k_rot, np.float64).ravel(), self.k_trans, self.k_trans]
+        if len(k) != 5 or np.any(k < 0) or np.linalg.cond(inertia) > 1e12:
+            raise ValueError(f"orbit spring '{self.name}': k_rot = {self.k_rot} N mm/rad (three "
+                             f"values >= 0), k_trans = {self.k_trans} N/mm (>= 0), on {len(n)} "
+                             "nodes that must not lie on one line")
         object.__setattr__(self, "dofs", (3 * n[:, None] + np.arange(3)).reshape(1, -1))
-        object.__setattr__(self, "params", {"k": float(self.k)})
-        # d twist / d u: (-y, x, 0) / sum rho^2 per node
-        w = np.stack([-X[:, 1], X[:, 0], np.zeros(len(n))], axis=1) / rho2
-        object.__setattr__(self, "data", {"w": w.reshape(1, -1)})
+        object.__setattr__(self, "params", {"k": k})
+        # d (sum r x u) / du per node: the rows of -[r]x, (3, n, 3)
+        z = np.zeros(len(n))
+        cross = np.stack([np.stack([z, -r[:, 2], r[:, 1]], 1), np.stack([r[:, 2], z, -r[:, 0]], 1),
+                          np.stack([-r[:, 1], r[:, 0], z], 1)])
+        rot = np.linalg.solve(inertia, cross.reshape(3, -1))
+        shift = np.zeros((2, len(n), 3))
+        shift[0, :, 0] = shift[1, :, 1] = 1.0 / len(n)
+        modes = np.vstack([rot, shift.reshape(2, -1)])  # (5, 3n): d (theta, t_xy) / du
+        object.__setattr__(self, "data", {"modes": modes[None]})
 
-    def twist(self, q):
-        """Mean twist of the ring (rad) at q (n_dof,)."""
-        return float(np.asarray(q)[self.dofs[0]] @ self.data["w"][0])
+    def motion(self, q):
+        """(rotation about x, y, z (rad), lateral translation x, y (mm)) of the ring at q."""
+        return self.data["modes"][0] @ np.asarray(q)[self.dofs[0]]
 
     def local_energy(self, q_loc, params, data):
-        t = jnp.sum(q_loc * data["w"], axis=1)
-        return 0.5 * params["k"] * t * t
+        m = jnp.einsum("emj,ej->em", data["modes"], q_loc)
+        return 0.5 * jnp.sum(params["k"] * m * m, axis=1)
 
     def report(self, q, params):
-        t = self.twist(q)
-        return {"twist_deg": float(np.degrees(t)), "moment_Nmm": params["k"] * t}
+        m = self.motion(q)
+        deg = np.degrees(m[:3])
+        return {"twist_deg": float(deg[2]), "tilt_deg": float(np.hypot(deg[0], deg[1])),
+                "shift_mm": float(np.hypot(m[3], m[4])),
+                "moment_Nmm": float(np.linalg.norm(params["k"][:3] * m[:3])),
+                "force_N": float(np.linalg.norm(params["k"][3:] * m[3:]))}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -122,38 +122,59 @@ def test_band_pull_term_is_the_work_of_the_tension():
         DofForce("pull", -1)
 
 
-def test_torsion_spring_holds_the_net_twist_with_the_given_stiffness_and_nothing_else():
-    """The orbit's torsional hold: a small rigid twist delta about the optical axis stores
-    1/2 K delta^2 (K the case's globe_torsion, N mm/rad); a displacement with no net twist
-    (radial, axial, and azimuthal in opposite senses on two halves) stores nothing; the
-    gradient is K twist d twist/du with d twist/du = (-y, x, 0) / sum rho^2 (hand-coded)."""
+def test_orbit_spring_holds_rotations_and_lateral_shift_with_the_given_stiffnesses():
+    """The orbit's hold: a small rigid rotation delta about the x, y or z axis through the
+    equatorial ring's centre stores 1/2 K delta^2 (K the case's globe_rotation or
+    globe_torsion, N mm/rad), a lateral shift s stores 1/2 K_t s^2 (globe_translation,
+    N/mm); an axial shift and a deformation symmetric about x = 0 and y = 0 (radial,
+    axial) store nothing. The gradient against the planar ring's hand-coded modes:
+    twist (-y, x, 0) / sum rho^2, tilt about x (0, 0, y) / sum y^2, shift 1/n."""
     import jax
     import numpy as np
 
     from eyefem.eyemodel import EyeGeometry, build_eye
-    from eyefem.problems.surgery import torsion_spring
+    from eyefem.problems.surgery import orbit_spring
 
     mesh = build_eye(EyeGeometry(), "coarse").mesh
     outer = np.unique(mesh.face_set("eye/sclera_outer"))
-    t = torsion_spring(mesh, outer, 7.0)
+    p = {"globe_rotation": 5.0, "globe_torsion": 7.0, "globe_translation": 0.8}
+    t = orbit_spring(mesh, outer, p)
     X = mesh.nodes
+    c = X[t.nodes].mean(axis=0)
+    assert abs(c[0]) < 1e-9 and abs(c[1]) < 1e-9
     delta = 1e-3
-    u_twist = delta * np.stack([-X[:, 1], X[:, 0], np.zeros(len(X))], axis=1)
-    assert float(t.energy(u_twist.ravel(), t.params, t.data, t.dofs)) == pytest.approx(
-        0.5 * 7.0 * delta**2, rel=1e-12)
-    assert t.report(u_twist.ravel(), t.params)["twist_deg"] == pytest.approx(np.degrees(delta))
+
+    def energy(u):
+        return float(t.energy(np.asarray(u).ravel(), t.params, t.data, t.dofs))
+
+    for axis, k in ((0, 5.0), (1, 5.0), (2, 7.0)):
+        u_rot = delta * np.cross(np.eye(3)[axis], X - c)
+        assert energy(u_rot) == pytest.approx(0.5 * k * delta**2, rel=1e-12)
+    report = t.report((delta * np.cross(np.eye(3)[2], X - c)).ravel(), t.params)
+    assert report["twist_deg"] == pytest.approx(np.degrees(delta))
+    assert report["tilt_deg"] == pytest.approx(0.0, abs=1e-12)
+    for axis in (0, 1):
+        assert energy(np.tile(0.01 * np.eye(3)[axis], (len(X), 1))) == pytest.approx(
+            0.5 * 0.8 * 0.01**2, rel=1e-12)
+    assert energy(np.tile([0.0, 0.0, 0.3], (len(X), 1))) == pytest.approx(0.0, abs=1e-20)
     rho = np.hypot(X[:, 0], X[:, 1])
-    ephi = np.stack([-X[:, 1], X[:, 0], np.zeros(len(X))], axis=1) / np.maximum(rho, 1e-9)[:, None]
-    u_sym = (np.stack([0.1 * X[:, 0], 0.1 * X[:, 1], 0.05 * np.cos(rho)], axis=1)
-             + 0.02 * np.sign(X[:, 1])[:, None] * ephi)  # y > 0 turns one way, y < 0 the other
-    assert float(t.energy(u_sym.ravel(), t.params, t.data, t.dofs)) == pytest.approx(0.0, abs=1e-20)
+    u_sym = np.stack([0.1 * X[:, 0], 0.1 * X[:, 1], 0.05 * np.cos(rho)], axis=1)
+    assert energy(u_sym) == pytest.approx(0.0, abs=1e-20)
     rng = np.random.default_rng(0)
     q_loc = rng.standard_normal(t.dofs.shape)
     Xr = X[t.nodes]
-    w = np.stack([-Xr[:, 1], Xr[:, 0], np.zeros(len(Xr))], axis=1).ravel() / np.sum(Xr[:, :2] ** 2)
-    g_hand = 7.0 * (q_loc[0] @ w) * w
+    zero = np.zeros(len(Xr))
+    modes = [np.stack([zero, zero, Xr[:, 1]], 1) / np.sum(Xr[:, 1] ** 2),
+             np.stack([zero, zero, -Xr[:, 0]], 1) / np.sum(Xr[:, 0] ** 2),
+             np.stack([-Xr[:, 1], Xr[:, 0], zero], 1) / np.sum(Xr[:, :2] ** 2),
+             np.stack([zero + 1, zero, zero], 1) / len(Xr),
+             np.stack([zero, zero + 1, zero], 1) / len(Xr)]
+    g_hand = sum(k * (q_loc[0] @ w.ravel()) * w.ravel()
+                 for k, w in zip((5.0, 5.0, 7.0, 0.8, 0.8), modes))
     g_ad = jax.grad(lambda q: t.local_energy(q, t.params, t.data).sum())(q_loc)
-    np.testing.assert_allclose(np.asarray(g_ad)[0], g_hand, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(g_ad)[0], g_hand, rtol=1e-10, atol=1e-14)
+    with pytest.raises(ValueError, match="k_trans = -1.0 N/mm"):
+        orbit_spring(mesh, outer, {**p, "globe_translation": -1.0})
 
 
 @pytest.mark.slow

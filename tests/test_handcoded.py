@@ -20,8 +20,9 @@ def test_every_term_agrees(checks, seed):
         assert c.r_hand < 1e-8 and c.K_hand < 1e-8, c
         assert c.K_fd < 1e-5, c
     names = {c.name for c in checks[seed]}
-    assert {"solid_q1p0_generalised", "follower_pressure", "suture_bar", "fluid_cavity",
-            "rigid_contact", "surface_contact_sliding", "surface_contact_sticking"} <= names
+    assert {"solid_q1p0_generalised", "follower_pressure", "orbit_spring", "suture_bar",
+            "fluid_cavity", "rigid_contact", "surface_contact_sliding",
+            "surface_contact_sticking"} <= names
     assert "FAIL" not in format_table(checks[seed])
 
 

@@ -11,7 +11,7 @@ import scipy.sparse as sp
 from eyefem import generators
 from eyefem.casefile import CaseError, load_case
 from eyefem.cli import main as cli_main
-from eyefem.linsolve import SaddlePointSolver, available_backends
+from eyefem.linsolve import LinearSolveError, SaddlePointSolver, available_backends
 from eyefem.materials import MooneyRivlin, mooney_rivlin, neo_hookean
 from eyefem.mesh import Mesh
 from eyefem.model import node_dofs, solid_model
@@ -74,14 +74,19 @@ def test_energy_invariant_under_rigid_rotation(cube):
     assert abs(e1 - e2) <= 1e-12 * abs(e1)
 
 
+def _random_saddle_point(seed, n=40, m=6):
+    """A random SPD K (n, n), coupling B (n, m) and right-hand sides f, g."""
+    rng = np.random.default_rng(seed)
+    A = sp.random(n, n, density=0.2, random_state=seed + 1)
+    K = (A @ A.T + sp.eye(n) * 2).tocsr()
+    B = sp.random(n, m, density=0.3, random_state=seed + 2).tocsr() + sp.eye(n, m)
+    return rng, K, B, rng.standard_normal(n), rng.standard_normal(m)
+
+
 def test_saddle_point_solve_is_exact():
     """Uzawa on K + B D B^T solves [[K, B], [B^T, 0]] exactly, with both backends."""
-    rng = np.random.default_rng(3)
-    n, m = 40, 6
-    A = sp.random(n, n, density=0.2, random_state=4)
-    K = (A @ A.T + sp.eye(n) * 2).tocsr()
-    B = sp.random(n, m, density=0.3, random_state=5).tocsr() + sp.eye(n, m)
-    f, g = rng.standard_normal(n), rng.standard_normal(m)
+    rng, K, B, f, g = _random_saddle_point(3)
+    n, m = B.shape
     Kd = sp.bmat([[K, B], [B.T, None]]).toarray()
     ref = np.linalg.solve(Kd, np.concatenate([f, g]))
     for backend in available_backends():
@@ -94,6 +99,29 @@ def test_saddle_point_solve_is_exact():
     Kd[:n, :n] += 3.0 * np.outer(v, v)
     np.testing.assert_allclose(np.concatenate([x, y]), np.linalg.solve(Kd, np.concatenate([f, g])),
                                rtol=1e-8, atol=1e-10)
+
+
+def test_saddle_point_solve_refines_an_inexact_factorisation():
+    """A factorisation of a slightly wrong matrix (as Pardiso's perturbed pivots give on a
+    badly conditioned tangent) leaves a residual of 1e-4 relative: without refinement that
+    is an error; three refinement steps against the exact system bring it under tol and
+    to the exact solution."""
+    from eyefem.linsolve import factorize
+
+    rng, K, B, f, g = _random_saddle_point(11)
+    n, m = B.shape
+    ref = np.linalg.solve(sp.bmat([[K, B], [B.T, None]]).toarray(), np.concatenate([f, g]))
+    perturbed = sp.diags(1 + 1e-4 * rng.standard_normal(n))
+    for refine in (0, 3):
+        s = SaddlePointSolver(K, B, np.full(m, 100.0), augmented=False, refine=refine, tol=1e-9)
+        s.fact = factorize(s.K_aug @ perturbed, "superlu")
+        if refine == 0:
+            with pytest.raises(LinearSolveError, match=r"residual \d\.\d\de-0[45] relative"):
+                s.solve(f, g)
+            continue
+        x, y = s.solve(f, g)
+    assert s._residual(f, g, x, y)[2] < 1e-9
+    np.testing.assert_allclose(np.concatenate([x, y]), ref, rtol=1e-7, atol=1e-9)
 
 
 def test_saddle_point_solve_with_indefinite_block_uses_the_direct_kkt_solve():

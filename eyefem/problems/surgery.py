@@ -35,7 +35,7 @@ from ..output import write_csv, write_text
 from ..solver import Stage
 from ..surface import PressureLoad
 from ..sutures import generate_sutures
-from ..terms import DofForce, NodeSprings, TwistSpring
+from ..terms import DofForce, NodeSprings, OrbitSpring
 from ..units import MMHG
 from .base import Setup
 
@@ -73,6 +73,12 @@ SURGERY_FIELDS = [
     Field("globe_torsion", float, 7.0, "the orbit's hold on the globe's torsion about the "
           "optical axis (extraocular muscles, Tenon's capsule), N mm/rad; 0: the nerve stub "
           "alone", lambda v: v >= 0, ">= 0"),
+    Field("globe_rotation", float, 70.0, "the hold on the globe's rotation about the x and y "
+          "axes during surgery (rectus traction sutures, extraocular muscles), N mm/rad; "
+          "0: the nerve stub alone", lambda v: v >= 0, ">= 0"),
+    Field("globe_translation", float, 1.0, "the orbit's hold on the globe's lateral (x, y) "
+          "translation (orbital fat, Tenon's capsule), N/mm; 0: the nerve stub alone",
+          lambda v: v >= 0, ">= 0"),
     Field("steps_pressurise", int, 2, "load steps of stage 1", positive, ">= 1"),
     Field("steps_tighten", int, 8, "load steps of stage 2", positive, ">= 1"),
     Field("steps_suture", int, 3, "load steps of stage 3", positive, ">= 1"),
@@ -214,7 +220,7 @@ def surgery(p, materials):
     sutures = suture_term(parts, 1.0)
     buckle = buckle_term(parts, 1.0)
     lens_hold = NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3)
-    torsion = torsion_spring(mesh, parts.sclera_nodes, p["globe_torsion"])
+    orbit = orbit_spring(mesh, parts.sclera_nodes, p)
     # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`
     parts.d_per_mm = 1.0 / (2 * np.pi * (np.sin(b.centre_angle(g)) if b.encircling else 1.0))
     pulled = p["band_tension"] > 0
@@ -226,7 +232,7 @@ def surgery(p, materials):
                          f"{p['tightening']} mm: give one; set tightening = 0 to pull the band")
     extra = (DofForce("band_pull", parts.extra_dof, gain=1.0 / parts.d_per_mm),) if pulled else ()
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
-                        (zonule, iop, cavity, buckle, sutures, lens_hold, torsion) + extra,
+                        (zonule, iop, cavity, buckle, sutures, lens_hold, orbit) + extra,
                         n_extra_dofs=1)
     fix = node_dofs(mesh.node_set("eye/nerve_end"))
     # the buckle's own radial motion (extra dof) is held, except a segmental buckle's
@@ -251,7 +257,7 @@ def surgery(p, materials):
 
     motion = {"d": np.full(1, p["tightening"] * parts.d_per_mm), "s": np.full(1, p["buckle_shift"])}
     ridge = {"ridge": np.full(1, KINDS[b.kind][2])}
-    base = ("solid", "zonule", "lens_springs", "torsion")
+    base = ("solid", "zonule", "lens_springs", "orbit")
     # a pulled band (force control) moves freely: its radial motion is an unknown
     held_band = held_eye if pulled else held
     pull = {"band_pull": {"f": p["band_tension"]}} if pulled else {}
@@ -310,20 +316,29 @@ def snug_node(parts: SurgeryParts, q) -> int:
     return int(s[np.argmax(np.linalg.norm(x, axis=1) / np.linalg.norm(mesh.nodes[s], axis=1))])
 
 
-def torsion_spring(mesh, sclera_nodes, stiffness: float) -> TwistSpring:
-    """The orbit's hold on the globe's twist about the optical axis z: a torsional spring
-    (N mm/rad) on the mean twist of the outer scleral ring at the equator.
+def orbit_spring(mesh, sclera_nodes, p) -> OrbitSpring:
+    """The orbit's hold on the globe: springs on the rigid rotation (N mm/rad) and lateral
+    translation (N/mm) of the outer scleral ring at the equator (case fields
+    globe_torsion, globe_rotation, globe_translation).
 
-    On the nerve stub alone the globe twists almost freely (about 0.3 N mm/rad); the
-    passive stiffness of the extraocular muscles and orbital tissue is about 1 gram-force
-    per degree at the tendon insertions (Robinson, 1975), 7 N mm/rad at the scleral
-    radius. A state with no net twist (an encircling band; a segmental buckle on a
-    symmetry plane of the mesh) feels nothing; the spring holds the globe where a
-    segmental buckle breaks the symmetry (its meridian varied)."""
+    On the nerve stub alone the globe twists, turns and shifts almost freely (about
+    0.3 N mm/rad in torsion), held otherwise only by the buckle's smoothed contact
+    forces. The passive stiffness of the extraocular muscles and orbital
+    tissue is about 1 gram-force per degree at the tendon insertions (Robinson, 1975),
+    7 N mm/rad at the scleral radius (globe_torsion). Against tilt (globe_rotation) the
+    default is ten times that: during the operation the surgeon holds the globe by
+    traction sutures under the rectus muscles, and with 7 N mm/rad the encircled globe
+    (its nerve leaves 15 degrees nasally) has two equilibria late in the tightening of
+    coarse case 2, tilted by 0.1 or 0.5 degrees, which the Newton path picks between
+    (docs/surgery.md). The lateral hold of the orbital fat and Tenon's capsule, 1 N/mm
+    by default, is an order-of-magnitude estimate. A deformation without net rotation or
+    lateral shift feels nothing."""
     X = mesh.nodes[sclera_nodes]
     rho = np.hypot(X[:, 0], X[:, 1])
     ring = np.abs(X[:, 2] - X[np.argmax(rho), 2]) < 1e-6
-    return TwistSpring("torsion", sclera_nodes[ring], X[ring], k=stiffness)
+    k_rot = (p["globe_rotation"], p["globe_rotation"], p["globe_torsion"])
+    return OrbitSpring("orbit", sclera_nodes[ring], X[ring], k_rot=k_rot,
+                       k_trans=p["globe_translation"])
 
 
 def _buckle_coords(parts: SurgeryParts):
