@@ -172,7 +172,9 @@ class SaddlePointSolver:
         (a Levenberg-Marquardt shift for modified Newton steps; 0: exact).
       indefinite: "kkt" solves an indefinite system exactly (direct factorisation of the
         whole saddle point), "raise" raises NegativeCurvature.
-      refine: at most this many refinement steps of a solve whose residual exceeds tol.
+      refine: at most this many refinement steps of a solve whose residual exceeds
+        refine_above (well above the roundoff of a good factorisation, 1e-9..1e-8 on the
+        12k shell, so that a sound solve costs nothing extra).
     """
 
     K: sp.spmatrix
@@ -187,6 +189,7 @@ class SaddlePointSolver:
     shift: float = 0.0
     indefinite: str = "kkt"
     refine: int = 3
+    refine_above: float = 1e-7
 
     def __post_init__(self):
         K = self.K
@@ -314,16 +317,16 @@ class SaddlePointSolver:
         Conjugate gradients on the Schur complement S = B^T K_aug^-1 B of the augmented
         system, preconditioned by D (S is close to D^-1): one back-solve per iteration.
         Falls back to a direct symmetric-indefinite factorisation of the whole saddle-point
-        system if S shows negative curvature (K_aug indefinite). A residual above ``tol``
-        (Pardiso's perturbed pivots on a badly conditioned tangent) is refined against
-        the exact system, up to ``refine`` times, while that lowers it.
+        system if S shows negative curvature (K_aug indefinite). A residual above
+        ``refine_above`` (Pardiso's perturbed pivots on a badly conditioned tangent) is
+        refined against the exact system, up to ``refine`` times, while that lowers it.
         """
         self.n_solves += 1
         g = np.zeros(0 if self.B is None else self.B.shape[1]) if g is None else g
         x, y = self._solve_once(f, g)
         res, cres, rel = self._residual(f, g, x, y)
         for _ in range(self.refine):
-            if not rel > self.tol:
+            if not rel > self.refine_above:
                 break
             dx, dy = self._solve_once(-res, -cres)
             res2, cres2, rel2 = self._residual(f, g, x + dx, y + dy)

@@ -104,8 +104,8 @@ def test_saddle_point_solve_is_exact():
 def test_saddle_point_solve_refines_an_inexact_factorisation():
     """A factorisation of a slightly wrong matrix (as Pardiso's perturbed pivots give on a
     badly conditioned tangent) leaves a residual of 1e-4 relative: without refinement that
-    is an error; three refinement steps against the exact system bring it under tol and
-    to the exact solution."""
+    is an error; three refinement steps against the exact system bring it to the exact
+    solution. A sound factorisation is not refined at all (default refine_above 1e-7)."""
     from eyefem.linsolve import factorize
 
     rng, K, B, f, g = _random_saddle_point(11)
@@ -113,7 +113,8 @@ def test_saddle_point_solve_refines_an_inexact_factorisation():
     ref = np.linalg.solve(sp.bmat([[K, B], [B.T, None]]).toarray(), np.concatenate([f, g]))
     perturbed = sp.diags(1 + 1e-4 * rng.standard_normal(n))
     for refine in (0, 3):
-        s = SaddlePointSolver(K, B, np.full(m, 100.0), augmented=False, refine=refine, tol=1e-9)
+        s = SaddlePointSolver(K, B, np.full(m, 100.0), augmented=False, refine=refine,
+                              refine_above=1e-12)
         s.fact = factorize(s.K_aug @ perturbed, "superlu")
         if refine == 0:
             with pytest.raises(LinearSolveError, match=r"residual \d\.\d\de-0[45] relative"):
@@ -122,6 +123,12 @@ def test_saddle_point_solve_refines_an_inexact_factorisation():
         x, y = s.solve(f, g)
     assert s._residual(f, g, x, y)[2] < 1e-9
     np.testing.assert_allclose(np.concatenate([x, y]), ref, rtol=1e-7, atol=1e-9)
+    sound = SaddlePointSolver(K, B, np.full(m, 100.0), augmented=False)
+    calls = []
+    solve_once = sound._solve_once
+    sound._solve_once = lambda *a: calls.append(1) or solve_once(*a)
+    sound.solve(f, g)
+    assert len(calls) == 1
 
 
 def test_saddle_point_solve_with_indefinite_block_uses_the_direct_kkt_solve():
