@@ -243,26 +243,35 @@ def _direction(asm, tangent, rf, rm, opts, far):
     """Newton direction; ``tangent(exact)`` assembles (K, B, D, low_rank), exact or
     without the follower pressures' load stiffness.
 
-    Far from convergence (force residual above modified_newton x the reference) a
-    modified Newton step: the tangent without the pressure stiffness (unless
+    Near convergence (force residual below modified_newton x the reference) the exact
+    tangent is used when it is positive definite, so the convergence stays quadratic.
+    Far from it, or where the exact tangent shows negative curvature, a modified Newton
+    step: the tangent without the pressure stiffness (unless
     ``NewtonOptions.pressure_stiffness``), shifted by mu |diag K| with mu = 0, 1e-4, 1e-3,
-    ... until it is positive: a descent direction that leaves saddle points. Near
-    convergence, or if no shift helps, the exact (possibly indefinite) system is solved,
-    so the convergence stays quadratic."""
-    if far:
-        modified = tangent(opts.pressure_stiffness)
-        for mu in (0.0, 1e-4, 1e-3, 1e-2, 1e-1):
-            try:
-                solver = asm.solver(*modified, opts.backend, shift=mu, indefinite="raise")
-                x, y = solver.solve(-rf, -rm)
-                if mu or not opts.pressure_stiffness:
-                    log.debug("  modified Newton step (%s, shift %g)", "exact tangent"
-                              if opts.pressure_stiffness else "without the pressure stiffness", mu)
-                return x, y, solver
-            except NegativeCurvature:
-                continue
-    exact = modified if far and opts.pressure_stiffness else tangent(True)
-    solver = asm.solver(*exact, opts.backend)
+    ... until it is positive: a descent direction that leaves saddle points. If none is,
+    the exact (indefinite) system is solved."""
+    cache = {}
+
+    def pieces(exact):
+        exact = exact or opts.pressure_stiffness
+        if exact not in cache:
+            cache[exact] = tangent(exact)
+        return cache[exact]
+
+    tries = ([] if far else [(True, 0.0)]) + [
+        (False, mu) for mu in (0.0, 1e-4, 1e-3, 1e-2, 1e-1)
+        if mu or far or not opts.pressure_stiffness]  # not the exact tangent twice
+    for exact, mu in tries:
+        try:
+            solver = asm.solver(*pieces(exact), opts.backend, shift=mu, indefinite="raise")
+            x, y = solver.solve(-rf, -rm)
+            if not exact or mu:
+                log.debug("  modified Newton step (%s, shift %g)", "without the pressure stiffness"
+                          if not opts.pressure_stiffness else "exact tangent", mu)
+            return x, y, solver
+        except NegativeCurvature:
+            continue
+    solver = asm.solver(*pieces(True), opts.backend)
     x, y = solver.solve(-rf, -rm)
     return x, y, solver
 
