@@ -82,6 +82,11 @@ SURGERY_FIELDS = [
     Field("steps_pressurise", int, 2, "load steps of stage 1", positive, ">= 1"),
     Field("steps_tighten", int, 8, "load steps of stage 2", positive, ">= 1"),
     Field("steps_suture", int, 3, "load steps of stage 3", positive, ">= 1"),
+    Field("contact_smoothing", float, 0.0, "buckle contact smoothing length eps, mm: the "
+          "penalty acts on eps softplus(-gap / eps) (larger: a softer touch-down, easier "
+          "Newton steps, a stand-off of about eps); 0: automatic, 0.01 mm for an encircling "
+          "buckle, 0.002 mm for a sponge (whose indentation is ten times smaller)",
+          lambda v: v == 0 or 1e-4 <= v <= 0.1, "0 (automatic) or 1e-4 to 0.1 mm"),
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
 ]
@@ -175,6 +180,18 @@ def _sponge_frame(parts: SurgeryParts):
     return n0, m0, (m0 if b.kind == "sponge_radial" else e0)
 
 
+RING_SMOOTHING, SPONGE_SMOOTHING = 0.01, 0.002
+"""Automatic buckle contact smoothing lengths, mm (case field contact_smoothing = 0)."""
+
+
+def contact_smoothing(parts: SurgeryParts) -> float:
+    """The buckle contact's smoothing length eps, mm (docs/surgery.md)."""
+    eps = parts.p["contact_smoothing"]
+    if eps:
+        return eps
+    return RING_SMOOTHING if parts.buckle.encircling else SPONGE_SMOOTHING
+
+
 def buckle_term(parts: SurgeryParts, scale: float) -> BuckleContact:
     """The analytic buckle contact fitted at radial scale ``scale``."""
     b, g = parts.buckle, parts.eye.geometry
@@ -183,12 +200,14 @@ def buckle_term(parts: SurgeryParts, scale: float) -> BuckleContact:
     if b.encircling:
         return BuckleContact("buckle", parts.eye.mesh, "eye/sclera_outer", "ring", R,
                              theta_b=b.centre_angle(g), width=w, ridge=ridge, ridge_width=rw,
-                             modulus=6 * SEED_MATERIALS["sclera"], extra_dof=parts.extra_dof)
+                             modulus=6 * SEED_MATERIALS["sclera"], extra_dof=parts.extra_dof,
+                             smoothing=contact_smoothing(parts))
     n0, m0, ax = _sponge_frame(parts)
     return BuckleContact("buckle", parts.eye.mesh, "eye/sclera_outer", "sponge", R,
                          n0=tuple(n0), m0=tuple(m0), axis=tuple(ax), sponge_radius=w / 2,
                          sponge_length=SPONGE_LENGTH, modulus=6 * SEED_MATERIALS["sclera"],
-                         extra_dof=parts.extra_dof, curved=b.kind == "sponge_radial")
+                         extra_dof=parts.extra_dof, curved=b.kind == "sponge_radial",
+                         smoothing=contact_smoothing(parts))
 
 
 def _N(xi):
