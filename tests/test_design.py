@@ -239,3 +239,13 @@ def test_band_tension_cannot_vary_in_a_displacement_controlled_case(base):
     assert all(grads[o]["band_tension"] == 0.0 for o in OUTCOMES)
     with pytest.raises(ValueError, match="'band_tension' = 0.1 cannot vary"):
         sim.run({**res.design, "band_tension": 0.1})
+
+
+@pytest.mark.parametrize("buckle, given, expected", [
+    ("tire_ridged", 0.0, 0.01), ("sponge_radial", 0.0, 0.002), ("band", 0.005, 0.005)])
+def test_buckle_contact_smoothing_automatic_by_buckle_kind_or_as_given(buckle, given, expected):
+    from eyefem.problems.surgery import surgery
+
+    setup = surgery(default_parameters(mesh="coarse", buckle=buckle, contact_smoothing=given),
+                    None)
+    assert setup.model.term("buckle").smoothing == expected
