@@ -184,12 +184,15 @@ def test_pulled_band_tension_gradient_matches_central_differences():
     against Richardson-extrapolated central differences of full simulations."""
     p = default_parameters(mesh="coarse", tightening=0.0, band_tension=0.25, steps_tighten=4,
                            steps_suture=2)
-    sim = SurgerySimulator(p)
+    sim = SurgerySimulator(p, options=TIGHT)
     res = sim.run()
     assert res.sol2.model.term("band_pull").report(res.sol2.q, res.sol2.theta["band_pull"])[
         "motion_mm"] == pytest.approx(5.0, abs=0.2)
     grads = sim.gradients(res)
-    fd = _fd(sim, res, "band_tension", 1e-3)
+    # the suture force is strongly curved in the tension: central differences with
+    # h = 0.5, 1, 2, 4 mN give -0.4040, -0.4056, -0.4124, -0.4613 N/N (10 um contact
+    # smoothing), so the Richardson pair needs h = 0.5 mN to reach 1e-4
+    fd = _fd(sim, res, "band_tension", 5e-4)
     for out in OUTCOMES:
         assert grads[out]["band_tension"] == pytest.approx(fd[out], rel=1e-4), out
     assert grads["iop_mmhg"]["band_tension"] > 0  # pulling harder raises the IOP
