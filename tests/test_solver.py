@@ -1,5 +1,6 @@
 """Core solver: element kernels, saddle-point solve, Newton, verification problems, bad input."""
 
+import dataclasses
 import json
 
 import jax
@@ -19,6 +20,7 @@ from eyefem.problems import PROBLEMS
 from eyefem.problems.base import run_setup
 from eyefem.solver import ConvergenceError, NewtonOptions, Stage, solve
 from eyefem.surface import PressureLoad, enclosed_volume
+from eyefem.terms import Term
 
 
 def _params(problem, **kw):
@@ -332,3 +334,100 @@ def test_pardiso_runs_with_the_project_settings_and_solves_indefinite_systems():
     iparm = f.entry["solver"].iparm
     assert [iparm[i - 1] for i in PARDISO_IPARM] == list(PARDISO_IPARM.values())
     assert iparm[6] == 0  # iterative refinement steps performed in the last solve
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Kink(Term):
+    """c |q[a] - q[b] - e|: a residual that jumps by 2c where q[a] - q[b] = e, so that no
+    Newton step lowers it below about c when the minimiser sits on the kink (c > k e)."""
+
+    name: str
+    a: int
+    b: int
+    c: float
+    e: float = 1e-9
+    params: dict = dataclasses.field(default_factory=dict)
+    data: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "dofs", np.array([[self.a, self.b]], np.int64))
+        object.__setattr__(self, "data", {"c": np.full(1, self.c), "e": np.full(1, self.e)})
+
+    def local_energy(self, q_loc, params, data):
+        return data["c"] * jnp.abs(q_loc[:, 0] - q_loc[:, 1] - data["e"])
+
+
+def _kinked_cube(c):
+    """Unit neo-Hookean cube on symmetry planes, pulled to stretch 1.1 in x, with a kink
+    between the y motion of corner (1, 1, 0) and the z motion of corner (1, 0, 1), equal
+    by symmetry."""
+    mesh = generators.box(1.0, 1.0, 1.0, 1, 1, 1, material="m")
+    X = mesh.nodes
+    na = int(np.flatnonzero(np.all(np.isclose(X, [1, 1, 0]), axis=1))[0])
+    nb = int(np.flatnonzero(np.all(np.isclose(X, [1, 0, 1]), axis=1))[0])
+    solid = solid_model(mesh, {"m": neo_hookean("m", 1.0)})
+    model = solid.with_terms(list(solid.terms) + [_Kink("kink", 3 * na + 1, 3 * nb + 2, c)])
+    d = np.concatenate([node_dofs(mesh.node_set("x0"), "x"), node_dofs(mesh.node_set("y0"), "y"),
+                        node_dofs(mesh.node_set("z0"), "z"), node_dofs(mesh.node_set("x1"), "x")])
+    v = np.zeros(len(d))
+    v[-4:] = 0.1
+    return model, Stage("pull", 4, (d, v))
+
+
+def test_stalled_steps_are_accepted_inside_a_stage_and_refused_at_its_end():
+    """On a kink of 1e-7 of the reaction force the residual plateaus above the tolerance
+    (1e-8 of it) and below stall_rtol (1e-6): the steps inside the stage are accepted on
+    the stall (flagged in the step records), the load path's last step is not (it runs
+    to max_iter and is cut), and the run stops with the last converged state."""
+    model, stage = _kinked_cube(0.0)
+    ref = solve(model, [stage])
+    reaction = np.linalg.norm(ref.model.gradient(ref.q, ref.theta)[stage.prescribed[0]])
+    model, stage = _kinked_cube(1e-7 * reaction)
+    with pytest.raises(ConvergenceError, match="no convergence in 20 iterations") as exc:
+        solve(model, [stage], options=NewtonOptions(max_iter=20, max_cuts=4))
+    hist = exc.value.history
+    assert len(hist) >= 3 and all(r.info.get("stalled") for r in hist)
+    assert all(1e-8 * reaction < r.residual < 1e-6 * reaction for r in hist)
+    assert all(r.iterations <= 2 + NewtonOptions().stall_iterations + 4 for r in hist)
+    assert 0.9 < hist[-1].t < 1.0
+    # the kept state is on the kink-free path, short of its end by about 0.1 (1 - t) mm
+    np.testing.assert_allclose(exc.value.q, ref.q, atol=0.2 * (1.0 - hist[-1].t) + 1e-6)
+
+
+def test_a_stage_that_does_not_end_the_load_path_may_end_on_a_stall():
+    model, stage = _kinked_cube(0.0)
+    ref = solve(model, [stage])
+    reaction = np.linalg.norm(ref.model.gradient(ref.q, ref.theta)[stage.prescribed[0]])
+    model, stage = _kinked_cube(1e-7 * reaction)
+    hold = Stage("hold", 1, stage.prescribed)
+    with pytest.raises(ConvergenceError, match="stage 'hold'") as exc:
+        solve(model, [stage, hold], options=NewtonOptions(max_iter=20, max_cuts=1))
+    end = [r for r in exc.value.history if r.stage == "pull"][-1]
+    assert end.t == 1.0 and end.info.get("stalled")
+
+
+def test_a_smooth_step_is_never_flagged_as_stalled():
+    model, stage = _kinked_cube(0.0)
+    sol = solve(model, [stage])
+    assert sol.history[-1].t == 1.0
+    assert not any(r.info.get("stalled") for r in sol.history)
+
+
+def test_increment_grows_back_after_steps_within_grow_iterations():
+    """A cube pulled to stretch 4 in 2 steps with 4 iterations allowed: the first step is
+    cut to 1/4 and converges in 4 iterations; the increment then doubles back to the
+    nominal 1/2 when grow_iterations >= 4, and stays at 1/4 when it is 2 (the later
+    steps take 3)."""
+    mesh = generators.box(1.0, 1.0, 1.0, 1, 1, 1, material="m")
+    model = solid_model(mesh, {"m": neo_hookean("m", 1.0)})
+    d = np.concatenate([node_dofs(mesh.node_set("x0"), "x"), node_dofs(mesh.node_set("y0"), "y"),
+                        node_dofs(mesh.node_set("z0"), "z"), node_dofs(mesh.node_set("x1"), "x")])
+    v = np.zeros(len(d))
+    v[-4:] = 3.0
+    stage = Stage("pull", 2, (d, v))
+    grown = solve(model, [stage], options=NewtonOptions(max_iter=4))
+    kept = solve(model, [stage], options=NewtonOptions(max_iter=4, grow_iterations=2))
+    assert grown.history[0].t == kept.history[0].t == 0.25 and grown.history[0].iterations == 4
+    assert np.diff([0.0] + [r.t for r in grown.history]).tolist() == [0.25, 0.5, 0.25]
+    assert np.diff([0.0] + [r.t for r in kept.history]).tolist() == [0.25] * 4
+    np.testing.assert_allclose(grown.q, kept.q, atol=1e-8)
