@@ -72,9 +72,10 @@ class NewtonOptions:
       stall_rtol, stall_vtol: a stalled step inside a stage is accepted, with a warning,
         when its force residual is below stall_rtol x the reference and its volume
         residual below stall_vtol (the load path has no history, so the next step starts
-        that close to it and converges to rtol). The step that ends the load path (its
-        state is what the outcomes and the adjoint gradients are taken at) is never
-        accepted on a stall, and a step stalled above these goes on to max_iter.
+        that close to it and converges to rtol). The step that ends a stage is never
+        accepted on a stall (the next stage has its own, often much smaller, reference
+        force and cannot start from a stalled state), and a step stalled above these
+        goes on to max_iter.
     """
 
     rtol: float = 1e-8
@@ -201,7 +202,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
     force, the reactions and ``fscale`` (the stage's typical step force), so a cut step
     is not held to a tighter absolute tolerance than a full one. A step that stalls
     (``NewtonOptions.stall_iterations``) below ``stall_rtol`` x the reference is accepted
-    unless it is ``final`` (it ends the load path).
+    unless it is ``final`` (it ends a stage).
     """
     free = asm.free_primal
     mult = asm.mult
@@ -470,7 +471,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
                     try:
                         model_new, q_new, its, res, slv, fref, stalled = newton(
                             model, asm, q_start, th, dqp, options, stage.active, vref, fscale,
-                            final=t_new >= 1.0 - 1e-12 and i_stage == len(stages) - 1)
+                            final=t_new >= 1.0 - 1e-12)
                         break
                     except _StepFailed as exc:
                         if k + 1 == len(starts_q):
