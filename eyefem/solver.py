@@ -103,8 +103,9 @@ class NewtonOptions:
             if not getattr(self, f) > 0:
                 raise ValueError(f"NewtonOptions.{f} = {getattr(self, f)}; must be > 0")
         if self.max_iter < 1 or self.max_cuts < 0 or self.stall_iterations < 2:
-            raise ValueError("NewtonOptions: max_iter must be >= 1, max_cuts >= 0 and "
-                             "stall_iterations >= 2")
+            raise ValueError(f"NewtonOptions: max_iter = {self.max_iter}, max_cuts = "
+                             f"{self.max_cuts}, stall_iterations = {self.stall_iterations}; "
+                             "need max_iter >= 1, max_cuts >= 0 and stall_iterations >= 2")
 
 
 @dataclasses.dataclass(frozen=True)
