@@ -75,7 +75,12 @@ class NewtonOptions:
         that close to it and converges to rtol). The step that ends a stage is never
         accepted on a stall (the next stage has its own, often much smaller, reference
         force and cannot start from a stalled state), and a step stalled above these
-        goes on to max_iter.
+        goes on to max_iter (or is cut, with ``stall_cut``).
+      stall_cut: a stalled step that is not accepted is cut at once, without spending the
+        iterations left to max_iter, once its force residual is below modified_newton x
+        the reference (off by default; default case 3 passes the end of its tightening
+        with it, default case 4 failed with it and grow_iterations 12:
+        docs/performance.md).
     """
 
     rtol: float = 1e-8
@@ -96,6 +101,7 @@ class NewtonOptions:
     stall_iterations: int = 8
     stall_rtol: float = 1e-5
     stall_vtol: float = 1e-8
+    stall_cut: bool = False
 
     def __post_init__(self):
         for f in ("rtol", "vtol", "atol", "beta", "contact_freeze", "contact_rtol", "modified_newton",
@@ -258,6 +264,10 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                         "(%.1e of the reference %.3e N; tolerance %.1e)", nf, it, nf / fref,
                         fref, opts.rtol)
             return model, q, it, nf, solver, fref, True
+        if (opts.stall_cut and it >= k and nf > 0.9 * history[-k - 1]
+                and nf <= opts.modified_newton * fref):
+            raise _StepFailed(f"stalled at |r_u| = {nf:.3e} N (reference {fref:.3e} N, volume "
+                              f"residual {nm:.2e}) after {it} iterations")
         if it == opts.max_iter:
             break
         try:

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import re
 
 import jax
 import jax.numpy as jnp
@@ -392,6 +393,22 @@ def test_stalled_steps_are_accepted_inside_a_stage_and_refused_at_its_end():
     assert 0.9 < hist[-1].t < 1.0
     # the kept state is on the kink-free path, short of its end by about 0.1 (1 - t) mm
     np.testing.assert_allclose(exc.value.q, ref.q, atol=0.2 * (1.0 - hist[-1].t) + 1e-6)
+
+
+def test_stall_cut_cuts_a_stalled_step_at_once():
+    """With stall_cut the stage's last step on the kink is cut as soon as it has stalled
+    (stall_iterations without 10% progress), not after max_iter: every try of the step
+    to t = 1 fails with the 'stalled' reason."""
+    model, stage = _kinked_cube(0.0)
+    ref = solve(model, [stage])
+    reaction = np.linalg.norm(ref.model.gradient(ref.q, ref.theta)[stage.prescribed[0]])
+    model, stage = _kinked_cube(1e-7 * reaction)
+    opts = NewtonOptions(max_iter=30, max_cuts=2, stall_cut=True)
+    with pytest.raises(ConvergenceError, match=r"stalled at \|r_u\| = .* after (\d+) iterations") as exc:
+        solve(model, [stage], options=opts)
+    its = int(re.search(r"after (\d+) iterations", str(exc.value)).group(1))
+    assert opts.stall_iterations <= its < opts.max_iter
+    assert all(r.info.get("stalled") for r in exc.value.history)
 
 
 def test_a_smooth_step_is_never_flagged_as_stalled():
