@@ -15,8 +15,10 @@ Placement: the buckle centre lies ``distance`` mm (arc length on the scleral sph
 behind the limbus at meridian ``meridian_deg`` (segmental); :func:`buckle_bodies` takes
 a radial scale so that the buckle is fitted snug on the pressurised eye.
 
-Deformable buckles (the seed's hexahedral band, tire and sponge) are not implemented:
-every buckle is rigid (the seed itself sutures rigid band and tire, seed 6.1 step 3).
+A deformable band (kind "band" only) is a hexahedral mesh (:func:`deformable_band`),
+tightened by pulling its two ends past each other (surgery ``buckle_body =
+"deformable"``, docs/surgery.md); tires and sponges are rigid only (the seed itself
+sutures rigid band and tire, seed 6.1 step 3).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import dataclasses
 import numpy as np
 
 from .eyemodel import EyeGeometry
+from .mesh import Mesh, boundary_faces
 from .rigid import RigidBody, _grid_tris
 
 KINDS = {
@@ -173,3 +176,53 @@ def suture_anchor_frame(buckle: Buckle, g: EyeGeometry, n_sutures: int):
         a = across - (across @ n) * n
         cen.append(R * n), acr.append(a / np.linalg.norm(a)), nrm.append(n), body.append(0)
     return np.array(cen), np.array(acr), np.array(nrm), np.array(body)
+
+
+BAND_C10 = 1.0
+"""Silicone of a deformable band: neo-Hookean c10, MPa (material name "band")."""
+
+
+def deformable_band(buckle: Buckle, g: EyeGeometry, inner_radius: float, n_circ: int,
+                    n_width: int = 2, n_thick: int = 1, material: str = "band") -> Mesh:
+    """Hexahedral encircling band (kind "band": 2.5 mm wide, 0.6 mm thick) on the eye.
+
+    A :func:`eyefem.vessels.slit_band` (cut at the +y meridian) bent onto the globe: its
+    inner surface lies on the sphere of radius ``inner_radius`` (mm) about the globe
+    centre, spanning the polar angles theta_b -/+ width / (2 inner_radius) about the
+    buckle centre line theta_b (so it follows the sclera across its width, like the
+    rigid ring's profile); the thickness runs radially.
+
+    Args: n_circ, n_width, n_thick: elements around, across (even), through.
+    Node sets (slit_band's): "all", "end0", "end1" (the two ends on the cut), "mid"
+    (on the centre line theta_b), "inner"; face sets: "inner" (normals toward the
+    globe centre), "outer" (normals away from it).
+    Pulling end0 along +x (clockwise at the cut) and end1 along -x shortens the loop.
+    """
+    from .vessels import slit_band
+
+    if buckle.kind != "band":
+        raise ValueError(f"deformable_band: buckle kind '{buckle.kind}'; only 'band' has a "
+                         "deformable (hexahedral) body")
+    w, h = buckle.width, buckle.thickness
+    m = slit_band(1.0, h, w, n_circ, n_thick, n_width, z_centre=0.0, slit_angle=90.0,
+                  material=material)
+    X = m.nodes
+    rho = np.hypot(X[:, 0], X[:, 1])
+    c, s = X[:, 0] / rho, X[:, 1] / rho
+    r = inner_radius + (rho - 1.0)
+    # across coordinate z -> polar angle; z up = tau down keeps the elements' orientation
+    tau = buckle.centre_angle(g) - X[:, 2] / inner_radius
+    nodes = np.column_stack([r * np.sin(tau) * c, r * np.sin(tau) * s, r * np.cos(tau)])
+    bf = boundary_faces(m.hexes)
+    outer = bf[np.all(np.abs(rho[bf] - (1.0 + h)) < 1e-9, axis=1)]
+    return m.replace(nodes=nodes, face_sets={**m.face_sets, "outer": outer})
+
+
+def band_n_circ(mesh: Mesh, sclera_nodes: np.ndarray, buckle: Buckle, g: EyeGeometry) -> int:
+    """Elements around a deformable band: twice the number of outer scleral nodes on the
+    mesh ring nearest the buckle centre line (two band elements per scleral face)."""
+    X = mesh.nodes[sclera_nodes]
+    tau = np.arccos(np.clip(X[:, 2] / np.linalg.norm(X, axis=1), -1, 1))
+    a = g.scleral_radius * (tau - buckle.centre_angle(g))
+    ring = np.abs(a - a[np.argmin(np.abs(a))]) < 1e-3
+    return int(2 * max(ring.sum(), 12))

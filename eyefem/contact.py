@@ -246,6 +246,9 @@ class SurfaceContact(Term):
       penalty: alpha per node, N/mm (overrides the default).
       search_gap: pairing distance, mm (default 1.5 h).
       max_initial_penetration: error beyond this initial depth, mm (default h / 2).
+      smoothing: sliding mode only: eps (mm) of a smoothed penetration eps softplus(-g / eps)
+        in place of <-g> (as eyefem.buckle_contact): C-infinity, with stiffness at a
+        touching gap, and a stand-off force alpha eps ln 2 / 2 at g = 0; None: plain.
     """
 
     name: str
@@ -257,9 +260,13 @@ class SurfaceContact(Term):
     penalty: float | None = None
     search_gap: float | None = None
     max_initial_penetration: float | None = None
+    smoothing: float | None = None
     dynamic = True
 
     def __post_init__(self):
+        if self.smoothing is not None and not (self.smoothing > 0 and self.mode == "sliding"):
+            raise ValueError(f"contact '{self.name}': smoothing = {self.smoothing} mm; needs "
+                             "mode 'sliding' and a value > 0 (or None)")
         if self.mode not in ("sliding", "sticking"):
             raise ValueError(f"contact '{self.name}': mode '{self.mode}'; use 'sliding' or 'sticking'")
         nodes = self.mesh.node_set(self.slave)
@@ -280,7 +287,7 @@ class SurfaceContact(Term):
         self._pair(np.zeros(3 * self.mesh.n_nodes), initial=True)
 
     def static_key(self):
-        return (self.mode,)
+        return (self.mode, self.smoothing is not None)
 
     def _pair(self, q, initial=False):
         u = q[: 3 * self.mesh.n_nodes].reshape(-1, 3)
@@ -332,7 +339,8 @@ class SurfaceContact(Term):
         area = np.array([amap.get(int(s), 1.0) for s in snode])
         object.__setattr__(self, "dofs", (3 * nodes5[:, :, None] + np.arange(3)).reshape(P, 15))
         object.__setattr__(self, "data", {"X": self.mesh.nodes[nodes5], "xi": xi_p, "w": w,
-                                          "alpha": np.full(P, self.alpha), "area": area})
+                                          "alpha": np.full(P, self.alpha), "area": area,
+                                          "eps": np.full(P, self.smoothing or 1.0)})
         object.__setattr__(self, "n_pairs", len(slave_nodes))
 
     def update(self, q, params):
@@ -358,6 +366,10 @@ class SurfaceContact(Term):
         if self.mode == "sticking":
             d = xh - xt
             return 0.5 * a * jnp.sum(d * d, axis=1)
+        if self.smoothing is not None:
+            g = jnp.einsum("pi,pi->p", xh - xt, n)
+            p = data["eps"] * jnp.logaddexp(-g / data["eps"], 0.0)
+            return 0.5 * a * p * p
         g = jnp.minimum(jnp.einsum("pi,pi->p", xh - xt, n), 0.0)
         return 0.5 * a * g * g
 
@@ -366,18 +378,27 @@ class SurfaceContact(Term):
         w = self.data["w"] > 0
         return np.einsum("pi,pi->p", xh - xt, n)[w], self.dofs[w, 0] // 3, self.data["area"][w]
 
+    def _forces(self, g):
+        """Normal force magnitudes (n,), N, at gaps g (n,) (per unit penalty scale)."""
+        if self.smoothing is None:
+            return self.alpha * np.maximum(-g, 0.0)
+        from scipy.special import expit
+
+        e = self.smoothing
+        return self.alpha * e * np.logaddexp(-g / e, 0.0) * expit(-g / e)
+
     def report(self, q, params):
         g, _, _ = self._gaps(q)
         pen = np.maximum(-g, 0.0)
         return {"active": int(np.sum(pen > 0)) if self.mode == "sliding" else self.n_pairs,
                 "max_penetration_mm": float(pen.max(initial=0.0)),
-                "force_N": float(self.alpha * params["scale"] * pen.sum())}
+                "force_N": float(params["scale"] * self._forces(g).sum())}
 
     def point_fields(self, q, params, n_nodes):
         g, node, area = self._gaps(q)
         gap, pres = np.zeros(n_nodes), np.zeros(n_nodes)
         gap[node] = g
-        pres[node] = self.alpha * np.maximum(-g, 0.0) / area
+        pres[node] = self._forces(g) / area
         return {f"{self.name}_gap_mm": gap, f"{self.name}_pressure_MPa": pres}
 
 

@@ -23,18 +23,21 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from ..bars import AnchoredBars, Bars
+from ..bars import AnchoredBars, Bars, TiedBars
 from ..buckle_contact import BuckleContact
-from ..buckles import KINDS, SPONGE_LENGTH, Buckle, suture_anchor_frame
+from ..buckles import (BAND_C10, KINDS, SPONGE_LENGTH, Buckle, band_n_circ, deformable_band,
+                       suture_anchor_frame)
 from ..casefile import Field, positive
 from ..cavity import WATER_BULK, FluidCavity, close_cavity
+from ..contact import SurfaceContact
 from ..eyemodel import LEVELS, EyeGeometry, axial_length, build_eye
 from ..materials import MooneyRivlin
-from ..model import node_dofs, solid_model
+from ..mesh import merge
+from ..model import Model, node_dofs, solid_model
 from ..output import write_csv, write_text
 from ..solver import Stage
 from ..surface import PressureLoad
-from ..sutures import generate_sutures
+from ..sutures import generate_sutures, suture_bar_ends
 from ..terms import DofForce, NodeSprings, OrbitSpring
 from ..units import MMHG
 from .base import Setup
@@ -43,11 +46,17 @@ SEED_MATERIALS = {  # neo-Hookean c (MPa), seed 6.1; limbus: mean of cornea and 
     "cornea": 0.0333, "limbus": 0.0583, "sclera": 0.0833, "ciliary_body": 0.01,
     "choroid": 0.0083, "retina": 0.0008, "optic_nerve": 0.05, "lens": 10.0}
 
+BODIES = ("rigid", "deformable")
+"""Buckle bodies: the rigid analytic surface or a deformable hexahedral band."""
+
 SURGERY_FIELDS = [
     Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)}", lambda v: v in LEVELS,
           f"one of {list(LEVELS)}"),
     Field("buckle", str, "tire_flat", f"buckle kind: {', '.join(KINDS)}", lambda v: v in KINDS,
           f"one of {list(KINDS)}"),
+    Field("buckle_body", str, "rigid", "'rigid' (exact analytic surface, radial motion) or "
+          "'deformable' (hexahedral silicone band tightened by pulling its ends; buckle = "
+          "'band' only)", lambda v: v in BODIES, f"one of {list(BODIES)}"),
     Field("buckle_distance", float, 12.0, "buckle centre behind the limbus (arc), mm "
           "(position A = 12, B = 15)", lambda v: 2 <= v <= 20, "2 to 20 mm"),
     Field("buckle_meridian_deg", float, 0.0, "meridian of a segmental buckle, degrees"),
@@ -94,6 +103,7 @@ SURGERY_FIELDS = [
 
 def _materials(materials):
     out = {k: MooneyRivlin.from_terms(k, {"c10": c}) for k, c in SEED_MATERIALS.items()}
+    out["band"] = MooneyRivlin.from_terms("band", {"c10": BAND_C10})  # a deformable band
     out.update(materials or {})
     return out
 
@@ -111,6 +121,7 @@ class SurgeryParts:
     scale: float = 1.0
     d_per_mm: float = 0.0
     extra_dof: int = -1
+    band: object = None  # BandInfo of a deformable band
 
 
 def suture_layout(parts: SurgeryParts, width: float, meridian_deg: float | None = None):
@@ -218,26 +229,40 @@ def _N(xi):
 
 def surgery(p, materials):
     """Build the surgery Setup from case parameters (see SURGERY_FIELDS)."""
+    deformable = p.get("buckle_body", "rigid") == "deformable"
+    if deformable:
+        _check_deformable(p)
     eye = build_eye(EyeGeometry(), p["mesh"])
     mesh = eye.mesh
     faces = np.concatenate([mesh.face_set("eye/inner"), mesh.face_set("lens/surface")])
     mesh = mesh.replace(face_sets={**mesh.face_sets, "wetted": faces},
                         node_sets={**mesh.node_sets, "eye/sclera_outer":
                                    np.unique(mesh.face_set("eye/sclera_outer"))})
-    eye = dataclasses.replace(eye, mesh=mesh)
     g = eye.geometry
     b = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
+    band = None
+    if deformable:  # parked BAND_PARK mm off the sclera until stage 2 fits it snug
+        n_circ = band_n_circ(mesh, mesh.node_set("eye/sclera_outer"), b, g)
+        mesh = with_band(mesh, deformable_band(b, g, g.scleral_radius + BAND_PARK, n_circ))
+        band = BandInfo(mesh, n_circ)
+    eye = dataclasses.replace(eye, mesh=mesh)
     frame = suture_anchor_frame(b, g, p["n_sutures"])
     parts = SurgeryParts(eye, b, p, mesh.node_set("eye/sclera_outer"), frame,
-                         extra_dof=3 * mesh.n_nodes + mesh.n_elem)
+                         extra_dof=3 * mesh.n_nodes + mesh.n_elem, band=band)
     mats = _materials(materials)
     lens_eq, zf, zxi = eye.zonule
     zonule = Bars("zonule", np.repeat(lens_eq[:, None], 4, 1), zf, np.zeros((len(lens_eq), 2)),
                   zxi, mesh.nodes, EA=p["zonule_E"] * g.zonule_area)
     iop = PressureLoad("iop", mesh, "wetted", 0.0)
     cavity = FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"])
-    sutures = suture_term(parts, 1.0)
-    buckle = buckle_term(parts, 1.0)
+    if deformable:
+        sutures = band_suture_term(parts)
+        buckle = band_contact_term(parts)
+        band_hold = (band_spring_term(parts),)
+    else:
+        sutures = suture_term(parts, 1.0)
+        buckle = buckle_term(parts, 1.0)
+        band_hold = ()
     lens_hold = NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3)
     orbit = orbit_spring(mesh, parts.sclera_nodes, p)
     # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`
@@ -251,8 +276,8 @@ def surgery(p, materials):
                          f"{p['tightening']} mm: give one; set tightening = 0 to pull the band")
     extra = (DofForce("band_pull", parts.extra_dof, gain=1.0 / parts.d_per_mm),) if pulled else ()
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
-                        (zonule, iop, cavity, buckle, sutures, lens_hold, orbit) + extra,
-                        n_extra_dofs=1)
+                        (zonule, iop, cavity, buckle, sutures, lens_hold, orbit) + band_hold
+                        + extra, n_extra_dofs=1)
     fix = node_dofs(mesh.node_set("eye/nerve_end"))
     # the buckle's own radial motion (extra dof) is held, except a segmental buckle's
     # while its sutures are tightened: they pull it in against the sclera
@@ -269,29 +294,67 @@ def surgery(p, materials):
         parts.scale = scale
         return model, q, theta
 
+    def place_band(model, q, theta):
+        """Close the cavity; re-reference the (held, undeformed) band snug on the
+        pressurised eye: its stress-free state is the snug fit."""
+        model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
+        scale = float(snug_scale(parts, q))
+        new_mesh = fit_band(parts, scale, q)
+        parts.eye = dataclasses.replace(parts.eye, mesh=new_mesh)
+        new = {"solid": dataclasses.replace(model.term("solid"), mesh=new_mesh),
+               "buckle": band_contact_term(parts).update(q, None),
+               "sutures": band_suture_term(parts),
+               "band_springs": band_spring_term(parts)}
+        model = Model(new_mesh, tuple(new.get(t.name, t) for t in model.terms), model.n_dof)
+        parts.scale = scale
+        return model, q, theta
+
     def tie_sutures(model, q, theta):
         t = model.term("sutures")
         L = np.asarray(t.lengths(np.asarray(q)[t.dofs], theta["sutures"], t.data))
         return model, q, {**theta, "sutures": {**theta["sutures"], "L0": L}}
 
-    motion = {"d": np.full(1, p["tightening"] * parts.d_per_mm), "s": np.full(1, p["buckle_shift"])}
-    ridge = {"ridge": np.full(1, KINDS[b.kind][2])}
     base = ("solid", "zonule", "lens_springs", "orbit")
-    # a pulled band (force control) moves freely: its radial motion is an unknown
-    held_band = held_eye if pulled else held
-    pull = {"band_pull": {"f": p["band_tension"]}} if pulled else {}
-    stages = [
-        Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
-              active=base + ("iop",)),
-        Stage("tighten" if b.encircling else "place", p["steps_tighten"], held_band,
-              params={"buckle": {**motion, **ridge}, "sutures": motion,
-                      "cavity": {"dv": -p["drain_volume"]}, **pull},
-              active=base + ("cavity", "buckle") + tuple(pull), before=place_buckle),
-        Stage("suture", p["steps_suture"], held_band if b.encircling else held_eye,
-              params={"sutures": {"tightening": np.full(2 * p["n_sutures"],
-                                                        p["suture_tightening"] / 2)}},
-              active=base + ("cavity", "buckle", "sutures") + tuple(pull), before=tie_sutures),
-    ]
+    if deformable:
+        bd = band_dofs(parts)
+        band_all = node_dofs(mesh.node_set("band"))
+        held = (np.r_[held[0], band_all], np.zeros(len(held[0]) + len(band_all)))
+        half = 0.5 * p["tightening"]
+        pulled_ends = (np.r_[fix, parts.extra_dof, bd["mid_z"], bd["end0_x"], bd["end1_x"]],
+                       np.r_[np.zeros(len(fix) + 1 + len(bd["mid_z"])),
+                             np.full(len(bd["end0_x"]), half), np.full(len(bd["end1_x"]), -half)])
+        tight = np.zeros(3 * p["n_sutures"])
+        tight[0::3] = tight[2::3] = p["suture_tightening"] / 2  # bite bars; the bar over the top 0
+        band_terms = ("cavity", "buckle", "band_springs")
+        stages = [
+            Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
+                  active=base + ("iop",)),
+            Stage("tighten", p["steps_tighten"], pulled_ends,
+                  params={"cavity": {"dv": -p["drain_volume"]}}, active=base + band_terms,
+                  before=place_band),
+            Stage("suture", p["steps_suture"], pulled_ends, params={"sutures": {"tightening": tight}},
+                  active=base + band_terms + ("sutures",), before=tie_sutures),
+        ]
+    else:
+        motion = {"d": np.full(1, p["tightening"] * parts.d_per_mm),
+                  "s": np.full(1, p["buckle_shift"])}
+        ridge = {"ridge": np.full(1, KINDS[b.kind][2])}
+        # a pulled band (force control) moves freely: its radial motion is an unknown
+        held_band = held_eye if pulled else held
+        pull = {"band_pull": {"f": p["band_tension"]}} if pulled else {}
+        stages = [
+            Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
+                  active=base + ("iop",)),
+            Stage("tighten" if b.encircling else "place", p["steps_tighten"], held_band,
+                  params={"buckle": {**motion, **ridge}, "sutures": motion,
+                          "cavity": {"dv": -p["drain_volume"]}, **pull},
+                  active=base + ("cavity", "buckle") + tuple(pull), before=place_buckle),
+            Stage("suture", p["steps_suture"], held_band if b.encircling else held_eye,
+                  params={"sutures": {"tightening": np.full(2 * p["n_sutures"],
+                                                            p["suture_tightening"] / 2)}},
+                  active=base + ("cavity", "buckle", "sutures") + tuple(pull),
+                  before=tie_sutures),
+        ]
     last = {}
 
     def probe(model, q, theta):
@@ -305,16 +368,159 @@ def surgery(p, materials):
         if plots and "state" in last:
             pictures(parts, *last["state"], Path(out_dir))
         final = summary[-1]
-        return {"iop_mmhg": final["iop_mmhg"], "indentation_mm": final["indentation_mm"],
-                "axial_length_change_mm": final["axial_length_change_mm"],
-                "volume_change_mm3": final["volume_change_mm3"],
-                "max_suture_force_N": final["max_suture_force_N"],
-                "iop_after_tightening_mmhg": summary[1]["iop_mmhg"] if len(summary) > 1 else None,
-                "elements": int(mesh.n_elem)}
+        out = {"iop_mmhg": final["iop_mmhg"], "indentation_mm": final["indentation_mm"],
+               "axial_length_change_mm": final["axial_length_change_mm"],
+               "volume_change_mm3": final["volume_change_mm3"],
+               "max_suture_force_N": final["max_suture_force_N"],
+               "iop_after_tightening_mmhg": summary[1]["iop_mmhg"] if len(summary) > 1 else None,
+               "elements": int(mesh.n_elem), "buckle_body": p.get("buckle_body", "rigid")}
+        if deformable and rows:
+            out.update({k: rows[-1][k] for k in BAND_OUTPUTS})
+        return out
 
     setup = Setup("surgery", model, stages, probe, finish)
     setup.parts = parts
     return setup
+
+
+# --- a deformable band on the eye -----------------------------------------------------------
+BAND_PARK = 0.3
+"""Gap between the sclera and the deformable band while it waits for stage 2, mm."""
+BAND_CLEARANCE = 4e-3
+"""Gap of the band fitted snug on the pressurised eye over its outermost scleral node, mm."""
+BAND_SPRING = (1e-2, 1e-3)
+"""Weak springs on the band's rigid motion (its centre line's best-fit rotation, N mm/rad,
+and mean lateral displacement, N/mm; eyefem.terms.OrbitSpring), against a free drift
+of the band before contact holds it. The band's material slides toward the pulled ends
+(its mean displacement is about 0.5 mm at 5 mm of tightening), so the springs must be
+this weak: their force (band_springs/force_N, about 5e-4 N) is then negligible next to
+the band tension (about 0.3 N)."""
+BAND_SMOOTHING = 2e-3
+"""Smoothing length of the band's contact on the sclera, mm (SurfaceContact smoothing)."""
+BAND_OUTPUTS = ("band_tension_N", "band_loop_shortening_mm", "band_stretch_mm",
+                "band_shortening_mm")
+
+
+def _check_deformable(p):
+    """Clear errors for the cases a deformable buckle does not cover."""
+    if p["buckle"] != "band":
+        raise ValueError(f"buckle_body = 'deformable' is implemented for buckle = 'band' only; "
+                         f"got '{p['buckle']}' (tires and sponges are rigid bodies): set "
+                         "buckle = 'band' or buckle_body = 'rigid'")
+    for name, unit in (("band_tension", "N"), ("buckle_shift", "mm")):
+        if p[name] != 0:
+            raise ValueError(f"{name} = {p[name]} {unit} applies to the rigid buckle only; with "
+                             f"buckle_body = 'deformable' set {name} = 0")
+
+
+@dataclasses.dataclass
+class BandInfo:
+    """Node ids of a deformable band in the merged mesh: all (n,), end0 / end1 (k,) (the
+    ends on the cut), mid-line inner nodes (m,) ordered around from end0 to end1."""
+
+    nodes: np.ndarray
+    end0: np.ndarray
+    end1: np.ndarray
+    line: np.ndarray
+    n_circ: int
+
+    def __init__(self, mesh, n_circ):
+        self.nodes, self.n_circ = mesh.node_set("band"), n_circ
+        self.end0, self.end1 = mesh.node_set("band/end0"), mesh.node_set("band/end1")
+        line = np.intersect1d(mesh.node_set("band/mid"), mesh.node_set("band/inner"))
+        X = mesh.nodes[line]
+        ang = np.mod(np.arctan2(X[:, 1], X[:, 0]) - np.pi / 2, 2 * np.pi)  # from the cut (+y)
+        ang[np.isin(line, self.end1)] = 2 * np.pi
+        self.line = line[np.argsort(ang, kind="stable")]
+
+
+def with_band(eye_mesh, band_mesh):
+    """The eye mesh with the band appended: the eye's sets keep their names, the band's
+    get the prefix 'band/' (node set 'band': all its nodes)."""
+    m = merge(("e", eye_mesh), ("band", band_mesh))
+    strip = lambda d: {(k[2:] if k.startswith("e/") else k): v for k, v in d.items() if k != "e"}
+    return m.replace(node_sets=strip(m.node_sets), face_sets=strip(m.face_sets),
+                     element_sets=strip(m.element_sets))
+
+
+def fit_band(parts: SurgeryParts, scale: float, q):
+    """The mesh with the band's reference moved snug onto the pressurised eye (state q):
+    first onto the sphere of radius scale R + BAND_CLEARANCE, then each radial column of
+    band nodes moved along the radius so that its inner node lies BAND_CLEARANCE off the
+    (faceted) outer sclera: the band's stress-free state, touching all around."""
+    b, g, mesh, info = parts.buckle, parts.eye.geometry, parts.eye.mesh, parts.band
+    band = deformable_band(b, g, scale * g.scleral_radius + BAND_CLEARANCE, info.n_circ)
+    nodes = mesh.nodes.copy()
+    nodes[info.nodes] = band.nodes
+    inner = mesh.node_set("band/inner")
+    q = np.asarray(q)
+    for _ in range(3):
+        m = mesh.replace(nodes=nodes)
+        c = SurfaceContact("fit", m, "band/inner", "eye/sclera_outer").update(q, None)
+        gap, node, _ = c._gaps(q)
+        if len(node) != len(inner):
+            raise RuntimeError(f"fit_band: {len(inner) - len(node)} band nodes find no sclera "
+                               "under them")
+        radial = nodes[node] / np.linalg.norm(nodes[node], axis=1, keepdims=True)
+        shift = (BAND_CLEARANCE - gap)[:, None] * radial
+        nodes[node] += shift
+        nodes[node + 1] += shift  # the outer node above (slit_band numbers columns inner, outer)
+    return mesh.replace(nodes=nodes)
+
+
+def band_dofs(parts: SurgeryParts) -> dict:
+    """Prescribed band dofs: z of the centre-line nodes (holds its position across the
+    globe and its tilt), x of the two ends (the cut is at +y, so x is along the band)."""
+    mesh = parts.eye.mesh
+    return {"mid_z": node_dofs(mesh.node_set("band/mid"), "z"),
+            "end0_x": node_dofs(parts.band.end0, "x"), "end1_x": node_dofs(parts.band.end1, "x")}
+
+
+def band_spring_term(parts: SurgeryParts) -> OrbitSpring:
+    """Weak springs on the band's rigid-body motion (BAND_SPRING)."""
+    line = parts.band.line
+    k_rot, k_trans = BAND_SPRING
+    return OrbitSpring("band_springs", line, parts.eye.mesh.nodes[line], k_rot=(k_rot,) * 3,
+                       k_trans=k_trans)
+
+
+def band_contact_term(parts: SurgeryParts) -> SurfaceContact:
+    """Node-to-segment contact of the band's inner nodes (slave) on the outer sclera
+    (master); penalty from the sclera's Young's modulus."""
+    return SurfaceContact("buckle", parts.eye.mesh, "band/inner", "eye/sclera_outer",
+                          modulus=6 * SEED_MATERIALS["sclera"], smoothing=BAND_SMOOTHING)
+
+
+def band_suture_term(parts: SurgeryParts) -> TiedBars:
+    """Sutures over the deformable band: per suture three tension-only bars, bite A ->
+    the band's outer face near edge A -> near edge B -> bite B (points embedded in the
+    band's outer faces at +-0.45 of its width from the centre line)."""
+    b, p, mesh = parts.buckle, parts.p, parts.eye.mesh
+    cen, acr, nrm, _ = parts.frame
+    layout = generate_sutures(mesh.nodes, mesh.face_set("eye/sclera_outer"), cen, acr, nrm,
+                              width=p["suture_width"], angle_deg=p["suture_angle_deg"], n_bars=3,
+                              buckle_faces=mesh.face_set("band/outer"),
+                              buckle_half_width=0.45 * b.width)
+    parts.layout = layout
+    na, xa, nb, xb, _ = suture_bar_ends(layout)
+    return TiedBars("sutures", na, nb, xa, xb, mesh.nodes, EA=p["suture_EA"])
+
+
+def band_outcomes(parts: SurgeryParts, model, q, theta) -> dict:
+    """Band tension (N, the pull on end0), loop shortening (2 pi x the drop of the mean
+    cylindrical radius of its inner centre line since the snug fit, mm), its stretch
+    (length change of that line, mm) and the prescribed shortening (end overlap, mm)."""
+    mesh, info = parts.eye.mesh, parts.band
+    d = band_dofs(parts)
+    X = mesh.nodes[info.line]
+    x = X + q[: 3 * mesh.n_nodes].reshape(-1, 3)[info.line]
+    rho = lambda y: np.hypot(y[:, 0], y[:, 1]).mean()
+    length = lambda y: np.linalg.norm(np.diff(y, axis=0), axis=1).sum()
+    tension = float(model.gradient(q, theta, ("solid",))[d["end0_x"]].sum())
+    return {"band_tension_N": tension,
+            "band_loop_shortening_mm": float(2 * np.pi * (rho(X) - rho(x))),
+            "band_stretch_mm": float(length(x) - length(X)),
+            "band_shortening_mm": float(q[d["end0_x"]].mean() - q[d["end1_x"]].mean())}
 
 
 def snug_scale(parts: SurgeryParts, q, node=None):
@@ -408,6 +614,15 @@ def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
     iop = float(P[0]) if closed else float(theta["iop"]["p"])
     L0 = axial_length(mesh, mesh.nodes)
     forces = model.term("sutures").forces(q, theta["sutures"])
+    if parts.band is not None:
+        out = {"iop_mmhg": iop / MMHG, "volume_mm3": float(V[0]),
+               "axial_length_mm": axial_length(mesh, x),
+               "axial_length_change_unloaded_mm": axial_length(mesh, x) - L0,
+               "indentation_mm": indentation(parts, x),
+               "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
+               else 0.0}
+        out.update(band_outcomes(parts, model, q, theta))
+        return out
     return {"iop_mmhg": iop / MMHG, "volume_mm3": float(V[0]),
             "axial_length_mm": axial_length(mesh, x),
             "axial_length_change_unloaded_mm": axial_length(mesh, x) - L0,
@@ -449,10 +664,14 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path):
     if not parts.buckle.encircling:
         ph = np.radians(parts.buckle.meridian_deg)
         normal = (-np.sin(ph), np.cos(ph), 0.0)
+    vmax, title = None, ""
+    if parts.band is not None:  # the silicone band (MPa) would set the eye's colour scale
+        eye_el = np.setdiff1d(np.arange(mesh.n_elem), mesh.element_sets["band"])
+        vmax, title = float(np.percentile(vm[eye_el], 99)), " with the deformable band"
     plot_section(out_dir / "section_von_mises.png", x, mesh.hexes, vm, normal=normal,
-                 title="meridional section", label="von Mises stress, kPa")
+                 title="meridional section" + title, label="von Mises stress, kPa", vmax=vmax)
     plot_outside(out_dir / "outside_von_mises.png", x, mesh.hexes, vm,
-                 title="outside view", label="von Mises stress, kPa")
+                 title="outside view" + title, label="von Mises stress, kPa", vmax=vmax)
 
 
 PROBLEMS = {"surgery": (SURGERY_FIELDS, surgery)}
