@@ -38,10 +38,13 @@ def rigid_residual_tangent(x, c, n, alpha):
     return alpha * g * n, alpha * np.outer(n, n)
 
 
-def node_quad_residual_tangent(x5, xi, alpha, mode="sliding"):
+def node_quad_residual_tangent(x5, xi, alpha, mode="sliding", smoothing=None):
     """Residual (15,) and tangent (15, 15) of a hitting node x5[0] against face x5[1:5].
 
-    Args: x5 (5, 3) current positions, mm; xi (2,) parametric point; alpha N/mm.
+    Args: x5 (5, 3) current positions, mm; xi (2,) parametric point; alpha N/mm;
+      smoothing: eps (mm) of the smoothed penetration p = eps softplus(-g / eps) (energy
+      1/2 alpha p^2: dE/dg = -alpha p s, d2E/dg2 = alpha (s^2 + p s (1 - s) / eps) with
+      s = sigmoid(-g / eps)); None: the plain penalty 1/2 alpha <-g>^2.
     """
     N, dN = quad_shape(xi)
     Dm = np.hstack([np.eye(3)] + [-N[a] * np.eye(3) for a in range(4)])  # (3, 15)
@@ -54,7 +57,7 @@ def node_quad_residual_tangent(x5, xi, alpha, mode="sliding"):
     lm = np.linalg.norm(m)
     n = m / lm
     g = float(r @ n)
-    if g >= 0:
+    if smoothing is None and g >= 0:
         return np.zeros(15), np.zeros((15, 15))
     P = np.eye(3) - np.outer(n, n)
     E = np.eye(15)
@@ -74,7 +77,12 @@ def node_quad_residual_tangent(x5, xi, alpha, mode="sliding"):
             d2n_r = (-(r @ dnv) * (n @ dmu) / lm - g * (dnv @ dmu) / lm
                      - (n @ dmv) * (r @ P @ dmu) / lm**2 + r @ P @ d2m / lm)
             d2g[i, j] = dru @ dnv + drv @ dnu + d2n_r
-    return alpha * g * dg, alpha * (np.outer(dg, dg) + g * d2g)
+    if smoothing is None:
+        return alpha * g * dg, alpha * (np.outer(dg, dg) + g * d2g)
+    sg = 1.0 / (1.0 + np.exp(g / smoothing))  # sigmoid(-g / eps)
+    pen = smoothing * np.logaddexp(-g / smoothing, 0.0)
+    e1, e2 = -alpha * pen * sg, alpha * (sg * sg + pen * sg * (1 - sg) / smoothing)
+    return e1 * dg, e2 * np.outer(dg, dg) + e1 * d2g
 
 
 # --- tangent-verification checks ----------------------------------------------------------------
@@ -114,7 +122,7 @@ def _rigid_check(rng):
                      f"gap {float((x - c - d * dirv) @ n):.3f} mm, moving body")
 
 
-def _surface_check(mode):
+def _surface_check(mode, smoothing=None):
     def check(rng):
         import jax
         import jax.numpy as jnp
@@ -126,23 +134,27 @@ def _surface_check(mode):
         x5 = X + 0.08 * rng.standard_normal((5, 3))
         xi = rng.uniform(-0.6, 0.6, 2)
         N, _ = quad_shape(xi)
-        x5[0] = N @ x5[1:] + np.array([0.01, -0.02, -0.05])  # penetrating by ~0.05 mm
+        # penetrating by ~0.05 mm; smoothed: a gap within a few eps of touching
+        depth = 0.05 if smoothing is None else 0.5 * smoothing
+        x5[0] = N @ x5[1:] + np.array([0.01, -0.02, -depth])
         alpha = 40.0
         data = {"X": X[None], "xi": xi[None], "w": np.ones(1), "alpha": np.full(1, alpha),
-                "area": np.ones(1)}
+                "area": np.ones(1), "eps": np.full(1, smoothing or 1.0)}
         term = SurfaceContact.__new__(SurfaceContact)  # the kernel only: no mesh needed
         object.__setattr__(term, "mode", mode)
+        object.__setattr__(term, "smoothing", smoothing)
 
         def energy(u):
             return jnp.sum(term.local_energy(u.reshape(1, 15), {"scale": 1.0}, data))
 
         grad = jax.jit(jax.grad(energy))
         u = (x5 - X).ravel()
-        r_h, K_h = node_quad_residual_tangent(x5, xi, alpha, mode)
+        r_h, K_h = node_quad_residual_tangent(x5, xi, alpha, mode, smoothing)
         return CheckData(np.asarray(grad(jnp.asarray(u))), r_h,
                          np.asarray(jax.hessian(energy)(jnp.asarray(u))), K_h,
                          lambda y: np.asarray(grad(jnp.asarray(y))), u,
-                         f"node on a warped quad, {mode}")
+                         f"node on a warped quad, {mode}"
+                         + (f", smoothed (eps {smoothing} mm)" if smoothing else ""))
 
     return check
 
@@ -154,3 +166,4 @@ def register_checks():
     register_check("rigid_contact", _rigid_check)
     register_check("surface_contact_sliding", _surface_check("sliding"))
     register_check("surface_contact_sticking", _surface_check("sticking"))
+    register_check("surface_contact_smoothed", _surface_check("sliding", smoothing=0.02))

@@ -137,6 +137,11 @@ class SurgerySimulator:
     def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
         self.params = dict(params)
         self.options = options
+        if self.params.get("buckle_body", "rigid") != "rigid":
+            raise ValueError(f"buckle_body = '{self.params['buckle_body']}': the design gradients "
+                             "and the planner move the rigid buckle's exact surface by its "
+                             "parameters; set buckle_body = 'rigid' (a deformable band is "
+                             "simulated by `eyefem run` only)")
         setup = surgery(self.params, materials)
         self.setup, self.parts = setup, setup.parts
         self.stage1, self.stage2, self.stage3 = setup.stages

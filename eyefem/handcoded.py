@@ -126,6 +126,24 @@ def pressure_face_residual_tangent(x, p):
     return r.ravel(), K.reshape(12, 12)
 
 
+def smoothed_bar_residual_tangent(xa, xb, EA, L0, L_rest, eps):
+    """Force (6,) and tangent (6, 6) of a tension-only bar with the smoothed stretch
+    p = eps softplus((l - L_rest) / eps), energy EA / (2 L0) p^2.
+
+    N = EA / L0 p s (N) with s = sigmoid((l - L_rest) / eps), dN/dl = EA / L0 (s^2 +
+    p s (1 - s) / eps); f = [-N n, N n]; k = dN/dl n n^T + N / l (I - n n^T).
+    """
+    d = np.asarray(xb) - np.asarray(xa)
+    l = np.linalg.norm(d)
+    n = d / l
+    z = (l - L_rest) / eps
+    s = 1.0 / (1.0 + np.exp(-z))
+    p = eps * np.logaddexp(z, 0.0)
+    N = EA / L0 * p * s
+    k = EA / L0 * (s * s + p * s * (1 - s) / eps) * np.outer(n, n) + N / l * (_I - np.outer(n, n))
+    return np.concatenate([-N * n, N * n]), np.block([[k, -k], [-k, k]])
+
+
 def bar_residual_tangent(xa, xb, EA, L0, L_rest):
     """Force (6,) and tangent (6, 6) of a bar between points xa, xb (3,), mm.
 

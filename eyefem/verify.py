@@ -15,8 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .bars import Bars, bilinear
-from .handcoded import bar_residual_tangent, pressure_face_residual_tangent, q1p0_residual_tangent
+from .bars import Bars, TiedBars, bilinear
+from .handcoded import (bar_residual_tangent, pressure_face_residual_tangent, q1p0_residual_tangent,
+                        smoothed_bar_residual_tangent)
 from .materials import MooneyRivlin
 from .mesh import HEX_CORNERS, HEX_FACES, Mesh
 from .solid import SolidQ1P0
@@ -152,6 +153,32 @@ def _bar_check(rng):
                      "embedded end, shortening 5%")
 
 
+def _tied_bar_check(rng):
+    """A tension-only suture bar between points inside two distorted faces (a bite in the
+    sclera, a point on a deformable buckle), tied and shortened to within a few smoothing
+    lengths of slack, so that the smoothed stretch is exercised."""
+    X = np.array([[0, 0, 0], [1, 0, 0], [1.1, 1, 0.2], [0, 0.9, 0],
+                  [0.2, 0.1, 2.0], [1.2, 0.0, 2.1], [1.0, 1.1, 1.9], [0.1, 1.0, 2.0]])
+    xi = rng.uniform(-0.8, 0.8, (2, 2))
+    bar = TiedBars("tied", [[0, 1, 2, 3]], [[4, 5, 6, 7]], xi[:1], xi[1:], X, EA=3.0, smoothing=0.01)
+    u = 0.02 * rng.standard_normal((8, 3))
+    x = u.ravel()
+    L = float(bar.lengths(jnp.asarray(x)[None], bar.params, bar.data)[0])
+    p = {**bar.params, "tightening": np.array([bar.params["L0"][0] - L + 0.005])}
+    kern = jax.jit(bar.local_grad_hess)
+    g, H = kern(jnp.asarray(x)[None], p, bar.data)
+    T = np.zeros((6, 24))
+    T[:3, :12] = np.kron(bilinear(xi[0])[None], np.eye(3))
+    T[3:, 12:] = np.kron(bilinear(xi[1])[None], np.eye(3))
+    xs = bar.data["X"][0].ravel() + x
+    L0 = bar.params["L0"][0]
+    f, k = smoothed_bar_residual_tangent(T[:3] @ xs, T[3:] @ xs, 3.0, L0, L0 - p["tightening"][0],
+                                         0.01)
+    return CheckData(np.asarray(g[0]), T.T @ f, np.asarray(H[0]), T.T @ k @ T,
+                     lambda y: np.asarray(kern(jnp.asarray(y)[None], p, bar.data)[0][0]), x,
+                     "face to face, 0.5 eps of stretch")
+
+
 register_check("solid_q1p0_neo_hookean", _solid_check({"c10": 0.0833}))
 register_check("solid_q1p0_mooney_rivlin", _solid_check({"c10": 25.0, "c01": 5.0}))
 register_check("solid_q1p0_generalised", _solid_check(
@@ -182,6 +209,7 @@ def _orbit_check(rng):
 register_check("follower_pressure", _pressure_check)
 register_check("orbit_spring", _orbit_check)
 register_check("suture_bar", _bar_check)
+register_check("tied_suture_bar", _tied_bar_check)
 
 
 def _load_term_checks():

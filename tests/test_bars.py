@@ -86,3 +86,31 @@ def test_bilinear_partition_of_unity():
     N = np.asarray(bilinear(xi))
     np.testing.assert_allclose(N.sum(1), 1.0)
     np.testing.assert_allclose(N[1], [0, 0, 1, 0])
+
+
+def test_tied_bar_closed_form_smoothing_and_rotation_invariance():
+    """A tied bar between the centres of two parallel unit faces 2 mm apart, shortened by
+    0.1 mm: force EA / L0 x 0.1 (to exp(-0.1 / eps)), energy EA / (2 L0) 0.1^2; slack by
+    10 eps: force below 1e-4 of that; a rigid rotation of the deformed state changes
+    neither energy nor length."""
+    from eyefem.bars import TiedBars
+
+    sq = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    X = np.vstack([sq, sq + [0, 0, 2.0]])
+    bar = TiedBars("t", [[0, 1, 2, 3]], [[4, 5, 6, 7]], [[0, 0]], [[0, 0]], X, EA=40.0,
+                   smoothing=2e-4)
+    assert bar.params["L0"][0] == pytest.approx(2.0)
+    q = np.zeros(24)
+    p = {**bar.params, "tightening": np.array([0.1])}
+    assert float(bar.forces(q, p)[0]) == pytest.approx(40.0 / 2.0 * 0.1, rel=1e-9)
+    e = float(bar.energy(q, p, bar.data, bar.dofs))
+    assert e == pytest.approx(0.5 * 40.0 / 2.0 * 0.1**2, rel=1e-9)
+    slack = {**bar.params, "tightening": np.array([-10 * 2e-4])}
+    assert float(bar.forces(q, slack)[0]) < 1e-4 * 2.0
+    rng = np.random.default_rng(3)
+    u = 0.05 * rng.standard_normal((8, 3))
+    Qr = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    Qr *= np.sign(np.linalg.det(Qr))
+    u_rot = (X + u) @ Qr.T - X
+    assert float(bar.energy(u_rot.ravel(), p, bar.data, bar.dofs)) == pytest.approx(
+        float(bar.energy(u.ravel(), p, bar.data, bar.dofs)), rel=1e-12)

@@ -258,3 +258,37 @@ def test_contact_bad_input():
     plate = plane("plate", (0.5, 0.5, 0.1), (0, 0, -1), 3.0)
     with pytest.raises(ValueError, match=r"nodes start inside rigid bodies .* depth 0.4 mm in 'plate'"):
         RigidContact("c", m, "lo/z1", (plate,))
+
+
+def test_smoothed_sliding_contact_closed_form():
+    """Node over a flat unit face at gap g, smoothing eps: energy 1/2 alpha (eps
+    softplus(-g / eps))^2: the plain penalty 1/2 alpha g^2 for -g >> eps, 1/2 alpha
+    (eps ln 2)^2 at touching, and nothing left for g >> eps; unchanged by a rigid motion."""
+    import jax.numpy as jnp
+
+    from eyefem.contact import SurfaceContact
+
+    X = np.array([[0.3, 0.4, 0.0], [0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    alpha, eps = 40.0, 0.01
+    data = {"X": X[None], "xi": np.zeros((1, 2)), "w": np.ones(1), "alpha": np.full(1, alpha),
+            "area": np.ones(1), "eps": np.full(1, eps)}
+    term = SurfaceContact.__new__(SurfaceContact)
+    object.__setattr__(term, "mode", "sliding")
+    object.__setattr__(term, "smoothing", eps)
+
+    def energy(x5):
+        return float(term.local_energy(jnp.asarray((x5 - X).reshape(1, 15)), {"scale": 1.0}, data)[0])
+
+    def at_gap(g):
+        x5 = X.copy()
+        x5[0] = [0.5, 0.5, g]  # over the face centre (xi = 0), normal +z
+        return x5
+
+    assert energy(at_gap(-0.5)) == pytest.approx(0.5 * alpha * 0.5**2, rel=1e-12)
+    assert energy(at_gap(0.0)) == pytest.approx(0.5 * alpha * (eps * np.log(2)) ** 2, rel=1e-12)
+    assert energy(at_gap(0.5)) < 1e-30
+    rng = np.random.default_rng(0)
+    Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    Q *= np.sign(np.linalg.det(Q))
+    x5 = at_gap(-0.003)
+    assert energy(x5 @ Q.T + [1.0, -2.0, 0.5]) == pytest.approx(energy(x5), rel=1e-10)

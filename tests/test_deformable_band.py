@@ -84,3 +84,10 @@ def test_deformable_band_case_coarse(tmp_path):
     import csv
     rows = list(csv.DictReader(open(tmp_path / "surgery_history.csv")))
     assert max(float(r["band_springs/force_N"]) for r in rows if r["band_springs/force_N"]) < 0.002
+
+
+def test_design_gradients_refuse_the_deformable_band():
+    from eyefem.design import SurgerySimulator
+
+    with pytest.raises(ValueError, match="buckle_body = 'deformable'.*set buckle_body = 'rigid'"):
+        SurgerySimulator(_params())
