@@ -235,7 +235,7 @@ class AnchoredBars(Term):
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class TiedBars(Term):
+class TiedBars(Bars):
     """Tension-only bars between two embedded points, tied at a length and shortened
     (sutures over a deformable buckle: from a bite in a scleral face to a point in the
     buckle's outer faces).
@@ -243,49 +243,22 @@ class TiedBars(Term):
     Energy EA / (2 L0) p^2 with the smoothed stretch p = eps softplus((l - (L0 - tightening))
     / eps) (as :class:`AnchoredBars`), l the current length between the two embedded points.
 
-    Args:
-      name; nodes_a, nodes_b (n, 4) face nodes (a node repeated 4 times for a node end);
-      xi_a, xi_b (n, 2) parametric coordinates; node_xyz (n_nodes, 3) reference nodes, mm;
-      EA: N; smoothing: eps, mm.
-    Params: {"EA" (n,) N, "tightening" (n,) mm, "L0" (n,) tied lengths, mm (default: the
-    reference lengths)}.
+    Args: as :class:`Bars` (name; nodes_a, nodes_b (n, 4); xi_a, xi_b (n, 2); node_xyz
+      (n_nodes, 3), mm; EA, N); smoothing: eps, mm.
+    Params: {"EA" (n,) N, "xi" (n, 2, 2), "tightening" (n,) mm, "L0" (n,) tied lengths, mm
+    (default: the reference lengths)}.
     """
 
-    name: str
-    nodes_a: np.ndarray
-    nodes_b: np.ndarray
-    xi_a: np.ndarray
-    xi_b: np.ndarray
-    node_xyz: np.ndarray
-    EA: float | np.ndarray = 1.0
     smoothing: float = 2e-4
 
     def __post_init__(self):
-        na = np.asarray(self.nodes_a, np.int64).reshape(-1, 4)
-        nb = np.asarray(self.nodes_b, np.int64).reshape(-1, 4)
-        n = len(na)
-        xa, xb = (np.asarray(v, float).reshape(n, 2) for v in (self.xi_a, self.xi_b))
-        if np.any(np.abs(xa) > 1 + 1e-9) or np.any(np.abs(xb) > 1 + 1e-9):
-            raise ValueError(f"bars '{self.name}': an end lies outside its face (|xi| > 1)")
-        EA = np.broadcast_to(np.asarray(self.EA, float), (n,)).copy()
-        if np.any(EA <= 0):
-            raise ValueError(f"bars '{self.name}': axial stiffness EA must be > 0 N")
-        X = self.node_xyz
-        L0 = np.linalg.norm(np.asarray(embedded_positions(X[nb], 0 * X[nb], xb))
-                            - np.asarray(embedded_positions(X[na], 0 * X[na], xa)), axis=1)
-        if np.any(L0 <= 1e-12):
-            raise ValueError(f"bars '{self.name}': bar {int(np.argmin(L0))} has zero length")
-        nodes8 = np.concatenate([na, nb], axis=1)
-        object.__setattr__(self, "dofs", (3 * nodes8[:, :, None] + np.arange(3)).reshape(n, 24))
-        object.__setattr__(self, "params", {"EA": EA, "tightening": np.zeros(n), "L0": L0})
-        object.__setattr__(self, "data", {"X": X[nodes8], "xi": np.stack([xa, xb], 1)})
+        super().__post_init__()
+        p = self.params
+        object.__setattr__(self, "params", {"EA": p["EA"], "xi": p["xi"], "L0": self.data["L0"].copy(),
+                                            "tightening": np.zeros(len(p["EA"]))})
 
-    def lengths(self, q_loc, params, data):
-        """Current lengths (n,), mm, from the local dofs (n, 24)."""
-        u = q_loc.reshape(-1, 8, 3)
-        xa = embedded_positions(data["X"][:, :4], u[:, :4], data["xi"][:, 0])
-        xb = embedded_positions(data["X"][:, 4:], u[:, 4:], data["xi"][:, 1])
-        return jnp.sqrt(jnp.sum((xb - xa) ** 2, axis=1))
+    def static_key(self):
+        return (self.smoothing,)
 
     def _raw(self, q_loc, params, data):
         return self.lengths(q_loc, params, data) - (params["L0"] - params["tightening"])
@@ -301,7 +274,3 @@ class TiedBars(Term):
         e = self.smoothing
         p = e * jnp.logaddexp(s / e, 0.0)
         return np.asarray(params["EA"] / params["L0"] * p * jax.nn.sigmoid(s / e))
-
-    def report(self, q, params):
-        f = self.forces(q, params)
-        return {"max_force_N": float(f.max()) if len(f) else 0.0}

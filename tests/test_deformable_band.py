@@ -67,7 +67,7 @@ def test_band_fitted_on_the_sclera_all_around():
 def test_deformable_band_case_coarse(tmp_path):
     from eyefem.cli import main
 
-    main(["run", "cases/surgery/case1_deformable_band.toml", "--mesh", "coarse", "--out",
+    main(["run", "cases/surgery/deformable_band.toml", "--mesh", "coarse", "--out",
           str(tmp_path)])
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["buckle_body"] == "deformable"
