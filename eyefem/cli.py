@@ -142,8 +142,10 @@ def cmd_new_case(args) -> int:
         k, v = item.split("=", 1)
         preset[k.strip()] = v
     try:
-        new_case(args.problem, PROBLEMS[args.problem][0], Path(args.output), preset=preset,
-                 accept_defaults=args.yes, title=args.title or "")
+        fields, build = PROBLEMS[args.problem]
+        new_case(args.problem, fields, Path(args.output), preset=preset,
+                 accept_defaults=args.yes, title=args.title or "",
+                 check=getattr(build, "check", None))
     except (CaseError, EOFError) as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2

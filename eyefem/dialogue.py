@@ -91,10 +91,19 @@ def write_case(path: Path, problem: str, title: str, parameters: dict,
 
 
 def new_case(problem: str, fields: list[Field], path: Path, *, ask=input, say=print,
-             preset=None, accept_defaults=False, title="", materials=None) -> Path:
-    """Ask for the parameters of ``problem`` and write the case file; returns its path."""
+             preset=None, accept_defaults=False, title="", materials=None,
+             check=None) -> Path:
+    """Ask for the parameters of ``problem`` and write the case file; returns its path.
+
+    ``check(params)``: the problem's checks across fields (params with the defaults
+    filled in); its ValueError becomes a CaseError and nothing is written."""
     say(f"New '{problem}' case -> {path}  (Enter keeps the default)")
     params = ask_parameters(fields, ask, say, preset, accept_defaults)
+    if check is not None:
+        try:
+            check({**{f.name: f.default for f in fields}, **params})
+        except ValueError as exc:
+            raise CaseError(f"{problem}: {exc}; nothing written to {path}") from None
     write_case(path, problem, title, params, materials)
     say(f"wrote {path}; run it with: eyefem run {path}")
     return Path(path)

@@ -38,3 +38,19 @@ def test_bad_flags_are_reported(tmp_path, capsys):
         new_case("uniaxial", PROBLEMS["uniaxial"][0], tmp_path / "y.toml",
                  ask=scripted(["-1"] * 5), say=lambda s: None)
     assert not (tmp_path / "y.toml").exists()
+
+
+def test_answers_that_clash_across_fields_write_nothing(tmp_path, capsys):
+    """Each answer can be valid alone and the combination not: a deformable body for a
+    tire, a band tension on a segmental sponge or with a prescribed tightening. The dialogue says which and writes no file."""
+    for sets, words in ((["buckle=tire_ridged", "buckle_body=deformable"], "buckle = 'band' only"),
+                        (["buckle=sponge_radial", "band_tension=0.5"], "needs an encircling"),
+                        (["band_tension=0.5", "tightening=5"], "give one")):
+        out = tmp_path / "c.toml"
+        args = ["-q", "new-case", "surgery", "-o", str(out), "--yes"]
+        for s in sets:
+            args += ["--set", s]
+        assert cli_main(args) == 2
+        err = capsys.readouterr().err
+        assert words in err and "nothing written" in err
+        assert not out.exists()

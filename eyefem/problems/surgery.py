@@ -229,9 +229,8 @@ def _N(xi):
 
 def surgery(p, materials):
     """Build the surgery Setup from case parameters (see SURGERY_FIELDS)."""
+    check_parameters(p)
     deformable = p.get("buckle_body", "rigid") == "deformable"
-    if deformable:
-        _check_deformable(p)
     eye = build_eye(EyeGeometry(), p["mesh"])
     mesh = eye.mesh
     faces = np.concatenate([mesh.face_set("eye/inner"), mesh.face_set("lens/surface")])
@@ -268,12 +267,6 @@ def surgery(p, materials):
     # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`
     parts.d_per_mm = 1.0 / (2 * np.pi * (np.sin(b.centre_angle(g)) if b.encircling else 1.0))
     pulled = p["band_tension"] > 0
-    if pulled and not b.encircling:
-        raise ValueError(f"band_tension = {p['band_tension']} N needs an encircling buckle "
-                         f"(buckle = '{p['buckle']}' is segmental); set band_tension = 0")
-    if pulled and p["tightening"] != 0:
-        raise ValueError(f"band_tension = {p['band_tension']} N and tightening = "
-                         f"{p['tightening']} mm: give one; set tightening = 0 to pull the band")
     extra = (DofForce("band_pull", parts.extra_dof, gain=1.0 / parts.d_per_mm),) if pulled else ()
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
                         (zonule, iop, cavity, buckle, sutures, lens_hold, orbit) + band_hold
@@ -399,6 +392,20 @@ BAND_SMOOTHING = 2e-3
 """Smoothing length of the band's contact on the sclera, mm (SurfaceContact smoothing)."""
 BAND_OUTPUTS = ("band_tension_N", "band_loop_shortening_mm", "band_stretch_mm",
                 "band_shortening_mm")
+
+
+def check_parameters(p):
+    """Checks across fields (each field alone is checked by its schema): ValueError
+    naming the values and the fix. ``eyefem new-case`` runs it before writing a case."""
+    if p.get("band_tension", 0.0) > 0:
+        if p["buckle"].startswith("sponge"):  # as Buckle.encircling
+            raise ValueError(f"band_tension = {p['band_tension']} N needs an encircling buckle "
+                             f"(buckle = '{p['buckle']}' is segmental); set band_tension = 0")
+        if p["tightening"] != 0:
+            raise ValueError(f"band_tension = {p['band_tension']} N and tightening = "
+                             f"{p['tightening']} mm: give one; set tightening = 0 to pull the band")
+    if p.get("buckle_body", "rigid") == "deformable":
+        _check_deformable(p)
 
 
 def _check_deformable(p):
@@ -674,4 +681,5 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path):
                  title="outside view" + title, label="von Mises stress, kPa", vmax=vmax)
 
 
+surgery.check = check_parameters
 PROBLEMS = {"surgery": (SURGERY_FIELDS, surgery)}
