@@ -621,24 +621,19 @@ def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
     iop = float(P[0]) if closed else float(theta["iop"]["p"])
     L0 = axial_length(mesh, mesh.nodes)
     forces = model.term("sutures").forces(q, theta["sutures"])
+    out = {"iop_mmhg": iop / MMHG, "volume_mm3": float(V[0]),
+           "axial_length_mm": axial_length(mesh, x),
+           "axial_length_change_unloaded_mm": axial_length(mesh, x) - L0,
+           "indentation_mm": indentation(parts, x),
+           "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
+           else 0.0}
     if parts.band is not None:
-        out = {"iop_mmhg": iop / MMHG, "volume_mm3": float(V[0]),
-               "axial_length_mm": axial_length(mesh, x),
-               "axial_length_change_unloaded_mm": axial_length(mesh, x) - L0,
-               "indentation_mm": indentation(parts, x),
-               "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
-               else 0.0}
         out.update(band_outcomes(parts, model, q, theta))
-        return out
-    return {"iop_mmhg": iop / MMHG, "volume_mm3": float(V[0]),
-            "axial_length_mm": axial_length(mesh, x),
-            "axial_length_change_unloaded_mm": axial_length(mesh, x) - L0,
-            "indentation_mm": indentation(parts, x),
-            "buckle_free_motion_mm": float(q[parts.extra_dof]),
-            "band_shortening_mm": (parts.p["tightening"] + float(q[parts.extra_dof]) / parts.d_per_mm
-                                   if parts.buckle.encircling else 0.0),
-            "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
-            else 0.0}
+    else:
+        out["buckle_free_motion_mm"] = float(q[parts.extra_dof])
+        out["band_shortening_mm"] = (parts.p["tightening"] + float(q[parts.extra_dof]) / parts.d_per_mm
+                                     if parts.buckle.encircling else 0.0)
+    return out
 
 
 def stage_summary(rows) -> list[dict]:
