@@ -154,7 +154,12 @@ class Assembler:
 
     def _coo(self, t: Term, H):
         """Sparse matrix of a dynamic (re-paired) term's local blocks on the free primal dofs."""
-        rd = self.red[t.dofs]
+        return self.coo(t.dofs, H)
+
+    def coo(self, dofs, H):
+        """Sparse (n_p, n_p) matrix of local blocks H (n, k, k) on the global dofs (n, k);
+        entries on prescribed dofs or multipliers are dropped."""
+        rd = self.red[dofs]
         k = rd.shape[1]
         r = np.repeat(rd, k, axis=1).ravel()
         c = np.tile(rd, (1, k)).ravel()

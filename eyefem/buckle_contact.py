@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -158,7 +159,8 @@ class BuckleContact(Term):
             d = d + q_loc[:, 3]
         if self.shape == "ring":
             r = jnp.sqrt(jnp.sum(x * x, axis=1))
-            tau = jnp.arccos(jnp.clip(x[:, 2] / r, -1.0, 1.0))
+            rho = jnp.sqrt(x[:, 0] ** 2 + x[:, 1] ** 2 + 1e-30)  # finite gradient on the axis
+            tau = jnp.arctan2(rho, x[:, 2])
             a = R * (tau - th) - s
             prof = ring_profile(a, w, params["ridge"][0], rw)
             return R + prof - d - r
@@ -180,6 +182,11 @@ class BuckleContact(Term):
     def local_energy(self, q_loc, params, data):
         p = smooth_penetration(self.gaps(q_loc, params, data), self.smoothing)
         return 0.5 * data["alpha"] * p * p
+
+    def gap_linearisation(self, q_loc, dq_loc, params, data):
+        g, dg = jax.jvp(lambda x: self.gaps(x, params, data), (q_loc,), (dq_loc,))
+        G = jax.grad(lambda x: jnp.sum(self.gaps(x, params, data)))(q_loc)  # item i: row i only
+        return g, dg, G
 
     def _gap_np(self, q, params):
         return np.asarray(self.gaps(np.asarray(q)[self.dofs], params, self.data))

@@ -96,6 +96,8 @@ class Model:
                 ks[key] = jax.jit(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
             elif kind == "grad":
                 ks[key] = jax.jit(jax.grad(lambda q, p, d, dofs: term.energy(q, p, d, dofs)))
+            elif kind == "lookahead":
+                ks[key] = jax.jit(lambda q, dq, p, d, dofs: term.gap_linearisation(q[dofs], dq[dofs], p, d))
             elif kind == "hvp":
                 g = jax.grad(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
                 ks[key] = jax.jit(lambda q, v, p, d, dofs: jax.jvp(lambda x: g(x, p, d, dofs),
@@ -120,6 +122,17 @@ class Model:
         for t in self._active(active):
             r += np.asarray(self._kernel(t, "hvp")(q, v, theta[t.name], t.data, t.dofs))
         return r
+
+    def gap_linearisations(self, q, dq, theta, active=None) -> list:
+        """(term, g (n,), dg (n,), dg/dq_loc (n, k)) of every active penalty-contact term
+        (``Term.gap_linearisation``) at q along the step dq (numpy)."""
+        out = []
+        for t in self._active(active):
+            if type(t).gap_linearisation is Term.gap_linearisation:
+                continue
+            g, dg, G = self._kernel(t, "lookahead")(q, dq, theta[t.name], t.data, t.dofs)
+            out.append((t, np.asarray(g), np.asarray(dg), np.asarray(G)))
+        return out
 
     def local_grad_hess(self, term: Term, q, theta):
         """Local gradients and Hessians of one term at q (numpy)."""

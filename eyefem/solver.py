@@ -82,6 +82,16 @@ class NewtonOptions:
         the reference (off by default; default case 3 passes the end of its tightening
         with it, default case 4 failed with it and grow_iterations = 12:
         docs/performance.md).
+      contact_lookahead: re-solve a Newton step with the penalty model of the contact
+        nodes it would push into contact from out of the penalty's reach (``_lookahead``).
+      max_step: when no line-search trial of a Newton step that moves a node by more
+        than max_step (mm) lowers the residual (or every trial inverts an element), the
+        step is solved again with Levenberg-Marquardt shifts 1e-4 ... 1 of the modified
+        tangent (``SHIFTS``); at the last one a step still longer than max_step is
+        scaled down to it. If no damped step lowers the residual either, the undamped
+        step's best trial is taken, as without damping. (On the default eye mesh steps
+        of 2-800 mm along near-singular modes of the soft retina inverted elements at
+        every trial and the load step was cut.)
     """
 
     rtol: float = 1e-8
@@ -103,10 +113,12 @@ class NewtonOptions:
     stall_rtol: float = 1e-5
     stall_vtol: float = 1e-8
     stall_cut: bool = False
+    contact_lookahead: bool = True
+    max_step: float = 0.5
 
     def __post_init__(self):
         for f in ("rtol", "vtol", "atol", "beta", "contact_freeze", "contact_rtol", "modified_newton",
-                  "stall_rtol", "stall_vtol"):
+                  "stall_rtol", "stall_vtol", "max_step"):
             if not getattr(self, f) > 0:
                 raise ValueError(f"NewtonOptions.{f} = {getattr(self, f)}; must be > 0")
         if self.max_iter < 1 or self.max_cuts < 0 or self.stall_iterations < 2:
@@ -271,20 +283,67 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                               f"residual {nm:.2e}) after {it} iterations")
         if it == opts.max_iter:
             break
-        try:
-            x, y, solver = _direction(asm, lambda exact: asm.assemble(q, theta, active, exact)[1:],
-                                      rf, rm, opts, far=nf > opts.modified_newton * fref)
-        except LinearSolveError as exc:
-            raise _StepFailed(str(exc)) from exc
-        dq = asm.expand(x, y)
-        restore = _Restoration(model, q, dq, theta, active, asm, solver) if opts.restore else None
-        q = _line_search(model, q, dq, theta, active, asm, np.hypot(nf / max(fref, 1e-300), nm), fref,
-                         vref, opts.line_search, restore)
+        cache = {}
+
+        def direction(far, shift, extra=None):
+            return _direction(asm, lambda exact: asm.assemble(q, theta, active, exact)[1:],
+                              rf, rm, opts, far, cache, extra, shift)
+
+        far, shift = nf > opts.modified_newton * fref, 0.0
+        m0 = np.hypot(nf / max(fref, 1e-300), nm)
+        alphas = (1.0, 0.5, 0.25, 0.125, 0.0625) if opts.line_search else (1.0,)
+        undamped = None  # the undamped step's best line-search trial
+        while True:
+            try:
+                x, y, solver = direction(far, shift)
+                step_solver = solver
+                if opts.contact_lookahead:
+                    x, y, la_solver, n_la = _lookahead(model, asm, q, theta, active,
+                                                       lambda extra: direction(far, shift, extra), x, y)
+                    if la_solver is not None:
+                        step_solver = la_solver
+                        log.debug("  contact look-ahead: %d nodes", n_la)
+            except LinearSolveError as exc:
+                raise _StepFailed(str(exc)) from exc
+            dq = asm.expand(x, y)
+            longest = _longest(model, dq)
+            last = (max(shift, solver.shift) >= SHIFTS[-1] or not opts.line_search
+                    or (shift == 0.0 and longest <= opts.max_step))
+            if last and longest > opts.max_step:
+                log.debug("  step of %.3g mm scaled to max_step = %g mm", longest, opts.max_step)
+                dq *= opts.max_step / longest
+            restore = _Restoration(model, q, dq, theta, active, asm, step_solver) if opts.restore else None
+            try:
+                q_try, lowered = _line_search(model, q, dq, theta, active, asm, m0, fref, vref, alphas,
+                                              restore)
+            except _StepFailed:
+                if last and undamped is None:
+                    raise
+                q_try, lowered = None, False
+            if undamped is None and shift == 0.0:
+                undamped = q_try
+            if lowered or last:
+                # no damped step lowers the residual either: the undamped step's best trial
+                q = q_try if lowered or undamped is None else undamped
+                break
+            # no trial lowers the residual, or every trial inverts an element (a
+            # near-singular tangent: the soft retina's tangential modes): damp the step
+            far, shift = True, min(mu for mu in SHIFTS if mu > max(shift, solver.shift))
+            log.debug("  line search failed on a %.3g mm step: shift %g", longest, shift)
     raise _StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
                       f"reference {fref:.3e} N, volume residual {nm:.2e})")
 
 
-def _direction(asm, tangent, rf, rm, opts, far):
+SHIFTS = (0.0, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)
+"""Levenberg-Marquardt shifts mu of the modified Newton tangent K + mu |diag K|."""
+
+
+def _longest(model, dq):
+    """Largest nodal displacement (mm) of a step dq (n_dof,)."""
+    return float(np.linalg.norm(dq[:model.n_u].reshape(-1, 3), axis=1).max(initial=0.0))
+
+
+def _direction(asm, tangent, rf, rm, opts, far, cache=None, extra=None, min_shift=0.0):
     """Newton direction; ``tangent(exact)`` assembles (K, B, D, low_rank), exact or
     without the follower pressures' load stiffness.
 
@@ -294,22 +353,27 @@ def _direction(asm, tangent, rf, rm, opts, far):
     step: the tangent without the pressure stiffness (unless
     ``NewtonOptions.pressure_stiffness``), shifted by mu |diag K| with mu = 0, 1e-4, 1e-3,
     ... until it is positive: a descent direction that leaves saddle points. If none is,
-    the exact (indefinite) system is solved."""
-    cache = {}
+    the exact (indefinite) system is solved. ``cache`` (a dict) keeps the assembled
+    tangents between calls; ``extra`` = (g (n_p,), S (n_p, n_p)) adds a model's force and
+    stiffness to the free primal system (the contact look-ahead); ``min_shift``: the
+    smallest shift tried (a damped step after a failed line search)."""
+    cache = {} if cache is None else cache
 
     def pieces(exact):
         exact = exact or opts.pressure_stiffness
         if exact not in cache:
             cache[exact] = tangent(exact)
-        return cache[exact]
+        K, B, D, lr = cache[exact]
+        return (K if extra is None else K + extra[1]), B, D, lr
 
-    tries = ([] if far else [(True, 0.0)]) + [
-        (False, mu) for mu in (0.0, 1e-4, 1e-3, 1e-2, 1e-1)
-        if mu or far or not opts.pressure_stiffness]  # not the exact tangent twice
+    f = -rf if extra is None else -(rf + extra[0])
+    tries = ([] if far or min_shift else [(True, 0.0)]) + [
+        (False, mu) for mu in SHIFTS
+        if mu >= min_shift and (mu or far or not opts.pressure_stiffness)]  # not the exact tangent twice
     for exact, mu in tries:
         try:
             solver = asm.solver(*pieces(exact), opts.backend, shift=mu, indefinite="raise")
-            x, y = solver.solve(-rf, -rm)
+            x, y = solver.solve(f, -rm)
             if not exact or mu:
                 log.debug("  modified Newton step (%s, shift %g)", "without the pressure stiffness"
                           if not opts.pressure_stiffness else "exact tangent", mu)
@@ -317,8 +381,49 @@ def _direction(asm, tangent, rf, rm, opts, far):
         except NegativeCurvature:
             continue
     solver = asm.solver(*pieces(True), opts.backend)
-    x, y = solver.solve(-rf, -rm)
+    x, y = solver.solve(f, -rm)
     return x, y, solver
+
+
+def _lookahead(model, asm, q, theta, active, direction, x, y, rounds=4):
+    """Active-set look-ahead of the penalty contacts along a Newton step (x, y).
+
+    A smoothed penalty node more than 2 eps outside the surface has almost no stiffness
+    in the tangent, so a step that pushes it in runs it deep into the penalty: the
+    residual jumps and the line search crawls at 1/8 of the step (observed at the edge of
+    the ridged tire, where the sclera bulges out against the tire's rounded edge). Such a
+    node (gap g > 2 eps now, g + dg < -eps along the step) enters the system with the
+    plain penalty's quadratic model 1/2 alpha (g + G . dq)^2 (force alpha g G, stiffness
+    alpha G G^T) and the step is solved again; a node the new step keeps outside
+    (g + dg > 0) leaves the set again (a primal-dual active-set update), for at most
+    ``rounds`` solves. Returns (x, y, solver of the last solve, number of look-ahead nodes)."""
+    members = {}
+    solver = None
+    for _ in range(rounds):
+        lin = model.gap_linearisations(q, asm.expand(x, y), theta, active)
+        changed = False
+        for t, g, dg, G in lin:
+            eps = t.smoothing
+            m = members.get(t.name, np.zeros(len(g), bool))
+            new = (m | ((g > 2 * eps) & (g + dg < -eps))) & ~(m & (g + dg > 0))
+            changed |= bool(np.any(new != m))
+            members[t.name] = new
+        if not changed:
+            break
+        gx = np.zeros(model.n_dof)
+        blocks = []
+        for t, g, dg, G in lin:
+            m = members[t.name]
+            if not np.any(m):
+                continue
+            a = t.data["alpha"][m]
+            gx += np.bincount(t.dofs[m].ravel(), ((a * g[m])[:, None] * G[m]).ravel(),
+                              minlength=model.n_dof)
+            blocks.append((t.dofs[m], a[:, None, None] * G[m][:, :, None] * G[m][:, None, :]))
+        S = sum(asm.coo(d, H) for d, H in blocks)
+        x, y, solver = direction((gx[asm.free_primal], S))
+    n = int(sum(np.sum(m) for m in members.values()))
+    return x, y, solver, n
 
 
 class _Restoration:
@@ -386,22 +491,26 @@ class _Restoration:
         return qa + self.W @ s
 
 
-def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, enabled, restore=None):
-    """Backtracking on the residual norm (merit: force residual / reference, volume
-    residual / solid volume). When the full step fails and the model has stiff low-rank
-    terms (closed cavities), the trials are restored to the linearised volumes
-    (:class:`_Restoration`). Returns the first trial that lowers the merit, else the best."""
-    def merit(qa):
-        r = model.gradient(qa, theta, active)
-        if not np.all(np.isfinite(r)):
-            return None
-        return np.hypot(np.linalg.norm(r[asm.free_primal]) / max(fref, 1e-300),
-                        np.linalg.norm(r[asm.mult]) / vref if len(asm.mult) else 0.0)
+def _merit(model, q, theta, active, asm, fref, vref):
+    """Line-search merit at q: force residual / reference and volume residual / solid
+    volume, combined; None where the residual is not finite (an inverted element)."""
+    r = model.gradient(q, theta, active)
+    if not np.all(np.isfinite(r)):
+        return None
+    return np.hypot(np.linalg.norm(r[asm.free_primal]) / max(fref, 1e-300),
+                    np.linalg.norm(r[asm.mult]) / vref if len(asm.mult) else 0.0)
 
-    if enabled and restore is not None and restore.ok:
-        trials = [(1.0, False)] + [(a, True) for a in (1.0, 0.5, 0.25, 0.125, 0.0625)]
+
+def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, alphas, restore=None):
+    """Backtracking on the residual norm (merit: force residual / reference, volume
+    residual / solid volume) over the step lengths ``alphas``. When the full step fails
+    and the model has stiff low-rank terms (closed cavities), the trials are restored to
+    the linearised volumes (:class:`_Restoration`). Returns (the first trial that lowers
+    the merit, True), else (the best trial, False)."""
+    if restore is not None and restore.ok and len(alphas) > 0:
+        trials = [(alphas[0], False)] + [(a, True) for a in alphas]
     else:
-        trials = [(a, False) for a in ((1.0, 0.5, 0.25, 0.125, 0.0625) if enabled else (1.0,))]
+        trials = [(a, False) for a in alphas]
     best, tried = None, set()
     for alpha, restored in trials:
         qa = restore(q + alpha * dq, alpha) if restored else None
@@ -411,19 +520,19 @@ def _line_search(model, q, dq, theta, active, asm, m0, fref, vref, enabled, rest
             if alpha in tried:  # the restoration failed: this plain trial was evaluated
                 continue
             tried.add(alpha)
-        m = merit(qa)
+        m = _merit(model, qa, theta, active, asm, fref, vref)
         if m is None:
             continue
         if m < m0:
             if alpha < 1.0 or restored:
                 log.debug("  line search: step length %g%s", alpha,
                           " (volumes restored)" if restored else "")
-            return qa
+            return qa, True
         if best is None or m < best[0]:
             best = (m, qa)
     if best is None:
         raise _StepFailed("every line-search trial gave non-finite values (inverted elements)")
-    return best[1]
+    return best[1], False
 
 
 def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,

@@ -108,6 +108,13 @@ class Term(abc.ABC):
         """
         return []
 
+    def gap_linearisation(self, q_loc, dq_loc, params, data):
+        """Penalty-contact terms (energy 1/2 alpha p(g)^2 per item, p a smoothed <-g>):
+        the gaps g (n,) mm at q_loc, their change along the step dq_loc to first order
+        (n,) and their gradients (n, k), for the Newton solver's active-set look-ahead
+        (``eyefem.solver``). None (default): not such a term."""
+        return None
+
     def low_rank_values(self, q, params) -> list:
         """The scalars c_j(q) whose gradients are the low-rank vectors v_j (same order; a
         cavity's volume, mm^3), for the solver's second-order restoration along a Newton

@@ -154,3 +154,59 @@ def test_anchored_sutures_gradient_tangent_and_force(shell):
     k = 40.0 / params["L0"]
     assert f[0] == pytest.approx(k[0] * 0.02, rel=1e-3)
     assert f[2] < 1e-12 and f[1] == pytest.approx(k[1] * 2e-4 * np.log(2) * 0.5, rel=1e-9)
+
+
+def test_gap_linearisation_is_the_directional_derivative_of_the_gaps(shell):
+    """The solver's contact look-ahead uses the gaps, their first-order change along a step
+    and their gradients: checked against the gaps and central differences."""
+    t = _ring(shell, extra_dof=3 * shell.n_nodes)
+    rng = np.random.default_rng(5)
+    n = len(t.nodes)
+    q_loc = np.concatenate([0.05 * rng.standard_normal((n, 3)), np.full((n, 1), 0.2)], axis=1)
+    dq = 0.1 * rng.standard_normal((n, 4))
+    params = {**t.params, "d": np.array([0.1]), "ridge": np.array([0.4])}
+    g, dg, G = (np.asarray(a) for a in t.gap_linearisation(jnp.asarray(q_loc), jnp.asarray(dq),
+                                                           params, t.data))
+    gaps = lambda x: np.asarray(t.gaps(jnp.asarray(x), params, t.data))  # noqa: E731
+    np.testing.assert_array_equal(g, gaps(q_loc))
+    h = 1e-6
+    np.testing.assert_allclose(dg, (gaps(q_loc + h * dq) - gaps(q_loc - h * dq)) / (2 * h),
+                               rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(np.einsum("nk,nk->n", G, dq), dg, rtol=1e-12, atol=1e-14)
+
+
+@pytest.fixture(scope="module")
+def inflated_against_a_ring():
+    """Octant of a thin sphere (outer radius R) inflated in one step by 30 mmHg, which
+    alone would grow it by about 0.4 mm, against a rigid ring 0.1 mm (50 eps) outside its
+    equator: the first Newton step runs the equator's nodes deep into the ring."""
+    from eyefem.materials import neo_hookean
+    from eyefem.model import node_dofs, solid_model
+    from eyefem.solver import NewtonOptions, Stage, solve
+    from eyefem.surface import PressureLoad
+    from eyefem.units import MMHG
+
+    mesh = generators.spherical_shell(R - 0.5, 0.5, 8, 1, octant=True, material="sclera")
+    ring = BuckleContact("ring", mesh, "outer", "ring", R + 0.1, theta_b=np.pi / 2, width=7.0,
+                         modulus=0.5)
+    model = solid_model(mesh, {"sclera": neo_hookean("sclera", 0.0833)},
+                        (PressureLoad("p", mesh, "inner", 0.0), ring))
+    d = np.concatenate([node_dofs(mesh.node_set(f"sym_{c}"), c) for c in "xyz"])
+    stage = Stage("inflate", 1, (d, np.zeros(len(d))), params={"p": {"p": 30 * MMHG}})
+    return {k: solve(model, [stage], options=NewtonOptions(contact_lookahead=k))
+            for k in (True, False)}
+
+
+def test_contact_lookahead_reaches_the_same_state_in_fewer_iterations(inflated_against_a_ring):
+    on, off = inflated_against_a_ring[True], inflated_against_a_ring[False]
+    assert [r.t for r in on.history] == [1.0]  # no cut
+    np.testing.assert_allclose(on.q, off.q, atol=1e-7)
+    ring = on.model.term("ring")
+    g = np.asarray(ring.gaps(on.q[ring.dofs], on.theta["ring"], ring.data))
+    assert g.min() < ring.smoothing  # the equator is held by the ring, the pole is not
+    x = on.model.mesh.nodes + on.q[:3 * on.model.mesh.n_nodes].reshape(-1, 3)
+    r = np.linalg.norm(x[ring.nodes], axis=1)
+    assert r[np.abs(x[ring.nodes, 2]) < 0.1].max() < R + 0.1
+    assert r[x[ring.nodes, 2] > R - 0.1].min() > R + 0.2
+    its = lambda s: sum(r.iterations for r in s.history)  # noqa: E731
+    assert its(on) < its(off)  # 7 against 11 when written

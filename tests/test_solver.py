@@ -436,3 +436,59 @@ def test_increment_grows_back_after_steps_within_grow_iterations():
     assert np.diff([0.0] + [r.t for r in grown.history]).tolist() == [0.25, 0.5, 0.25]
     assert np.diff([0.0] + [r.t for r in kept.history]).tolist() == [0.25] * 4
     np.testing.assert_allclose(grown.q, kept.q, atol=1e-8)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _SoftSpring(Term):
+    """Energy k l^2 (sqrt(1 + (u / l)^2) - 1) - f u on one dof u > 0, where the forces
+    stop being finite at u < 0 (like an element inverting; a barrier w / sqrt(u) too
+    weak to matter elsewhere): the stiffness k / (1 + (u / l)^2)^1.5 vanishes far from
+    u = 0, so Newton's step from there is enormous and runs through the wall."""
+
+    name: str
+    dof: int
+    k: float = 100.0
+    length: float = 0.01
+    f: float = 0.5
+    w: float = 1e-9
+
+    def __post_init__(self):
+        object.__setattr__(self, "dofs", np.array([[self.dof]]))
+        object.__setattr__(self, "params", {})
+        object.__setattr__(self, "data", {})
+
+    def force(self, u):
+        return (self.k * self.length * (u / self.length) / np.sqrt(1.0 + (u / self.length) ** 2)
+                - self.f - 0.5 * self.w * u**-1.5)
+
+    def local_energy(self, q_loc, params, data):
+        u = q_loc[:, 0]
+        return (self.k * self.length**2 * (jnp.sqrt(1.0 + (u / self.length) ** 2) - 1.0)
+                - self.f * u + self.w / jnp.sqrt(u))
+
+
+def test_a_failing_long_step_is_damped_to_max_step():
+    """One free dof (a node's x; the other dofs held, no other term) on a soft spring,
+    20 length scales from its equilibrium: the Newton step is about -40 mm and every
+    line-search trial runs through the wall at u = 0. With max_step = 0.01 mm the step is
+    solved again with Levenberg-Marquardt shifts, then scaled to max_step, and Newton
+    walks to the equilibrium; without it the step fails at every cut."""
+    from scipy.optimize import brentq
+
+    from eyefem.model import Model
+
+    mesh = generators.box(1.0, 1.0, 1.0, 1, 1, 1, material="m")
+    spring = _SoftSpring("spring", 0)
+    model = Model(mesh, (spring,), 3 * mesh.n_nodes)
+    held = np.arange(1, model.n_dof)
+    q0 = np.zeros(model.n_dof)
+    q0[0] = 20 * spring.length
+    stage = Stage("relax", 1, (held, np.zeros(len(held))))
+    sol = solve(model, [stage], q0=q0, options=NewtonOptions(max_step=0.01))
+    u_star = brentq(spring.force, 1e-4, 0.5, xtol=1e-15)
+    assert sol.q[0] == pytest.approx(u_star, rel=1e-9)
+    assert sol.history[-1].iterations > 15  # about 0.2 mm in steps of 0.01 mm
+    with pytest.raises(ConvergenceError, match="inverted"):
+        solve(model, [stage], q0=q0, options=NewtonOptions(max_step=1e9, max_cuts=1))
+    with pytest.raises(ValueError, match="max_step"):
+        NewtonOptions(max_step=0.0)
