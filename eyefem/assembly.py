@@ -19,6 +19,11 @@ from .model import Model
 from .terms import Term
 
 
+SHIFT_BETA = 1e4
+"""Augmentation strength whose diagonal a Levenberg-Marquardt shift is relative to (the
+shift levels of the Newton solver were set with beta = 1e4)."""
+
+
 @dataclasses.dataclass
 class _TermPattern:
     prim: np.ndarray  # (k_p,) local positions of primal dofs
@@ -167,8 +172,11 @@ class Assembler:
         return sp.csr_matrix((H.ravel()[ok], (r[ok], c[ok])), shape=(self.n_p, self.n_p))
 
     def solver(self, K, B, D, low_rank, backend=None, **kw) -> SaddlePointSolver:
-        """Factorise the assembled tangent (kw: SaddlePointSolver's shift, indefinite)."""
-        return SaddlePointSolver(K, B, D, low_rank, augmented=True, backend=backend, **kw)
+        """Factorise the assembled tangent (kw: SaddlePointSolver's shift, indefinite).
+        A shift is relative to the diagonal of the tangent augmented at SHIFT_BETA, so that
+        a damped step does not depend on ``beta``."""
+        return SaddlePointSolver(K, B, D, low_rank, augmented=True, backend=backend,
+                                 shift_aug=SHIFT_BETA / self.beta, **kw)
 
     def reduce(self, v):
         """Split a global vector (n_dof,) into (free primal (n_p,), multipliers (n_m,))."""

@@ -168,8 +168,14 @@ class SaddlePointSolver:
       backend: factorisation backend.
       tol: relative residual required of every solve.
       cg_rtol: the Schur-complement CG stops at this constraint residual, relative.
-      shift: the displacement block is factorised as K_aug + shift * |diag(K_aug)|
-        (a Levenberg-Marquardt shift for modified Newton steps; 0: exact).
+      shift: the displacement block is factorised as K_aug + shift |diag(K) + shift_aug
+        diag(B D B^T)| (a Levenberg-Marquardt shift for modified Newton steps; 0: exact).
+      shift_aug: the share of the augmentation's diagonal in the shift (1: the shift is
+        relative to diag(K_aug); the assembler passes 1e4 / beta, so the shifted system,
+        and hence the damped step, does not depend on the augmentation strength).
+      reuse: a solver of the same K, B, D, shift whose factorisation (and low-rank
+        solves) this one shares; ``low_rank`` then extends that solver's (see
+        ``plus_low_rank``).
       indefinite: "kkt" solves an indefinite system exactly (direct factorisation of the
         whole saddle point), "raise" raises NegativeCurvature.
       refine: at most this many refinement steps of a solve whose residual exceeds
@@ -190,23 +196,40 @@ class SaddlePointSolver:
     indefinite: str = "kkt"
     refine: int = 3
     refine_above: float = 1e-7
+    shift_aug: float = 1.0
+    reuse: "SaddlePointSolver | None" = None
 
     def __post_init__(self):
-        K = self.K
-        if self.B is not None and not self.augmented:
-            K = K + self.B @ sp.diags(self.D) @ self.B.T
-        if self.shift:
-            K = K + self.shift * sp.diags(np.abs(K.diagonal()))
-        self.K_aug = sp.csr_matrix(K)
-        self.fact = factorize(self.K_aug, self.backend)
+        if self.reuse is not None:
+            self.K_aug, self.fact = self.reuse.K_aug, self.reuse.fact
+        else:
+            K = self.K
+            aug = None
+            if self.B is not None:
+                aug = np.asarray(self.B.multiply(self.B) @ self.D).ravel()  # diag(B D B^T)
+                if not self.augmented:
+                    K = K + self.B @ sp.diags(self.D) @ self.B.T
+            if self.shift:
+                d = K.diagonal() if aug is None else K.diagonal() - (1.0 - self.shift_aug) * aug
+                K = K + self.shift * sp.diags(np.abs(d))
+            self.K_aug = sp.csr_matrix(K)
+            self.fact = factorize(self.K_aug, self.backend)
         if self.low_rank:
             V = np.stack([v for _, v in self.low_rank], axis=1)  # (n, r)
             a = np.array([al for al, _ in self.low_rank])
             self.V, self.alpha = V, a
-            self.KiV = self.fact.solve(V).reshape(V.shape)  # all r right-hand sides at once
+            done = len(self.reuse.low_rank) if self.reuse is not None else 0
+            self.KiV = self.reuse.KiV if done else np.zeros((len(V), 0))
+            if done < V.shape[1]:  # all new right-hand sides at once
+                self.KiV = np.hstack([self.KiV, self.fact.solve(V[:, done:]).reshape(len(V), -1)])
             cap = np.diag(1.0 / a) + V.T @ self.KiV
             self.cap_inv = np.linalg.inv(cap)
         self.n_solves = 0
+
+    def plus_low_rank(self, extra: list) -> "SaddlePointSolver":
+        """This tangent plus further rank-one terms (alpha, v (n,)), on the same
+        factorisation (Woodbury: one back-solve per new term, all at once)."""
+        return dataclasses.replace(self, low_rank=list(self.low_rank) + list(extra), reuse=self)
 
     def _solve_aug(self, b):
         x = self.fact.solve(b)

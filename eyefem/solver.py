@@ -66,19 +66,21 @@ class NewtonOptions:
         max(reference, norm of the contact forces) (a node at a surface edge or on a facet
         edge may flip without end; this bounds the force such a flip leaves unbalanced),
         else Newton continues.
-      stall_iterations: a step has stalled when its force residual has not fallen by 10%
-        over this many iterations (on the default eye mesh a step can settle on a
+      stall_iterations: a step has stalled when the best force residual of its last this
+        many iterations is not 10% below the best before them (on the default eye mesh a
+        step can settle on a
         plateau of 1e-7 to 2e-6 of the reference force that no Newton or modified
         Newton step lowers: the retina's near-neutral modes under the cavity pressure).
       stall_rtol, stall_vtol: a stalled step inside a stage is accepted, with a warning,
-        when its force residual is below stall_rtol x the reference and its volume
-        residual below stall_vtol (the load path has no history, so the next step starts
+        at its best iterate (the least force residual among those with a volume residual
+        below stall_vtol) when that force residual is below stall_rtol x the reference
+        (the load path has no history, so the next step starts
         that close to it and converges to rtol). The step that ends a stage is never
         accepted on a stall (the next stage has its own, often much smaller, reference
         force and cannot start from a stalled state), and a step stalled above these
         goes on to max_iter (or is cut, with ``stall_cut``).
       stall_cut: a stalled step that is not accepted is cut at once, without spending the
-        iterations left to max_iter, once its force residual is below modified_newton x
+        iterations left to max_iter, once its best force residual is below modified_newton x
         the reference (off by default; default case 3 passes the end of its tightening
         with it, default case 4 failed with it and grow_iterations = 12:
         docs/performance.md).
@@ -239,7 +241,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         q = q + dq_prescribed + asm.expand(x, y)
         fref = np.linalg.norm(rhs[free])
     frozen = False
-    history = []
+    history, best = [], None  # best: (force residual, q, model) of the best iterate
     for it in range(opts.max_iter + 1):
         if not frozen:
             model = model.update(q, theta)
@@ -270,24 +272,28 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         elif nf <= opts.contact_freeze * fref and any(t.dynamic for t in model.terms):
             frozen = True
         history.append(nf)
+        if nm <= opts.stall_vtol and (best is None or nf < best[0]):
+            best = (nf, q, model)
         k = opts.stall_iterations
-        if (not final and it >= k and nf > 0.9 * history[-k - 1]
-                and nf <= opts.stall_rtol * fref and nm <= opts.stall_vtol):
-            log.warning("step accepted on a stall: |r_u| = %.3e N after %d iterations "
-                        "(%.1e of the reference %.3e N; tolerance %.1e)", nf, it, nf / fref,
-                        fref, opts.rtol)
-            return model, q, it, nf, solver, fref, True
-        if (opts.stall_cut and it >= k and nf > 0.9 * history[-k - 1]
-                and nf <= opts.modified_newton * fref):
+        # stalled: the best residual of the last k iterations is not 10% below the best
+        # before them (on a plateau the residual wanders up and down)
+        stalled = it >= k and min(history[-k:]) > 0.9 * min(history[:-k])
+        if not final and stalled and best is not None and best[0] <= opts.stall_rtol * fref:
+            log.warning("step accepted on a stall: |r_u| = %.3e N, the best of %d iterations "
+                        "(%.1e of the reference %.3e N; tolerance %.1e)", best[0], it,
+                        best[0] / fref, fref, opts.rtol)
+            asm.model = best[2]
+            return best[2], best[1], it, best[0], solver, fref, True
+        if opts.stall_cut and stalled and min(history) <= opts.modified_newton * fref:
             raise _StepFailed(f"stalled at |r_u| = {nf:.3e} N (reference {fref:.3e} N, volume "
                               f"residual {nm:.2e}) after {it} iterations")
         if it == opts.max_iter:
             break
         cache = {}
 
-        def direction(far, shift, extra=None):
+        def direction(far, shift):
             return _direction(asm, lambda exact: asm.assemble(q, theta, active, exact)[1:],
-                              rf, rm, opts, far, cache, extra, shift)
+                              rf, rm, opts, far, cache, shift)
 
         far, shift = nf > opts.modified_newton * fref, 0.0
         m0 = np.hypot(nf / max(fref, 1e-300), nm)
@@ -296,15 +302,27 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         while True:
             try:
                 x, y, solver = direction(far, shift)
-                step_solver = solver
+                n_la = 0
                 if opts.contact_lookahead:
-                    x, y, la_solver, n_la = _lookahead(model, asm, q, theta, active,
-                                                       lambda extra: direction(far, shift, extra), x, y)
-                    if la_solver is not None:
-                        step_solver = la_solver
-                        log.debug("  contact look-ahead: %d nodes", n_la)
+                    xl, yl, la_solver, n_la = _lookahead(model, asm, q, theta, active, solver,
+                                                         rf, rm, x, y)
             except LinearSolveError as exc:
                 raise _StepFailed(str(exc)) from exc
+            if n_la:
+                # the look-ahead's model of a node can be wrong (it stays outside): then
+                # no trial of its step lowers the residual and the plain step is tried
+                log.debug("  contact look-ahead: %d nodes", n_la)
+                dq = asm.expand(xl, yl)
+                restore = _Restoration(model, q, dq, theta, active, asm, la_solver) if opts.restore else None
+                try:
+                    q_try, lowered = _line_search(model, q, dq, theta, active, asm, m0, fref, vref,
+                                                  alphas[:3], restore)
+                except _StepFailed:
+                    lowered = False
+                if lowered:
+                    q = q_try
+                    break
+                log.debug("  look-ahead step: no trial lowers the residual; the plain step")
             dq = asm.expand(x, y)
             longest = _longest(model, dq)
             last = (max(shift, solver.shift) >= SHIFTS[-1] or not opts.line_search
@@ -312,7 +330,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
             if last and longest > opts.max_step:
                 log.debug("  step of %.3g mm scaled to max_step = %g mm", longest, opts.max_step)
                 dq *= opts.max_step / longest
-            restore = _Restoration(model, q, dq, theta, active, asm, step_solver) if opts.restore else None
+            restore = _Restoration(model, q, dq, theta, active, asm, solver) if opts.restore else None
             try:
                 q_try, lowered = _line_search(model, q, dq, theta, active, asm, m0, fref, vref, alphas,
                                               restore)
@@ -343,7 +361,7 @@ def _longest(model, dq):
     return float(np.linalg.norm(dq[:model.n_u].reshape(-1, 3), axis=1).max(initial=0.0))
 
 
-def _direction(asm, tangent, rf, rm, opts, far, cache=None, extra=None, min_shift=0.0):
+def _direction(asm, tangent, rf, rm, opts, far, cache=None, min_shift=0.0):
     """Newton direction; ``tangent(exact)`` assembles (K, B, D, low_rank), exact or
     without the follower pressures' load stiffness.
 
@@ -354,26 +372,23 @@ def _direction(asm, tangent, rf, rm, opts, far, cache=None, extra=None, min_shif
     ``NewtonOptions.pressure_stiffness``), shifted by mu |diag K| with mu = 0, 1e-4, 1e-3,
     ... until it is positive: a descent direction that leaves saddle points. If none is,
     the exact (indefinite) system is solved. ``cache`` (a dict) keeps the assembled
-    tangents between calls; ``extra`` = (g (n_p,), S (n_p, n_p)) adds a model's force and
-    stiffness to the free primal system (the contact look-ahead); ``min_shift``: the
-    smallest shift tried (a damped step after a failed line search)."""
+    tangents between calls; ``min_shift``: the smallest shift tried (a damped step after a
+    failed line search)."""
     cache = {} if cache is None else cache
 
     def pieces(exact):
         exact = exact or opts.pressure_stiffness
         if exact not in cache:
             cache[exact] = tangent(exact)
-        K, B, D, lr = cache[exact]
-        return (K if extra is None else K + extra[1]), B, D, lr
+        return cache[exact]
 
-    f = -rf if extra is None else -(rf + extra[0])
     tries = ([] if far or min_shift else [(True, 0.0)]) + [
         (False, mu) for mu in SHIFTS
         if mu >= min_shift and (mu or far or not opts.pressure_stiffness)]  # not the exact tangent twice
     for exact, mu in tries:
         try:
             solver = asm.solver(*pieces(exact), opts.backend, shift=mu, indefinite="raise")
-            x, y = solver.solve(f, -rm)
+            x, y = solver.solve(-rf, -rm)
             if not exact or mu:
                 log.debug("  modified Newton step (%s, shift %g)", "without the pressure stiffness"
                           if not opts.pressure_stiffness else "exact tangent", mu)
@@ -381,11 +396,11 @@ def _direction(asm, tangent, rf, rm, opts, far, cache=None, extra=None, min_shif
         except NegativeCurvature:
             continue
     solver = asm.solver(*pieces(True), opts.backend)
-    x, y = solver.solve(f, -rm)
+    x, y = solver.solve(-rf, -rm)
     return x, y, solver
 
 
-def _lookahead(model, asm, q, theta, active, direction, x, y, rounds=4):
+def _lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4):
     """Active-set look-ahead of the penalty contacts along a Newton step (x, y).
 
     A smoothed penalty node more than 2 eps outside the surface has almost no stiffness
@@ -396,9 +411,12 @@ def _lookahead(model, asm, q, theta, active, direction, x, y, rounds=4):
     plain penalty's quadratic model 1/2 alpha (g + G . dq)^2 (force alpha g G, stiffness
     alpha G G^T) and the step is solved again; a node the new step keeps outside
     (g + dg > 0) leaves the set again (a primal-dual active-set update), for at most
-    ``rounds`` solves. Returns (x, y, solver of the last solve, number of look-ahead nodes)."""
+    ``rounds`` solves. Each node's stiffness is a rank-one update alpha v v^T (v: G on
+    the free dofs) of the step's factorised ``solver`` (Woodbury: no refactorisation).
+    Returns (x, y, solver of the last solve, number of look-ahead nodes)."""
     members = {}
-    solver = None
+    la_solver = None
+    x0, y0 = x, y
     for _ in range(rounds):
         lin = model.gap_linearisations(q, asm.expand(x, y), theta, active)
         changed = False
@@ -411,19 +429,24 @@ def _lookahead(model, asm, q, theta, active, direction, x, y, rounds=4):
         if not changed:
             break
         gx = np.zeros(model.n_dof)
-        blocks = []
+        terms = []
         for t, g, dg, G in lin:
-            m = members[t.name]
-            if not np.any(m):
-                continue
+            m = np.nonzero(members[t.name])[0]
             a = t.data["alpha"][m]
             gx += np.bincount(t.dofs[m].ravel(), ((a * g[m])[:, None] * G[m]).ravel(),
                               minlength=model.n_dof)
-            blocks.append((t.dofs[m], a[:, None, None] * G[m][:, :, None] * G[m][:, None, :]))
-        S = sum(asm.coo(d, H) for d, H in blocks)
-        x, y, solver = direction((gx[asm.free_primal], S))
+            for i, al in zip(m, a):
+                v = np.zeros(model.n_dof)
+                v[t.dofs[i]] = G[i]
+                terms.append((al, v[asm.free_primal]))
+        la_solver = solver.plus_low_rank(terms) if terms else solver
+        try:
+            x, y = la_solver.solve(-(rf + gx[asm.free_primal]), -rm)
+        except NegativeCurvature:  # roundoff of the update on a nearly singular tangent
+            log.debug("  contact look-ahead dropped: negative curvature")
+            return x0, y0, solver, 0
     n = int(sum(np.sum(m) for m in members.values()))
-    return x, y, solver, n
+    return x, y, la_solver, n
 
 
 class _Restoration:

@@ -193,8 +193,10 @@ def inflated_against_a_ring():
                         (PressureLoad("p", mesh, "inner", 0.0), ring))
     d = np.concatenate([node_dofs(mesh.node_set(f"sym_{c}"), c) for c in "xyz"])
     stage = Stage("inflate", 1, (d, np.zeros(len(d))), params={"p": {"p": 30 * MMHG}})
-    return {k: solve(model, [stage], options=NewtonOptions(contact_lookahead=k))
-            for k in (True, False)}
+    out = {k: solve(model, [stage], options=NewtonOptions(contact_lookahead=k))
+           for k in (True, False)}
+    out["problem"] = (model, stage)
+    return out
 
 
 def test_contact_lookahead_reaches_the_same_state_in_fewer_iterations(inflated_against_a_ring):
@@ -210,3 +212,27 @@ def test_contact_lookahead_reaches_the_same_state_in_fewer_iterations(inflated_a
     assert r[x[ring.nodes, 2] > R - 0.1].min() > R + 0.2
     its = lambda s: sum(r.iterations for r in s.history)  # noqa: E731
     assert its(on) < its(off)  # 7 against 11 when written
+
+
+def test_a_wrong_lookahead_step_falls_back_to_the_plain_newton_step(inflated_against_a_ring, monkeypatch):
+    """When no trial of the look-ahead's step lowers the residual (its model of a node is
+    wrong), the plain Newton step is taken: a look-ahead that always returns the reversed
+    step changes neither the converged state nor the iteration count of the run
+    without look-ahead."""
+    from eyefem import solver as solver_mod
+    from eyefem.solver import NewtonOptions, solve
+
+    off = inflated_against_a_ring[False]
+    calls = []
+
+    def reversed_step(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4):
+        calls.append(1)
+        return -x, -y, solver, 1
+
+    monkeypatch.setattr(solver_mod, "_lookahead", reversed_step)
+    model, stage = inflated_against_a_ring["problem"]
+    fresh = solve(model, [stage], options=NewtonOptions(contact_lookahead=True))
+    assert calls
+    np.testing.assert_allclose(fresh.q, off.q, atol=1e-9)
+    its = lambda s: sum(r.iterations for r in s.history)  # noqa: E731
+    assert its(fresh) == its(off)

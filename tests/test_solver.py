@@ -104,6 +104,44 @@ def test_saddle_point_solve_is_exact():
                                rtol=1e-8, atol=1e-10)
 
 
+def test_plus_low_rank_solves_the_updated_system_on_the_same_factorisation():
+    """Rank-one terms added to a factorised tangent (the contact look-ahead) give the exact
+    solution of the updated saddle point, twice in a row, without a new factorisation."""
+    rng, K, B, f, g = _random_saddle_point(5)
+    n, m = B.shape
+    v0, v1, v2 = rng.standard_normal((3, n))
+    base = SaddlePointSolver(K, B, np.full(m, 100.0), [(3.0, v0)], augmented=False)
+    one = base.plus_low_rank([(2.0, v1)])
+    two = one.plus_low_rank([(0.5, v2)])
+    Kd = sp.bmat([[K, B], [B.T, None]]).toarray()
+    Kd[:n, :n] += 3.0 * np.outer(v0, v0)
+    for s, terms in ((base.plus_low_rank([]), []), (one, [(2.0, v1)]), (two, [(2.0, v1), (0.5, v2)])):
+        assert s.fact is base.fact
+        A = Kd.copy()
+        for al, v in terms:
+            A[:n, :n] += al * np.outer(v, v)
+        x, y = s.solve(f, g)
+        np.testing.assert_allclose(np.concatenate([x, y]), np.linalg.solve(A, np.concatenate([f, g])),
+                                   rtol=1e-8, atol=1e-10)
+
+
+def test_shifted_solve_does_not_depend_on_the_augmentation_strength():
+    """A Levenberg-Marquardt shift relative to diag(K) + shift_aug diag(B D B^T): with
+    shift_aug = beta_0 / beta the damped step is the same for any augmentation D ~ beta,
+    while the plain relative shift (shift_aug = 1) changes with it."""
+    rng, K, B, f, g = _random_saddle_point(9)
+    m = B.shape[1]
+
+    def step(beta, shift_aug):
+        s = SaddlePointSolver(K, B, np.full(m, beta), augmented=False, shift=0.01,
+                              shift_aug=shift_aug)
+        return np.concatenate(s.solve(f, g))
+
+    ref = step(100.0, 1.0)
+    np.testing.assert_allclose(step(1e4, 1e-2), ref, rtol=1e-7, atol=1e-9)
+    assert np.max(np.abs(step(1e4, 1.0) - ref)) > 1e-3 * np.max(np.abs(ref))
+
+
 def test_saddle_point_solve_refines_an_inexact_factorisation():
     """A factorisation of a slightly wrong matrix (as Pardiso's perturbed pivots give on a
     badly conditioned tangent) leaves a residual of 1e-4 relative: without refinement that
@@ -384,9 +422,20 @@ def test_stalled_steps_are_accepted_inside_a_stage_and_refused_at_its_end():
     ref = solve(model, [stage])
     reaction = np.linalg.norm(ref.model.gradient(ref.q, ref.theta)[stage.prescribed[0]])
     model, stage = _kinked_cube(1e-7 * reaction)
+    seen = []
+
+    def on_step(rec, m, q, theta):  # the accepted state is the reported (best) iterate
+        r = m.gradient(q, theta)
+        free = np.ones(m.n_dof, bool)
+        free[stage.prescribed[0]] = False
+        free[m.multiplier_dofs] = False
+        seen.append((rec.residual, np.linalg.norm(r[free])))
+
     with pytest.raises(ConvergenceError, match="no convergence in 20 iterations") as exc:
-        solve(model, [stage], options=NewtonOptions(max_iter=20, max_cuts=4))
+        solve(model, [stage], options=NewtonOptions(max_iter=20, max_cuts=4), on_step=on_step)
     hist = exc.value.history
+    assert len(seen) == len(hist)
+    np.testing.assert_allclose([a for a, _ in seen], [b for _, b in seen], rtol=1e-12)
     assert len(hist) >= 3 and all(r.info.get("stalled") for r in hist)
     assert all(1e-8 * reaction < r.residual < 1e-6 * reaction for r in hist)
     assert all(r.iterations <= 2 + NewtonOptions().stall_iterations + 4 for r in hist)
