@@ -467,6 +467,80 @@ def test_a_smooth_step_is_never_flagged_as_stalled():
     assert not any(r.info.get("stalled") for r in sol.history)
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class _FlippingContact(Term):
+    """1/2 k (q[dof] - y0 - s c)^2 with a "pairing" s = -1 where q[dof] > y0, else +1
+    (row [dof, dof + s], like a node paired with one of two facets): the state converged
+    with one pairing re-pairs to the other, which pushes it back across y0, so the
+    pairing cycles with an unbalanced force of about 2 k c after every re-pairing."""
+
+    name: str
+    dof: int
+    y0: float
+    k: float
+    c: float
+    side: int = -1
+    dynamic = True
+
+    def __post_init__(self):
+        object.__setattr__(self, "dofs", np.array([[self.dof, self.dof + self.side]], np.int64))
+        object.__setattr__(self, "params", {})
+        object.__setattr__(self, "data", {"target": np.full(1, self.y0 + self.side * self.c),
+                                          "w": np.ones(1)})
+
+    def update(self, q, params):
+        side = -1 if q[self.dof] > self.y0 else 1
+        return self if side == self.side else dataclasses.replace(self, side=side)
+
+    def local_energy(self, q_loc, params, data):
+        return 0.5 * self.k * (q_loc[:, 0] - data["target"]) ** 2
+
+
+def _cube_with_a_flipping_contact(jump):
+    """The kink-free pulled cube in one step, with a cycling pairing on the y motion of
+    corner (1, 1, 0) that leaves ``jump`` x the reaction force unbalanced when re-paired.
+    Returns (model, stage, reaction, node)."""
+    model, stage = _kinked_cube(0.0)
+    stage = Stage("pull", 1, stage.prescribed)
+    ref = solve(model, [stage])
+    reaction = np.linalg.norm(ref.model.gradient(ref.q, ref.theta)[stage.prescribed[0]])
+    dof = model.terms[-1].dofs[0, 0]
+    k = 10.0
+    flip = _FlippingContact("flip", int(dof), float(ref.q[dof]), k, jump * reaction / (2 * k))
+    return model.with_terms(list(model.terms) + [flip]), stage, reaction, int(dof) // 3
+
+
+def test_a_cycling_contact_pairing_is_accepted_where_the_state_is_in_equilibrium(caplog):
+    """A pairing that cycles at convergence with 4e-4 of the reference force left
+    unbalanced (above contact_rtol, below contact_cycle_rtol): the stage's last step is
+    accepted, flagged, with the pairing it is in equilibrium with, and the warning names
+    the flipping node."""
+    model, stage, reaction, node = _cube_with_a_flipping_contact(4e-4)
+    seen = []
+
+    def on_step(rec, m, q, theta):
+        free = np.ones(m.n_dof, bool)
+        free[stage.prescribed[0]] = False
+        forces = [np.linalg.norm(mm.gradient(q, theta)[free]) for mm in (m, m.update(q, theta))]
+        seen.append((rec, *forces))
+
+    opts = NewtonOptions(max_iter=20, max_cuts=0)
+    with caplog.at_level("WARNING", logger="eyefem.solver"):
+        sol = solve(model, [stage], options=opts, on_step=on_step)
+    (rec, in_pairing, repaired), = seen
+    assert sol.history[-1].t == 1.0 and rec.info == {"contact_cycle": True}
+    assert in_pairing <= opts.rtol * reaction
+    assert opts.contact_rtol * reaction < repaired < opts.contact_cycle_rtol * reaction
+    assert f"nodes {node} flip between facets" in caplog.text
+    assert rec.iterations < opts.max_iter
+
+
+def test_a_cycling_contact_pairing_with_a_large_force_jump_is_not_accepted():
+    model, stage, _, _ = _cube_with_a_flipping_contact(5e-3)
+    with pytest.raises(ConvergenceError, match="no convergence in 20 iterations"):
+        solve(model, [stage], options=NewtonOptions(max_iter=20, max_cuts=0))
+
+
 def test_increment_grows_back_after_steps_within_grow_iterations():
     """A cube pulled to stretch 4 in 2 steps with 4 iterations allowed: the first step is
     cut to 1/4 and converges in 4 iterations; the increment then doubles back to the

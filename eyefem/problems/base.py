@@ -102,7 +102,8 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
 
     def on_step(rec, model, q, theta):
         row = {"stage": rec.stage, "step": rec.step, "t": rec.t, "iterations": rec.iterations,
-               "residual_N": rec.residual, "stalled": int(rec.info.get("stalled", False))}
+               "residual_N": rec.residual, "stalled": int(rec.info.get("stalled", False)),
+               "contact_cycle": int(rec.info.get("contact_cycle", False))}
         row.update(setup.probe(model, q, theta))
         report = model.report(q, theta, active.get(rec.stage))
         row.update(report)
@@ -127,5 +128,7 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     summary = setup.finish(rows, out_dir, plots)
     summary["wall_s"] = time.perf_counter() - tic
     summary["newton_iterations"] = int(sum(r.iterations for r in sol.history))
-    summary["steps_accepted_on_a_stall"] = int(sum(r.info.get("stalled", False) for r in sol.history))
+    for flag, key in (("stalled", "steps_accepted_on_a_stall"),
+                      ("contact_cycle", "steps_accepted_on_a_contact_cycle")):
+        summary[key] = int(sum(r.info.get(flag, False) for r in sol.history))
     return RunResult(summary, rows, sol, out_dir)
