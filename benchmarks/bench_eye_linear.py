@@ -9,6 +9,7 @@ iterations) for several augmentation strengths beta.
 
     python benchmarks/bench_eye_linear.py                       # case 4, default mesh
     python benchmarks/bench_eye_linear.py --mesh coarse --repeats 3
+    python benchmarks/bench_eye_linear.py --not-reproducible    # Pardiso without MKL's CNR
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+from eyefem import linsolve  # noqa: E402
 from eyefem.assembly import Assembler  # noqa: E402
 from eyefem.casefile import load_case  # noqa: E402
 from eyefem.cli import _schemas  # noqa: E402
@@ -47,7 +49,10 @@ def main(argv=None):
     ap.add_argument("--mesh", default=None, help="mesh level (default: the case's)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--json", default=None, help="also write the figures to this file")
+    ap.add_argument("--not-reproducible", action="store_true",
+                    help="leave MKL's conditional numerical reproducibility off")
     args = ap.parse_args(argv)
+    linsolve.REPRODUCIBLE = not args.not_reproducible
 
     case = load_case(args.case, _schemas())
     if args.mesh:
@@ -64,7 +69,7 @@ def main(argv=None):
     th = _lerp(theta, end, 1.0 / stage.n_steps)
     model = model.update(q, th)
     out = {"case": args.case, "mesh": case.parameters.get("mesh"), "machine": platform.machine(),
-           "elements": model.mesh.n_elem}
+           "elements": model.mesh.n_elem, "mkl_reproducible": linsolve.REPRODUCIBLE}
 
     asm = Assembler(model, prescribed)
     asm.assemble(q, th, stage.active, False)  # compile

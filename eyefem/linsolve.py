@@ -79,8 +79,42 @@ check residuals and refine where it matters), 10 = 8 (pivot perturbation 1e-8), 
 one back-solve 0.053 s -> 0.016 s, same residual (7e-9)."""
 
 
+REPRODUCIBLE = True
+"""Ask MKL for run-to-run bitwise reproducible results (conditional numerical
+reproducibility, branch AUTO) before the first Pardiso call, unless MKL_CBWR already
+chose a branch. Pardiso's threaded factorisation is otherwise not reproducible, and the
+coarse deformable-band case (whose suture stage has nearby equilibria of its faceted
+contact) gave IOPs of 23.42 to 23.74 mmHg from one input in three runs on 2 cores; with
+it, the same to all digits (docs/performance.md for its cost)."""
+
+_MKL_CBWR_BRANCH, _MKL_CBWR_BRANCH_OFF, _MKL_CBWR_AUTO = 1, 1, 2
+
+
+def mkl_cnr_branch(lib) -> int:
+    """MKL's current reproducibility branch (1: off, 2: AUTO, 3: COMPATIBLE, ...)."""
+    import ctypes
+
+    get = lib.MKL_CBWR_Get
+    get.restype, get.argtypes = ctypes.c_int, [ctypes.c_int]
+    return int(get(_MKL_CBWR_BRANCH))
+
+
+def _set_reproducible(lib) -> None:
+    import ctypes
+
+    if not REPRODUCIBLE or mkl_cnr_branch(lib) != _MKL_CBWR_BRANCH_OFF:
+        return
+    put = lib.MKL_CBWR_Set
+    put.restype, put.argtypes = ctypes.c_int, [ctypes.c_int]
+    status = put(_MKL_CBWR_AUTO)
+    if status != 0:
+        log.warning("MKL refused the reproducible branch (MKL_CBWR_Set status %d): Pardiso's "
+                    "results may differ in the last digits from run to run", status)
+
+
 def _new_pardiso(pypardiso):
     solver = pypardiso.PyPardisoSolver(mtype=-2)
+    _set_reproducible(solver.libmkl)
     for i, v in PARDISO_IPARM.items():
         solver.iparm[i - 1] = v
     return solver

@@ -375,6 +375,22 @@ def test_pardiso_runs_with_the_project_settings_and_solves_indefinite_systems():
     assert iparm[6] == 0  # iterative refinement steps performed in the last solve
 
 
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
+def test_pardiso_runs_on_mkls_reproducible_branch():
+    """Before its first Pardiso call eyefem puts MKL on a conditional numerical
+    reproducibility branch (AUTO, unless MKL_CBWR chose one): off (branch 1), the threaded
+    factorisation differs in the last digits from run to run."""
+    import os
+
+    from eyefem.linsolve import factorize, mkl_cnr_branch
+
+    f = factorize(sp.identity(4, format="csr") * 2.0, "pardiso")
+    branch = mkl_cnr_branch(f.entry["solver"].libmkl)
+    assert branch != 1
+    if "MKL_CBWR" not in os.environ:
+        assert branch == 2
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class _Kink(Term):
     """c |q[a] - q[b] - e|: a residual that jumps by 2c where q[a] - q[b] = e, so that no
