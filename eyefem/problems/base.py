@@ -18,7 +18,7 @@ import numpy as np
 from .. import checkpoint
 from ..model import Model
 from ..output import SeriesWriter, write_csv
-from ..solver import NewtonOptions, Solution, Stage, solve
+from ..solver import ACCEPTED_FLAGS, NewtonOptions, Solution, Stage, solve
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +102,8 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
 
     def on_step(rec, model, q, theta):
         row = {"stage": rec.stage, "step": rec.step, "t": rec.t, "iterations": rec.iterations,
-               "residual_N": rec.residual, "stalled": int(rec.info.get("stalled", False)),
-               "contact_cycle": int(rec.info.get("contact_cycle", False))}
+               "residual_N": rec.residual,
+               **{flag: int(rec.info.get(flag, False)) for flag in ACCEPTED_FLAGS.values()}}
         row.update(setup.probe(model, q, theta))
         report = model.report(q, theta, active.get(rec.stage))
         row.update(report)
