@@ -118,10 +118,12 @@ class Assembler:
             slots[valid] = inv[off: off + len(valid)]
             self.patterns[name] = _TermPattern(prim, m, slots, valid, bs, bv)
 
-    def assemble(self, q, theta, active=None, pressure_stiffness=True):
+    def assemble(self, q, theta, active=None, pressure_stiffness=True, gauss_newton=False):
         """Residual (n_dof,) and the factorisation-ready tangent pieces at q; with
         ``pressure_stiffness`` False the tangent leaves out the Hessians of follower
-        pressures (terms marked ``pressure_stiffness``; their low-rank parts stay).
+        pressures (terms marked ``pressure_stiffness``; their low-rank parts stay); with
+        ``gauss_newton`` the terms that have one use their Gauss-Newton Hessian
+        (``Term.grad_hess_gauss_newton``: penalty contact without the surface curvature).
 
         Returns: (r, K (n_p, n_p) CSR including the condensation, B (n_p, n_m) or None,
         D (n_m,) or None, low_rank list of (alpha, v (n_p,))).
@@ -138,7 +140,11 @@ class Assembler:
                 g, H = model.local_grad_hess(t, q, theta)
                 extra.append(self._coo(t, H))
             else:
-                g, Hpp, b, d = model.local_grad_hess_condensed(t, q, theta, self.beta)
+                if gauss_newton and t.grad_hess_gauss_newton is not None:
+                    g, Hpp = model.local_grad_hess_gauss_newton(t, q, theta)
+                    b = d = None
+                else:
+                    g, Hpp, b, d = model.local_grad_hess_condensed(t, q, theta, self.beta)
                 p = self.patterns[t.name]
                 if p.mult is not None:
                     D[self.mred[t.dofs[:, p.mult]]] = d

@@ -183,10 +183,26 @@ class BuckleContact(Term):
         p = smooth_penetration(self.gaps(q_loc, params, data), self.smoothing)
         return 0.5 * data["alpha"] * p * p
 
+    def grad_hess_gauss_newton(self, q, params, data, dofs):
+        """Local gradients (n, k) and Hessians (n, k, k) without the curvature term
+        alpha p p' grad^2 g: alpha (p'^2 + p p'') grad g grad g^T, positive semidefinite.
+        At the buckle's curved flanks and rounded edges the dropped term is a negative
+        tangential stiffness (a node pressed on a convex corner slides off it) that can
+        exceed the soft sclera's own and make the tangent near-singular."""
+        q_loc = q[dofs]
+        g = self.gaps(q_loc, params, data)
+        G = jax.grad(lambda x: jnp.sum(self.gaps(x, params, data)))(q_loc)  # item i: row i only
+        eps, a = self.smoothing, data["alpha"]
+        s = jax.nn.sigmoid(-g / eps)
+        p = smooth_penetration(g, eps)
+        grad = (-a * p * s)[:, None] * G
+        h = a * (s * s + p * s * (1.0 - s) / eps)
+        return grad, h[:, None, None] * G[:, :, None] * G[:, None, :]
+
     def gap_linearisation(self, q_loc, dq_loc, params, data):
         g, dg = jax.jvp(lambda x: self.gaps(x, params, data), (q_loc,), (dq_loc,))
         G = jax.grad(lambda x: jnp.sum(self.gaps(x, params, data)))(q_loc)  # item i: row i only
-        return g, dg, G
+        return g, dg, G, self.gaps(q_loc + dq_loc, params, data)
 
     def _gap_np(self, q, params):
         return np.asarray(self.gaps(np.asarray(q)[self.dofs], params, self.data))

@@ -92,6 +92,8 @@ class Model:
                 ks[key] = jax.jit(term.grad_hess)
             elif kind == "grad_hess_condensed":
                 ks[key] = jax.jit(term.grad_hess_condensed)
+            elif kind == "grad_hess_gauss_newton":
+                ks[key] = jax.jit(term.grad_hess_gauss_newton)
             elif kind == "energy":
                 ks[key] = jax.jit(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
             elif kind == "grad":
@@ -124,19 +126,25 @@ class Model:
         return r
 
     def gap_linearisations(self, q, dq, theta, active=None) -> list:
-        """(term, g (n,), dg (n,), dg/dq_loc (n, k)) of every active penalty-contact term
-        (``Term.gap_linearisation``) at q along the step dq (numpy)."""
+        """(term, g (n,), dg (n,), dg/dq_loc (n, k), gap at q + dq (n,)) of every active
+        penalty-contact term (``Term.gap_linearisation``) at q along the step dq (numpy)."""
         out = []
         for t in self._active(active):
             if type(t).gap_linearisation is Term.gap_linearisation:
                 continue
-            g, dg, G = self._kernel(t, "lookahead")(q, dq, theta[t.name], t.data, t.dofs)
-            out.append((t, np.asarray(g), np.asarray(dg), np.asarray(G)))
+            lin = self._kernel(t, "lookahead")(q, dq, theta[t.name], t.data, t.dofs)
+            out.append((t, *(np.asarray(a) for a in lin)))
         return out
 
     def local_grad_hess(self, term: Term, q, theta):
         """Local gradients and Hessians of one term at q (numpy)."""
         g, H = self._kernel(term, "grad_hess")(q, theta[term.name], term.data, term.dofs)
+        return np.asarray(g), np.asarray(H)
+
+    def local_grad_hess_gauss_newton(self, term: Term, q, theta):
+        """Local gradients and Gauss-Newton Hessians (``Term.grad_hess_gauss_newton``)."""
+        g, H = self._kernel(term, "grad_hess_gauss_newton")(q, theta[term.name], term.data,
+                                                             term.dofs)
         return np.asarray(g), np.asarray(H)
 
     def local_grad_hess_condensed(self, term: Term, q, theta, beta):

@@ -103,6 +103,15 @@ class NewtonOptions:
         step's best trial is taken, as without damping. (On the default eye mesh steps
         of 2-800 mm along near-singular modes of the soft retina inverted elements at
         every trial and the load step was cut.)
+      contact_curvature: while the force residual is above contact_curvature x the
+        reference, penalty contacts that have one use their Gauss-Newton tangent
+        (``Term.grad_hess_gauss_newton``), without the term alpha p p' grad^2 g of the
+        contact surface's curvature; below it the tangent is exact (quadratic
+        convergence). At the ridged tire's flanks and rounded edges that term is a
+        negative tangential stiffness of the nodes pressed on them, larger than the soft
+        sclera's own: the exact tangent sent Newton steps of 1-5 mm along the sclera
+        beside the tire and default case 4 took 193 iterations; with 1e-3, 118 and the
+        same outcomes (docs/performance.md, thirteenth session).
     """
 
     rtol: float = 1e-8
@@ -127,6 +136,7 @@ class NewtonOptions:
     stall_cut: bool = False
     contact_lookahead: bool = True
     max_step: float = 0.5
+    contact_curvature: float = 1e-3
 
     def __post_init__(self):
         for f in ("rtol", "vtol", "atol", "beta", "contact_freeze", "contact_rtol",
@@ -134,6 +144,9 @@ class NewtonOptions:
                   "stall_rtol", "stall_vtol", "max_step"):
             if not getattr(self, f) > 0:
                 raise ValueError(f"NewtonOptions.{f} = {getattr(self, f)}; must be > 0")
+        if not self.contact_curvature >= 0:
+            raise ValueError(f"NewtonOptions.contact_curvature = {self.contact_curvature}; "
+                             "must be >= 0 (0: always the exact contact tangent)")
         if self.max_iter < 1 or self.max_cuts < 0 or self.stall_iterations < 2:
             raise ValueError(f"NewtonOptions: max_iter = {self.max_iter}, max_cuts = "
                              f"{self.max_cuts}, stall_iterations = {self.stall_iterations}; "
@@ -318,8 +331,10 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
             break
         cache = {}
 
+        gn = nf > opts.contact_curvature * fref if opts.contact_curvature else False
+
         def direction(far, shift):
-            return _direction(asm, lambda exact: asm.assemble(q, theta, active, exact)[1:],
+            return _direction(asm, lambda exact: asm.assemble(q, theta, active, exact, gn)[1:],
                               rf, rm, opts, far, cache, shift)
 
         far, shift = nf > opts.modified_newton * fref, 0.0
@@ -453,12 +468,19 @@ def _lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4):
     in the tangent, so a step that pushes it in runs it deep into the penalty: the
     residual jumps and the line search crawls at 1/8 of the step (observed at the edge of
     the ridged tire, where the sclera bulges out against the tire's rounded edge). Such a
-    node (gap g > 2 eps now, g + dg < -eps along the step) enters the system with the
+    node (gap g > 2 eps now, g + dg < -eps along the step, and its exact gap at the step's
+    end below -eps too) enters the system with the
     plain penalty's quadratic model 1/2 alpha (g + G . dq)^2 (force alpha g G, stiffness
     alpha G G^T) and the step is solved again; a node the new step keeps outside
     (g + dg > 0) leaves the set again (a primal-dual active-set update), for at most
     ``rounds`` solves. Each node's stiffness is a rank-one update alpha v v^T (v: G on
     the free dofs) of the step's factorised ``solver`` (Woodbury: no refactorisation).
+    The exact end gap keeps out nodes whose linearised gap is meaningless over the step:
+    beyond the edges of an encircling buckle the gap grows with the cube of the distance
+    from the edge, and a node millimetres away sliding along the sclera had a linearised
+    gap change of -10^2 to -10^3 mm; on default case 4 up to 762 such nodes entered the
+    look-ahead in one iteration, their stiffness alpha |G|^2 swamped the step and the
+    look-ahead failed (docs/performance.md, thirteenth session).
     Returns (x, y, solver of the last solve, number of look-ahead nodes)."""
     members = {}
     la_solver = None
@@ -466,17 +488,17 @@ def _lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4):
     for _ in range(rounds):
         lin = model.gap_linearisations(q, asm.expand(x, y), theta, active)
         changed = False
-        for t, g, dg, G in lin:
+        for t, g, dg, G, g_end in lin:
             eps = t.smoothing
             m = members.get(t.name, np.zeros(len(g), bool))
-            new = (m | ((g > 2 * eps) & (g + dg < -eps))) & ~(m & (g + dg > 0))
+            new = (m | ((g > 2 * eps) & (g + dg < -eps) & (g_end < -eps))) & ~(m & (g + dg > 0))
             changed |= bool(np.any(new != m))
             members[t.name] = new
         if not changed:
             break
         gx = np.zeros(model.n_dof)
         terms = []
-        for t, g, dg, G in lin:
+        for t, g, dg, G, _ in lin:
             m = np.nonzero(members[t.name])[0]
             a = t.data["alpha"][m]
             gx += np.bincount(t.dofs[m].ravel(), ((a * g[m])[:, None] * G[m]).ravel(),

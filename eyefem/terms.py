@@ -108,11 +108,18 @@ class Term(abc.ABC):
         """
         return []
 
+    grad_hess_gauss_newton = None
+    """Penalty-contact terms: ``f(q, params, data, dofs) -> (g (n, k), H (n, k, k))``, the
+    local gradients and the Hessians without the contact surface's curvature term (the
+    Gauss-Newton part, positive semidefinite), for the solver's modified tangent. None
+    (default): the term has no such approximation."""
+
     def gap_linearisation(self, q_loc, dq_loc, params, data):
         """Penalty-contact terms (energy 1/2 alpha p(g)^2 per item, p a smoothed <-g>):
         the gaps g (n,) mm at q_loc, their change along the step dq_loc to first order
-        (n,) and their gradients (n, k), for the Newton solver's active-set look-ahead
-        (``eyefem.solver``). None (default): not such a term."""
+        (n,), their gradients (n, k) and the exact gaps at q_loc + dq_loc (n,), for the
+        Newton solver's active-set look-ahead (``eyefem.solver``). None (default): not
+        such a term."""
         return None
 
     def low_rank_values(self, q, params) -> list:

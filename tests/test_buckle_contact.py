@@ -92,6 +92,37 @@ def test_buckle_contact_gradient_and_tangent_match_finite_differences(shell, sha
     _fd_check(t, q_loc, params)
 
 
+def test_gauss_newton_tangent_is_the_exact_one_less_the_surface_curvature_term(shell):
+    """The solver's modified tangent of the buckle contact: same gradient as the energy's,
+    Hessian = exact Hessian - alpha p p' hess(g) (the curvature term, from autodiff of the
+    gaps alone), and positive semidefinite where the exact one is not."""
+    import jax
+    from scipy.special import expit
+
+    t = _ring(shell, extra_dof=3 * shell.n_nodes)
+    rng = np.random.default_rng(3)
+    n = len(t.nodes)
+    q = np.zeros(3 * shell.n_nodes + 1)
+    q[:3 * shell.n_nodes] = 0.05 * rng.standard_normal(3 * shell.n_nodes)
+    q[-1] = 0.2
+    params = {**t.params, "d": np.array([0.1]), "s": np.array([0.2]), "ridge": np.array([0.4])}
+    g_gn, H_gn = (np.asarray(a) for a in t.grad_hess_gauss_newton(jnp.asarray(q), params, t.data,
+                                                                  t.dofs))
+    g_ex, H_ex = (np.asarray(a) for a in t.local_grad_hess(jnp.asarray(q[t.dofs]), params, t.data))
+    np.testing.assert_allclose(g_gn, g_ex, rtol=1e-12, atol=1e-15)
+    q_loc = jnp.asarray(q[t.dofs])
+    gaps = np.asarray(t.gaps(q_loc, params, t.data))
+    eps = t.smoothing
+    c = t.data["alpha"] * np.asarray(smooth_penetration(jnp.asarray(gaps), eps)) * -expit(-gaps / eps)
+    # item i's gap depends on row i only: the Hessian of sum_i c_i g_i is block diagonal
+    full = np.asarray(jax.hessian(lambda x: jnp.sum(c * t.gaps(x, params, t.data)))(q_loc))
+    curv = np.stack([full[i, :, i, :] for i in range(n)])
+    np.testing.assert_allclose(H_gn + curv, H_ex, rtol=1e-9, atol=1e-9 * np.abs(H_ex).max())
+    assert np.abs(curv).max() > 1e-3 * np.abs(H_ex).max()  # the dropped term is not negligible
+    assert np.linalg.eigvalsh(H_gn).min() > -1e-9 * np.abs(H_gn).max()
+    assert np.linalg.eigvalsh(H_ex).min() < -1e-6 * np.abs(H_ex).max()
+
+
 def _sponge(shell, radius=R):
     return BuckleContact("b", shell, "outer", "sponge", radius, n0=(1.0, 0, 0), m0=(0, 0, -1.0),
                          axis=(0, 0, -1.0), sponge_radius=2.5, sponge_length=10.0, modulus=0.5,
@@ -157,22 +188,24 @@ def test_anchored_sutures_gradient_tangent_and_force(shell):
 
 
 def test_gap_linearisation_is_the_directional_derivative_of_the_gaps(shell):
-    """The solver's contact look-ahead uses the gaps, their first-order change along a step
-    and their gradients: checked against the gaps and central differences."""
+    """The solver's contact look-ahead uses the gaps, their first-order change along a step,
+    their gradients and the gaps at the step's end: checked against the gaps and central
+    differences."""
     t = _ring(shell, extra_dof=3 * shell.n_nodes)
     rng = np.random.default_rng(5)
     n = len(t.nodes)
     q_loc = np.concatenate([0.05 * rng.standard_normal((n, 3)), np.full((n, 1), 0.2)], axis=1)
     dq = 0.1 * rng.standard_normal((n, 4))
     params = {**t.params, "d": np.array([0.1]), "ridge": np.array([0.4])}
-    g, dg, G = (np.asarray(a) for a in t.gap_linearisation(jnp.asarray(q_loc), jnp.asarray(dq),
-                                                           params, t.data))
+    g, dg, G, g_end = (np.asarray(a) for a in t.gap_linearisation(
+        jnp.asarray(q_loc), jnp.asarray(dq), params, t.data))
     gaps = lambda x: np.asarray(t.gaps(jnp.asarray(x), params, t.data))  # noqa: E731
     np.testing.assert_array_equal(g, gaps(q_loc))
     h = 1e-6
     np.testing.assert_allclose(dg, (gaps(q_loc + h * dq) - gaps(q_loc - h * dq)) / (2 * h),
                                rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(np.einsum("nk,nk->n", G, dq), dg, rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(g_end, gaps(q_loc + dq))
 
 
 @pytest.fixture(scope="module")
