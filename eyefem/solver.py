@@ -110,8 +110,12 @@ class NewtonOptions:
         convergence). At the ridged tire's flanks and rounded edges that term is a
         negative tangential stiffness of the nodes pressed on them, larger than the soft
         sclera's own: the exact tangent sent Newton steps of 1-5 mm along the sclera
-        beside the tire and default case 4 took 193 iterations; with 1e-3, 118 and the
-        same outcomes (docs/performance.md, thirteenth session).
+        beside the tire and default case 4 took 193 iterations; with 1e-3, 124 and the
+        same outcomes (docs/performance.md, thirteenth session). Off by default (0):
+        with 1e-3, default case 2 ended its tightening on a residual plateau (2.8e-4 N
+        against a 3.3e-6 N tolerance) that repeated cuts did not pass; case 4's case
+        file sets it. With it on, the contact look-ahead also admits a node only if its
+        exact gap at the step's end penetrates (``_lookahead``).
     """
 
     rtol: float = 1e-8
@@ -136,7 +140,7 @@ class NewtonOptions:
     stall_cut: bool = False
     contact_lookahead: bool = True
     max_step: float = 0.5
-    contact_curvature: float = 1e-3
+    contact_curvature: float = 0.0
 
     def __post_init__(self):
         for f in ("rtol", "vtol", "atol", "beta", "contact_freeze", "contact_rtol",
@@ -347,7 +351,8 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                 n_la = 0
                 if opts.contact_lookahead:
                     xl, yl, la_solver, n_la = _lookahead(model, asm, q, theta, active, solver,
-                                                         rf, rm, x, y)
+                                                         rf, rm, x, y,
+                                                         end_gap=opts.contact_curvature > 0)
             except LinearSolveError as exc:
                 raise _StepFailed(str(exc)) from exc
             if n_la:
@@ -461,26 +466,28 @@ def _direction(asm, tangent, rf, rm, opts, far, cache=None, min_shift=0.0):
     return x, y, solver
 
 
-def _lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4):
+def _lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4, end_gap=False):
     """Active-set look-ahead of the penalty contacts along a Newton step (x, y).
 
     A smoothed penalty node more than 2 eps outside the surface has almost no stiffness
     in the tangent, so a step that pushes it in runs it deep into the penalty: the
     residual jumps and the line search crawls at 1/8 of the step (observed at the edge of
     the ridged tire, where the sclera bulges out against the tire's rounded edge). Such a
-    node (gap g > 2 eps now, g + dg < -eps along the step, and its exact gap at the step's
-    end below -eps too) enters the system with the
+    node (gap g > 2 eps now, g + dg < -eps along the step) enters the system with the
     plain penalty's quadratic model 1/2 alpha (g + G . dq)^2 (force alpha g G, stiffness
     alpha G G^T) and the step is solved again; a node the new step keeps outside
     (g + dg > 0) leaves the set again (a primal-dual active-set update), for at most
     ``rounds`` solves. Each node's stiffness is a rank-one update alpha v v^T (v: G on
     the free dofs) of the step's factorised ``solver`` (Woodbury: no refactorisation).
-    The exact end gap keeps out nodes whose linearised gap is meaningless over the step:
-    beyond the edges of an encircling buckle the gap grows with the cube of the distance
-    from the edge, and a node millimetres away sliding along the sclera had a linearised
-    gap change of -10^2 to -10^3 mm; on default case 4 up to 762 such nodes entered the
-    look-ahead in one iteration, their stiffness alpha |G|^2 swamped the step and the
-    look-ahead failed (docs/performance.md, thirteenth session).
+    With ``end_gap`` the exact gap at the step's end must be below -eps too, which keeps
+    out nodes whose linearised gap is meaningless over the step: beyond the edges of an
+    encircling buckle the gap grows with the cube of the distance from the edge, and a
+    node millimetres away sliding along the sclera had a linearised gap change of -10^2
+    to -10^3 mm; on default case 4 up to 762 such nodes entered the look-ahead in one
+    iteration. The solver sets it with the Gauss-Newton contact tangent
+    (``NewtonOptions.contact_curvature``): with the exact tangent those nodes' stiffness
+    alpha |G|^2 happened to hold the soft sliding modes beside the tire, and without
+    them default case 4 took more iterations (docs/performance.md, thirteenth session).
     Returns (x, y, solver of the last solve, number of look-ahead nodes)."""
     members = {}
     la_solver = None
@@ -491,7 +498,8 @@ def _lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4):
         for t, g, dg, G, g_end in lin:
             eps = t.smoothing
             m = members.get(t.name, np.zeros(len(g), bool))
-            new = (m | ((g > 2 * eps) & (g + dg < -eps) & (g_end < -eps))) & ~(m & (g + dg > 0))
+            enter = (g > 2 * eps) & (g + dg < -eps) & ((g_end < -eps) if end_gap else True)
+            new = (m | enter) & ~(m & (g + dg > 0))
             changed |= bool(np.any(new != m))
             members[t.name] = new
         if not changed:

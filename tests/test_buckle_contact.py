@@ -258,7 +258,7 @@ def test_a_wrong_lookahead_step_falls_back_to_the_plain_newton_step(inflated_aga
     off = inflated_against_a_ring[False]
     calls = []
 
-    def reversed_step(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4):
+    def reversed_step(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4, **kw):
         calls.append(1)
         return -x, -y, solver, 1
 
