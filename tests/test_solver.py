@@ -631,3 +631,5 @@ def test_a_failing_long_step_is_damped_to_max_step():
         solve(model, [stage], q0=q0, options=NewtonOptions(max_step=1e9, max_cuts=1))
     with pytest.raises(ValueError, match="max_step"):
         NewtonOptions(max_step=0.0)
+    with pytest.raises(ValueError, match=r"contact_curvature = -0.001; must be >= 0"):
+        NewtonOptions(contact_curvature=-1e-3)
