@@ -183,6 +183,11 @@ class BuckleContact(Term):
         p = smooth_penetration(self.gaps(q_loc, params, data), self.smoothing)
         return 0.5 * data["alpha"] * p * p
 
+    def gap_gradients(self, q_loc, params, data):
+        """Gradients (n, k) of the gaps: row i is d g_i / d q_loc[i] (item i's gap depends
+        on its own row only)."""
+        return jax.grad(lambda x: jnp.sum(self.gaps(x, params, data)))(q_loc)
+
     def grad_hess_gauss_newton(self, q, params, data, dofs):
         """Local gradients (n, k) and Hessians (n, k, k) without the curvature term
         alpha p p' grad^2 g: alpha (p'^2 + p p'') grad g grad g^T, positive semidefinite.
@@ -191,7 +196,7 @@ class BuckleContact(Term):
         exceed the soft sclera's own and make the tangent near-singular."""
         q_loc = q[dofs]
         g = self.gaps(q_loc, params, data)
-        G = jax.grad(lambda x: jnp.sum(self.gaps(x, params, data)))(q_loc)  # item i: row i only
+        G = self.gap_gradients(q_loc, params, data)
         eps, a = self.smoothing, data["alpha"]
         s = jax.nn.sigmoid(-g / eps)
         p = smooth_penetration(g, eps)
@@ -201,7 +206,7 @@ class BuckleContact(Term):
 
     def gap_linearisation(self, q_loc, dq_loc, params, data):
         g, dg = jax.jvp(lambda x: self.gaps(x, params, data), (q_loc,), (dq_loc,))
-        G = jax.grad(lambda x: jnp.sum(self.gaps(x, params, data)))(q_loc)  # item i: row i only
+        G = self.gap_gradients(q_loc, params, data)
         return g, dg, G, self.gaps(q_loc + dq_loc, params, data)
 
     def _gap_np(self, q, params):
