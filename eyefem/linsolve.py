@@ -272,43 +272,50 @@ class SaddlePointSolver:
         return x
 
     def _schur_cg(self, f, g):
+        """CG on the Schur complement; f (n,) or (n, k), g (m,) or (m, k): k right-hand
+        sides iterated together (one back-solve with k columns per iteration), each with
+        its own step lengths and stopping test."""
         if getattr(self, "_kkt", None) is not None:  # negative curvature met before
             return self._kkt_solve(f, g)
         B, D = self.B, self.D
-        fa = f + B @ (D * g)
-        x = self._solve_aug(fa)  # y = 0
-        y = np.zeros(B.shape[1])
-        r = g - B.T @ x  # residual of S y = B^T x0 - g, sign: r = rhs - S y
-        r = -r
-        z = D * r
+        one = f.ndim == 1
+        f, g = f.reshape(len(f), -1), g.reshape(len(g), -1)
+        Dc = D[:, None]
+        x = self._solve_aug(f + B @ (Dc * g))  # y = 0
+        y = np.zeros((B.shape[1], f.shape[1]))
+        r = B.T @ x - g  # r = rhs - S y of S y = B^T x0 - g
+        z = Dc * r
         p = z.copy()
-        rz = r @ z
-        scale = max(np.linalg.norm(D * g), np.linalg.norm(D * (B.T @ x)), 1e-300)
+        rz = np.einsum("ij,ij->j", r, z)
+        scale = np.maximum(np.maximum(np.linalg.norm(Dc * g, axis=0),
+                                      np.linalg.norm(Dc * (B.T @ x), axis=0)), 1e-300)
         for it in range(self.max_uzawa + 1):
-            if np.sqrt(abs(rz)) <= self.cg_rtol * scale:
+            act = np.sqrt(np.abs(rz)) > self.cg_rtol * scale
+            if not act.any():
                 break
             if it == self.max_uzawa:
                 log.debug("Schur CG: not converged in %d iterations (%.1e relative)",
-                          it, np.sqrt(abs(rz)) / scale)
+                          it, float(np.max(np.sqrt(np.abs(rz)) / scale)))
                 break
-            w = self._solve_aug(B @ p)  # K_aug^-1 B p
+            w = self._solve_aug(B @ p[:, act])  # K_aug^-1 B p
             Sp = B.T @ w
-            pSp = p @ Sp
-            if pSp <= 0:
+            pSp = np.einsum("ij,ij->j", p[:, act], Sp)
+            if np.any(pSp <= 0):
                 if self.indefinite == "raise":
                     raise NegativeCurvature("negative curvature of the tangent")
                 log.debug("Schur CG: negative curvature; direct solve of the saddle point")
-                return self._kkt_solve(f, g)
-            alpha = rz / pSp
-            y = y + alpha * p
-            x = x - alpha * w
-            r = r - alpha * Sp
-            z = D * r
-            rz_new = r @ z
-            p = z + (rz_new / rz) * p
-            rz = rz_new
+                X, Y = self._kkt_solve(f, g)
+                return (X[:, 0], Y[:, 0]) if one else (X, Y)
+            alpha = rz[act] / pSp
+            y[:, act] += alpha * p[:, act]
+            x[:, act] -= alpha * w
+            r[:, act] -= alpha * Sp
+            z = Dc * r
+            rz_new = np.einsum("ij,ij->j", r, z)
+            p[:, act] = z[:, act] + (rz_new[act] / rz[act]) * p[:, act]
+            rz[act] = rz_new[act]
         self.iterations = it
-        return x, y
+        return (x[:, 0], y[:, 0]) if one else (x, y)
 
     def _kkt_solve(self, f, g):
         """Direct solve of the whole saddle-point system [[K_aug, B], [B^T, -eps]] (symmetric
@@ -332,11 +339,14 @@ class SaddlePointSolver:
                 z = z - self._kkt_KiV @ (self._kkt_cap @ (self.V.T @ z[:n]))
             return z
 
-        rhs = np.concatenate([f + B @ (self.D * g), g])
+        D = self.D.reshape(-1, *([1] * (g.ndim - 1)))
+        rhs = np.concatenate([f + B @ (D * g), g])
         z = apply_inverse(rhs)
         for _ in range(2):
             x, y = z[:n], z[n:]
-            kx = self.K_aug @ x + (self.V @ (self.alpha * (self.V.T @ x)) if self.low_rank else 0.0)
+            kx = self.K_aug @ x
+            if self.low_rank:
+                kx = kx + self.V @ (self.alpha.reshape(-1, *([1] * (g.ndim - 1))) * (self.V.T @ x))
             res = rhs - np.concatenate([kx + B @ y, B.T @ x])
             z = z + apply_inverse(res)
         self.iterations = -1
@@ -353,7 +363,7 @@ class SaddlePointSolver:
 
     def _solve_once(self, f, g):
         if self.B is None:
-            return self._solve_aug(f), np.zeros(0)
+            return self._solve_aug(f), np.zeros((0,) + f.shape[1:])
         return self._schur_cg(f, g)
 
     def _residual(self, f, g, x, y):
@@ -369,7 +379,8 @@ class SaddlePointSolver:
         return res, cres, np.linalg.norm(res) / scale
 
     def solve(self, f, g=None):
-        """Solve the saddle-point system; returns (x (n,), y (m,)).
+        """Solve the saddle-point system; returns (x (n,), y (m,)), or (x (n, k), y (m, k))
+        for k right-hand sides f (n, k), g (m, k) solved together.
 
         Conjugate gradients on the Schur complement S = B^T K_aug^-1 B of the augmented
         system, preconditioned by D (S is close to D^-1): one back-solve per iteration.
@@ -379,8 +390,17 @@ class SaddlePointSolver:
         refined against the exact system, up to ``refine`` times, while that lowers it.
         """
         self.n_solves += 1
-        g = np.zeros(0 if self.B is None else self.B.shape[1]) if g is None else g
+        m = 0 if self.B is None else self.B.shape[1]
+        g = np.zeros((m,) + f.shape[1:]) if g is None else g
         x, y = self._solve_once(f, g)
+        if f.ndim == 1:
+            return self._checked(f, g, x, y)
+        cols = [self._checked(f[:, j], g[:, j], x[:, j], y[:, j]) for j in range(f.shape[1])]
+        return np.stack([c[0] for c in cols], 1), np.stack([c[1] for c in cols], 1)
+
+    def _checked(self, f, g, x, y):
+        """(x, y) of one right-hand side, refined while its residual is above
+        ``refine_above``; LinearSolveError if it stays above 1e-6."""
         res, cres, rel = self._residual(f, g, x, y)
         for _ in range(self.refine):
             if not rel > self.refine_above:

@@ -336,10 +336,13 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         cache = {}
 
         gn = nf > opts.contact_curvature * fref if opts.contact_curvature else False
+        # the restoration's K^-1 dV/dq, solved with each Newton direction (same back-solves)
+        vgrad = _Restoration.gradients(model, q, theta, active) if opts.restore else None
+        extra = vgrad[:, free].T if vgrad is not None else None
 
         def direction(far, shift):
             return _direction(asm, lambda exact: asm.assemble(q, theta, active, exact, gn)[1:],
-                              rf, rm, opts, far, cache, shift)
+                              rf, rm, opts, far, cache, shift, extra)
 
         far, shift = nf > opts.modified_newton * fref, 0.0
         m0 = np.hypot(nf / max(fref, 1e-300), nm)
@@ -347,7 +350,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         undamped = None  # the undamped step's best line-search trial
         while True:
             try:
-                x, y, solver = direction(far, shift)
+                x, y, solver, W = direction(far, shift)
                 n_la = 0
                 if opts.contact_lookahead:
                     xl, yl, la_solver, n_la = _lookahead(model, asm, q, theta, active, solver,
@@ -377,7 +380,8 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
             if last and longest > opts.max_step:
                 log.debug("  step of %.3g mm scaled to max_step = %g mm", longest, opts.max_step)
                 dq *= opts.max_step / longest
-            restore = _Restoration(model, q, dq, theta, active, asm, solver) if opts.restore else None
+            restore = (_Restoration(model, q, dq, theta, active, asm, solver, (vgrad, W))
+                       if opts.restore else None)
             try:
                 q_try, lowered = _line_search(model, q, dq, theta, active, asm, m0, fref, vref, alphas,
                                               restore)
@@ -427,9 +431,11 @@ def _longest(model, dq):
     return float(np.linalg.norm(dq[:model.n_u].reshape(-1, 3), axis=1).max(initial=0.0))
 
 
-def _direction(asm, tangent, rf, rm, opts, far, cache=None, min_shift=0.0):
-    """Newton direction; ``tangent(exact)`` assembles (K, B, D, low_rank), exact or
-    without the follower pressures' load stiffness.
+def _direction(asm, tangent, rf, rm, opts, far, cache=None, min_shift=0.0, extra=None):
+    """Newton direction (x, y, solver, W); ``tangent(exact)`` assembles (K, B, D,
+    low_rank), exact or without the follower pressures' load stiffness; ``extra``
+    (n_free, k): further right-hand sides (zero constraint part) solved together with
+    the direction, their solutions expanded to W (n_dof, k) (None without).
 
     Near convergence (force residual below modified_newton x the reference) the exact
     tangent is used when it is positive definite, so the convergence stays quadratic.
@@ -451,19 +457,25 @@ def _direction(asm, tangent, rf, rm, opts, far, cache=None, min_shift=0.0):
     tries = ([] if far or min_shift else [(True, 0.0)]) + [
         (False, mu) for mu in SHIFTS
         if mu >= min_shift and (mu or far or not opts.pressure_stiffness)]  # not the exact tangent twice
+    def solve(solver):
+        if extra is None:
+            return (*solver.solve(-rf, -rm), solver, None)
+        X, Y = solver.solve(np.column_stack([-rf, extra]),
+                            np.column_stack([-rm, np.zeros((len(rm), extra.shape[1]))]))
+        W = np.zeros((asm.model.n_dof, extra.shape[1]))
+        W[asm.free_primal], W[asm.mult] = X[:, 1:], Y[:, 1:]
+        return X[:, 0], Y[:, 0], solver, W
+
     for exact, mu in tries:
         try:
-            solver = asm.solver(*pieces(exact), opts.backend, shift=mu, indefinite="raise")
-            x, y = solver.solve(-rf, -rm)
+            out = solve(asm.solver(*pieces(exact), opts.backend, shift=mu, indefinite="raise"))
             if not exact or mu:
                 log.debug("  modified Newton step (%s, shift %g)", "without the pressure stiffness"
                           if not opts.pressure_stiffness else "exact tangent", mu)
-            return x, y, solver
+            return out
         except NegativeCurvature:
             continue
-    solver = asm.solver(*pieces(True), opts.backend)
-    x, y = solver.solve(-rf, -rm)
-    return x, y, solver
+    return solve(asm.solver(*pieces(True), opts.backend))
 
 
 def _lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4, end_gap=False):
@@ -539,24 +551,38 @@ class _Restoration:
     quadratic convergence is kept.
     """
 
-    def __init__(self, model, q, dq, theta, active, asm, solver):
-        self.terms = [t for t in model.terms if (active is None or t.name in active)
-                      and type(t).low_rank_values is not Term.low_rank_values]
+    def __init__(self, model, q, dq, theta, active, asm, solver, solved=None):
+        self.terms = self._terms(model, active)
+        self.model, self.active = model, active
         self.q, self.dq, self.theta, self.asm, self.solver = q, dq, theta, asm, solver
         self.ok = bool(self.terms) and solver is not None
         self.W = None
+        self.solved = solved if solved is not None and solved[1] is not None else None
+
+    @staticmethod
+    def _terms(model, active):
+        return [t for t in model.terms if (active is None or t.name in active)
+                and type(t).low_rank_values is not Term.low_rank_values]
+
+    @staticmethod
+    def gradients(model, q, theta, active):
+        """The restored volumes' gradients v_j = dV_j/dq at q (k, n_dof); None if none."""
+        G = [np.asarray(v) for t in _Restoration._terms(model, active)
+             for _, v in t.low_rank(q, theta[t.name], t.data, t.dofs)]
+        return np.stack(G) if G else None
 
     def _setup(self):
-        """Volumes and their gradients at q, and w_j = K^-1 v_j (one solve per cavity)."""
+        """Volumes and their gradients at q, and w_j = K^-1 v_j (one solve per cavity,
+        unless solved with the Newton direction: ``solved`` = (G, W))."""
         self.c0 = self._values(self.q)
-        G = [np.asarray(v) for t in self.terms
-             for _, v in t.low_rank(self.q, self.theta[t.name], t.data, t.dofs)]
-        G = np.stack(G)
-        cols = []
-        for g in G:
-            x, y = self.solver.solve(g[self.asm.free_primal], np.zeros(len(self.asm.mult)))
-            cols.append(self.asm.expand(x, y))
-        self.W = np.stack(cols, 1)
+        if self.solved is not None:
+            G, self.W = self.solved
+        else:
+            G = self.gradients(self.model, self.q, self.theta, self.active)
+            x, y = self.solver.solve(G[:, self.asm.free_primal].T,
+                                     np.zeros((len(self.asm.mult), len(G))))
+            self.W = np.zeros((len(self.q), len(G)))
+            self.W[self.asm.free_primal], self.W[self.asm.mult] = x, y
         self.J = G @ self.W
         self.slope = G @ self.dq
 

@@ -13,7 +13,7 @@ import scipy.sparse as sp
 from eyefem import generators
 from eyefem.casefile import CaseError, load_case
 from eyefem.cli import main as cli_main
-from eyefem.linsolve import LinearSolveError, SaddlePointSolver, available_backends
+from eyefem.linsolve import LinearSolveError, NegativeCurvature, SaddlePointSolver, available_backends
 from eyefem.materials import MooneyRivlin, mooney_rivlin, neo_hookean
 from eyefem.mesh import Mesh
 from eyefem.model import node_dofs, solid_model
@@ -103,6 +103,34 @@ def test_saddle_point_solve_is_exact():
     np.testing.assert_allclose(np.concatenate([x, y]), np.linalg.solve(Kd, np.concatenate([f, g])),
                                rtol=1e-8, atol=1e-10)
 
+
+def test_saddle_point_solve_of_several_right_hand_sides_at_once():
+    """Right-hand sides f (n, k), g (m, k) iterated together (the Newton direction and the
+    volume restoration's K^-1 dV/dq share back-solves): each column is the exact solution,
+    whatever the others' CG needs (a zero column is done at once); the indefinite fallback
+    (direct KKT solve) and the refusal with NegativeCurvature too."""
+    rng, K, B, f, g = _random_saddle_point(7)
+    n, m = B.shape
+    v = rng.standard_normal(n)
+    F = np.column_stack([f, rng.standard_normal(n), np.zeros(n)])
+    G = np.column_stack([g, np.zeros(m), np.zeros(m)])
+    Kd = sp.bmat([[K, B], [B.T, None]]).toarray()
+    Kd[:n, :n] += 3.0 * np.outer(v, v)
+    ref = np.linalg.solve(Kd, np.vstack([F, G]))
+    s = SaddlePointSolver(K, B, np.full(m, 100.0), [(3.0, v)], augmented=False)
+    X, Y = s.solve(F, G)
+    assert X.shape == (n, 3) and Y.shape == (m, 3)
+    np.testing.assert_allclose(np.vstack([X, Y]), ref, rtol=1e-8, atol=1e-10)
+    w = B.toarray() @ np.ones(m)
+    Ki = (K - 50.0 * sp.csr_matrix(np.outer(w, w))).tocsr()  # strongly negative along w
+    Kd = sp.bmat([[Ki, B], [B.T, None]]).toarray()
+    s = SaddlePointSolver(Ki, B, np.full(m, 10.0), augmented=False)
+    x, y = s.solve(F, G)
+    assert s.iterations == -1  # the direct path was taken
+    np.testing.assert_allclose(np.vstack([x, y]), np.linalg.solve(Kd, np.vstack([F, G])),
+                               rtol=1e-8, atol=1e-10)
+    with pytest.raises(NegativeCurvature):
+        SaddlePointSolver(Ki, B, np.full(m, 10.0), augmented=False, indefinite="raise").solve(F, G)
 
 def test_plus_low_rank_solves_the_updated_system_on_the_same_factorisation():
     """Rank-one terms added to a factorised tangent (the contact look-ahead) give the exact
