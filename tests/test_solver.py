@@ -132,6 +132,18 @@ def test_saddle_point_solve_of_several_right_hand_sides_at_once():
     with pytest.raises(NegativeCurvature):
         SaddlePointSolver(Ki, B, np.full(m, 10.0), augmented=False, indefinite="raise").solve(F, G)
 
+def test_a_looser_cg_tolerance_takes_fewer_iterations_within_its_residual():
+    _, K, B, F, G = _random_saddle_point(7, n=120, m=30)
+    m = B.shape[1]
+    its, res = {}, {}
+    for rt in (1e-12, 1e-6):
+        s = SaddlePointSolver(K, B, np.full(m, 10.0), augmented=False, cg_rtol=rt, refine=0)
+        x, y = s.solve(F, G)
+        its[rt], res[rt] = s.iterations, np.linalg.norm(B.T @ x - G)
+    assert its[1e-6] < its[1e-12]
+    assert res[1e-12] < 1e-10 * np.linalg.norm(G) < res[1e-6] < 1e-5 * np.linalg.norm(G)
+
+
 def test_plus_low_rank_solves_the_updated_system_on_the_same_factorisation():
     """Rank-one terms added to a factorised tangent (the contact look-ahead) give the exact
     solution of the updated saddle point, twice in a row, without a new factorisation."""
@@ -264,6 +276,21 @@ def test_exact_problems(tmp_path, problem, kw, key, tol):
         assert res.summary["sigma_zz_max_MPa"] < 1e-9
 
 
+def test_newton_directions_to_a_looser_cg_tolerance_reach_the_same_state():
+    """NewtonOptions.cg_rtol reaches the Newton directions' Schur CG and the converged
+    state does not depend on it."""
+    setup = PROBLEMS["uniaxial"][1](_params("uniaxial", stretch=2.0, steps=2), {})
+    out = {}
+    for rt in (1e-12, 1e-8):
+        out[rt] = solve(setup.model, setup.stages, options=NewtonOptions(cg_rtol=rt))
+        assert out[rt].solver.cg_rtol == rt
+    loose, tight = out[1e-8], out[1e-12]
+    scale = np.abs(tight.q).max()
+    np.testing.assert_allclose(loose.q, tight.q, rtol=0, atol=1e-8 * scale)
+    with pytest.raises(ValueError, match="cg_rtol"):
+        NewtonOptions(cg_rtol=0.0)
+
+
 def test_seed1_equibiaxial_sheet_case(tmp_path):
     """Seed problem 1 from its case file: within 1% of theory at every step (here ~1e-12)."""
     rc = cli_main(["-q", "run", "cases/verification/seed1_equibiaxial_sheet.toml",
@@ -364,6 +391,24 @@ def test_cli_reports_unreachable_load_without_partial_files(tmp_path):
 
 
 @pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
+def test_cli_keeps_compiled_kernels_in_the_cache_directory_it_is_given(tmp_path):
+    """``eyefem`` writes XLA's compiled kernels to EYEFEM_JAX_CACHE (and nothing with off)."""
+    import os
+    import subprocess
+    import sys
+
+    runs = {"on": tmp_path / "jax", "off": "off"}
+    for name, cache in runs.items():
+        env = {**os.environ, "EYEFEM_JAX_CACHE": str(cache)}
+        proc = subprocess.run([sys.executable, "-m", "eyefem.cli", "-q", "run",
+                               "cases/verification/patch_test.toml", "--out",
+                               str(tmp_path / name), "--no-vtu"], env=env, capture_output=True,
+                              text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+    assert len(list(runs["on"].iterdir())) > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["jax", "off", "on"]
+
+
 def test_pardiso_factorisation_kept_for_an_adjoint_survives_pattern_eviction():
     """A planner makes more sparsity patterns than Pardiso instances are kept; an old
     factorisation (held for an adjoint solve) must still solve after its pattern's
