@@ -95,8 +95,8 @@ class NewtonOptions:
         goes on to max_iter (or is cut, with ``stall_cut``).
       stall_cut: a stalled step that is not accepted is cut at once, without spending the
         iterations left to max_iter, once its best force residual is below modified_newton x
-        the reference (off by default; default case 3 passes the end of its tightening
-        with it, default case 4 failed with it and grow_iterations = 12:
+        the reference (off by default; default case 3 passed the end of its eight-step
+        tightening with it, default case 4 failed with it and grow_iterations = 12:
         docs/performance.md).
       contact_lookahead: re-solve a Newton step with the penalty model of the contact
         nodes it would push into contact from out of the penalty's reach (``_lookahead``).
@@ -117,9 +117,10 @@ class NewtonOptions:
         sclera's own: the exact tangent sent Newton steps of 1-5 mm along the sclera
         beside the tire and default case 4 took 193 iterations; with 1e-3, 124 and the
         same outcomes (docs/performance.md, thirteenth session). Off by default (0):
-        with 1e-3, default case 2 ended its tightening on a residual plateau (2.8e-4 N
-        against a 3.3e-6 N tolerance) that repeated cuts did not pass; case 4's case
-        file sets it. With it on, the contact look-ahead also admits a node only if its
+        with 1e-3 and the default eight tightening steps, default case 2 ended its
+        tightening on a residual plateau (2.8e-4 N against a 3.3e-6 N tolerance) that
+        repeated cuts did not pass; the case files of the ridged-tire cases 2-4 set it
+        with four tightening steps (case 2: 88 iterations instead of 327). With it on, the contact look-ahead also admits a node only if its
         exact gap at the step's end penetrates (``_lookahead``).
     """
 
