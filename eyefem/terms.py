@@ -203,7 +203,7 @@ class NodeSprings(Term):
 class OrbitSpring(Term):
     """Springs on the rigid-body motion of a ring of nodes: its best-fit small rotation
     about the x, y, z axes through the ring's centroid c and its mean lateral (x, y)
-    translation.
+    translation (or the translation along two other directions, ``shift_axes``).
 
     rotation theta = I^-1 sum_i r_i x u_i (rad; r_i = X_i - c, I = sum_i |r_i|^2 1 - r_i r_i^T:
     the rigid rotation that best fits u), translation t = mean_i u_i (mm); energy
@@ -213,7 +213,9 @@ class OrbitSpring(Term):
 
     Args: name; nodes (n,) node ids; xyz (n, 3) their reference positions, mm;
       k_rot: rotational stiffnesses about x, y, z, N mm/rad (3,); k_trans: lateral
-      stiffness, N/mm (params {"k": (5,)}: k_rot then k_trans twice).
+      stiffness, N/mm (params {"k": (5,)}: k_rot then k_trans twice); shift_axes: (2, 3)
+      unit directions of the restrained translation (default x and y; a deformable sponge
+      uses its across and along directions, leaving free its motion into the sclera).
     """
 
     name: str
@@ -221,9 +223,14 @@ class OrbitSpring(Term):
     xyz: np.ndarray
     k_rot: tuple = (1.0, 1.0, 1.0)
     k_trans: float = 0.0
+    shift_axes: tuple | None = None
 
     def __post_init__(self):
         n = np.asarray(self.nodes, np.int64).ravel()
+        axes = np.eye(3)[:2] if self.shift_axes is None else np.asarray(self.shift_axes, float)
+        if axes.shape != (2, 3) or not np.allclose(np.linalg.norm(axes, axis=1), 1.0):
+            raise ValueError(f"orbit spring '{self.name}': shift_axes = {self.shift_axes}; "
+                             "expected two unit vectors (2, 3)")
         r = np.asarray(self.xyz, np.float64).reshape(len(n), 3)
         r = r - r.mean(axis=0)
         inertia = np.sum(r * r) * np.eye(3) - r.T @ r
@@ -239,13 +246,12 @@ class OrbitSpring(Term):
         cross = np.stack([np.stack([z, -r[:, 2], r[:, 1]], 1), np.stack([r[:, 2], z, -r[:, 0]], 1),
                           np.stack([-r[:, 1], r[:, 0], z], 1)])
         rot = np.linalg.solve(inertia, cross.reshape(3, -1))
-        shift = np.zeros((2, len(n), 3))
-        shift[0, :, 0] = shift[1, :, 1] = 1.0 / len(n)
+        shift = np.repeat(axes[:, None, :], len(n), axis=1) / len(n)
         modes = np.vstack([rot, shift.reshape(2, -1)])  # (5, 3n): d (theta, t_xy) / du
         object.__setattr__(self, "data", {"modes": modes[None]})
 
     def motion(self, q):
-        """(rotation about x, y, z (rad), lateral translation x, y (mm)) of the ring at q."""
+        """(rotation about x, y, z (rad), translation along the shift axes (mm)) at q."""
         return self.data["modes"][0] @ np.asarray(q)[self.dofs[0]]
 
     def local_energy(self, q_loc, params, data):

@@ -38,7 +38,7 @@ def test_band_mesh_dimensions_and_sets():
 
 
 def test_deformable_needs_a_band():
-    with pytest.raises(ValueError, match="buckle = 'band' only; got 'tire_ridged'"):
+    with pytest.raises(ValueError, match="buckle = 'band' and 'sponge_radial'; got 'tire_ridged'"):
         surgery(_params(buckle="tire_ridged"), None)
     with pytest.raises(ValueError, match="band_tension"):
         surgery(_params(band_tension=0.2, tightening=0.0), None)

@@ -25,8 +25,8 @@ import numpy as np
 
 from ..bars import AnchoredBars, Bars, TiedBars
 from ..buckle_contact import BuckleContact
-from ..buckles import (BAND_C10, KINDS, SPONGE_LENGTH, Buckle, band_n_circ, deformable_band,
-                       suture_anchor_frame)
+from ..buckles import (BAND_C10, KINDS, SPONGE_C10, SPONGE_LENGTH, Buckle, band_n_circ,
+                       deformable_band, suture_anchor_frame)
 from ..casefile import Field, positive
 from ..cavity import WATER_BULK, FluidCavity, close_cavity
 from ..contact import SurfaceContact
@@ -41,13 +41,16 @@ from ..sutures import generate_sutures, suture_bar_ends
 from ..terms import DofForce, NodeSprings, OrbitSpring
 from ..units import MMHG
 from .base import Setup
+from .sponge import (SPONGE_PARK, fit_sponge, sponge_contact_term, sponge_mesh,
+                     sponge_spring_term, sponge_suture_term)
 
 SEED_MATERIALS = {  # neo-Hookean c (MPa), seed 6.1; limbus: mean of cornea and sclera
     "cornea": 0.0333, "limbus": 0.0583, "sclera": 0.0833, "ciliary_body": 0.01,
     "choroid": 0.0083, "retina": 0.0008, "optic_nerve": 0.05, "lens": 10.0}
 
 BODIES = ("rigid", "deformable")
-"""Buckle bodies: the rigid analytic surface or a deformable hexahedral band."""
+"""Buckle bodies: the rigid analytic surface, or a deformable hexahedral band or radial
+sponge."""
 
 SURGERY_FIELDS = [
     Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)}", lambda v: v in LEVELS,
@@ -55,8 +58,8 @@ SURGERY_FIELDS = [
     Field("buckle", str, "tire_flat", f"buckle kind: {', '.join(KINDS)}", lambda v: v in KINDS,
           f"one of {list(KINDS)}"),
     Field("buckle_body", str, "rigid", "'rigid' (exact analytic surface, radial motion) or "
-          "'deformable' (hexahedral silicone band tightened by pulling its ends; buckle = "
-          "'band' only)", lambda v: v in BODIES, f"one of {list(BODIES)}"),
+          "'deformable' (hexahedral silicone band tightened by pulling its ends, buckle = "
+          "'band'; or hexahedral radial sponge sewn on, buckle = 'sponge_radial')", lambda v: v in BODIES, f"one of {list(BODIES)}"),
     Field("buckle_distance", float, 12.0, "buckle centre behind the limbus (arc), mm "
           "(position A = 12, B = 15)", lambda v: 2 <= v <= 20, "2 to 20 mm"),
     Field("buckle_meridian_deg", float, 0.0, "meridian of a segmental buckle, degrees"),
@@ -104,6 +107,7 @@ SURGERY_FIELDS = [
 def _materials(materials):
     out = {k: MooneyRivlin.from_terms(k, {"c10": c}) for k, c in SEED_MATERIALS.items()}
     out["band"] = MooneyRivlin.from_terms("band", {"c10": BAND_C10})  # a deformable band
+    out["sponge"] = MooneyRivlin.from_terms("sponge", {"c10": SPONGE_C10})  # ... or sponge
     out.update(materials or {})
     return out
 
@@ -122,6 +126,7 @@ class SurgeryParts:
     d_per_mm: float = 0.0
     extra_dof: int = -1
     band: object = None  # BandInfo of a deformable band
+    sponge: bool = False  # a deformable sponge (node set "sponge" of the mesh)
 
 
 def suture_layout(parts: SurgeryParts, width: float, meridian_deg: float | None = None):
@@ -240,21 +245,28 @@ def surgery(p, materials):
     g = eye.geometry
     b = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
     band = None
-    if deformable:  # parked BAND_PARK mm off the sclera until stage 2 fits it snug
+    sponge = deformable and not b.encircling
+    if sponge:  # parked SPONGE_PARK mm off the sclera until stage 2 fits it snug
+        mesh = with_band(mesh, sponge_mesh(b, g, p["mesh"], SPONGE_PARK), "sponge")
+    elif deformable:  # parked BAND_PARK mm off the sclera until stage 2 fits it snug
         n_circ = band_n_circ(mesh, mesh.node_set("eye/sclera_outer"), b, g)
         mesh = with_band(mesh, deformable_band(b, g, g.scleral_radius + BAND_PARK, n_circ))
         band = BandInfo(mesh, n_circ)
     eye = dataclasses.replace(eye, mesh=mesh)
     frame = suture_anchor_frame(b, g, p["n_sutures"])
     parts = SurgeryParts(eye, b, p, mesh.node_set("eye/sclera_outer"), frame,
-                         extra_dof=3 * mesh.n_nodes + mesh.n_elem, band=band)
+                         extra_dof=3 * mesh.n_nodes + mesh.n_elem, band=band, sponge=sponge)
     mats = _materials(materials)
     lens_eq, zf, zxi = eye.zonule
     zonule = Bars("zonule", np.repeat(lens_eq[:, None], 4, 1), zf, np.zeros((len(lens_eq), 2)),
                   zxi, mesh.nodes, EA=p["zonule_E"] * g.zonule_area)
     iop = PressureLoad("iop", mesh, "wetted", 0.0)
     cavity = FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"])
-    if deformable:
+    if sponge:
+        sutures, parts.layout = sponge_suture_term(mesh, b, frame, p)
+        buckle = sponge_contact_term(mesh, SEED_MATERIALS["sclera"])
+        band_hold = (sponge_spring_term(mesh, b, g),)
+    elif deformable:
         sutures = band_suture_term(parts)
         buckle = band_contact_term(parts)
         band_hold = (band_spring_term(parts),)
@@ -302,13 +314,42 @@ def surgery(p, materials):
         parts.scale = scale
         return model, q, theta
 
+    def place_sponge(model, q, theta):
+        """Close the cavity; re-reference the (held, undeformed) sponge snug on the
+        pressurised eye."""
+        model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
+        scale = float(snug_scale(parts, q))
+        new_mesh = fit_sponge(parts.eye.mesh, b, g, p["mesh"], scale, q)
+        parts.eye = dataclasses.replace(parts.eye, mesh=new_mesh)
+        sut, parts.layout = sponge_suture_term(new_mesh, b, frame, p)
+        new = {"solid": dataclasses.replace(model.term("solid"), mesh=new_mesh),
+               "buckle": sponge_contact_term(new_mesh, SEED_MATERIALS["sclera"]).update(q, None),
+               "sutures": sut, "sponge_springs": sponge_spring_term(new_mesh, b, g)}
+        model = Model(new_mesh, tuple(new.get(t.name, t) for t in model.terms), model.n_dof)
+        parts.scale = scale
+        return model, q, theta
+
     def tie_sutures(model, q, theta):
         t = model.term("sutures")
         L = np.asarray(t.lengths(np.asarray(q)[t.dofs], theta["sutures"], t.data))
         return model, q, {**theta, "sutures": {**theta["sutures"], "L0": L}}
 
     base = ("solid", "zonule", "lens_springs", "orbit")
-    if deformable:
+    if sponge:
+        sponge_all = node_dofs(mesh.node_set("sponge"))
+        parked = (np.r_[held[0], sponge_all], np.zeros(len(held[0]) + len(sponge_all)))
+        tight = np.zeros(3 * p["n_sutures"])
+        tight[0::3] = tight[2::3] = p["suture_tightening"] / 2  # bite bars; the bar over the top 0
+        sponge_terms = ("cavity", "buckle", "sponge_springs")
+        stages = [
+            Stage("pressurise", p["steps_pressurise"], parked, params={"iop": {"p": p_iop}},
+                  active=base + ("iop",)),
+            Stage("place", 1, parked, params={"cavity": {"dv": -p["drain_volume"]}},
+                  active=base + sponge_terms, before=place_sponge),
+            Stage("suture", p["steps_suture"], held, params={"sutures": {"tightening": tight}},
+                  active=base + sponge_terms + ("sutures",), before=tie_sutures),
+        ]
+    elif deformable:
         bd = band_dofs(parts)
         band_all = node_dofs(mesh.node_set("band"))
         held = (np.r_[held[0], band_all], np.zeros(len(held[0]) + len(band_all)))
@@ -367,7 +408,7 @@ def surgery(p, materials):
                "max_suture_force_N": final["max_suture_force_N"],
                "iop_after_tightening_mmhg": summary[1]["iop_mmhg"] if len(summary) > 1 else None,
                "elements": int(mesh.n_elem), "buckle_body": p.get("buckle_body", "rigid")}
-        if deformable and rows:
+        if band is not None and rows:
             out.update({k: rows[-1][k] for k in BAND_OUTPUTS})
         return out
 
@@ -410,14 +451,18 @@ def check_parameters(p):
 
 def _check_deformable(p):
     """Clear errors for the cases a deformable buckle does not cover."""
-    if p["buckle"] != "band":
-        raise ValueError(f"buckle_body = 'deformable' is implemented for buckle = 'band' only; "
-                         f"got '{p['buckle']}' (tires and sponges are rigid bodies): set "
-                         "buckle = 'band' or buckle_body = 'rigid'")
+    if p["buckle"] not in ("band", "sponge_radial"):
+        raise ValueError(f"buckle_body = 'deformable' is implemented for buckle = 'band' and "
+                         f"'sponge_radial'; got '{p['buckle']}' (tires and circumferential "
+                         "sponges are rigid bodies): set buckle = 'band' or 'sponge_radial', "
+                         "or buckle_body = 'rigid'")
     for name, unit in (("band_tension", "N"), ("buckle_shift", "mm")):
         if p[name] != 0:
             raise ValueError(f"{name} = {p[name]} {unit} applies to the rigid buckle only; with "
                              f"buckle_body = 'deformable' set {name} = 0")
+    if p["buckle"] == "sponge_radial" and p["tightening"] != 0:
+        raise ValueError(f"tightening = {p['tightening']} mm: a deformable sponge is pressed in "
+                         "by its sutures alone (suture_tightening); set tightening = 0")
 
 
 @dataclasses.dataclass
@@ -441,10 +486,10 @@ class BandInfo:
         self.line = line[np.argsort(ang, kind="stable")]
 
 
-def with_band(eye_mesh, band_mesh):
-    """The eye mesh with the band appended: the eye's sets keep their names, the band's
-    get the prefix 'band/' (node set 'band': all its nodes)."""
-    m = merge(("e", eye_mesh), ("band", band_mesh))
+def with_band(eye_mesh, band_mesh, name="band"):
+    """The eye mesh with the band (or another body) appended: the eye's sets keep their
+    names, the band's get the prefix 'band/' (node set 'band': all its nodes)."""
+    m = merge(("e", eye_mesh), (name, band_mesh))
     strip = lambda d: {(k[2:] if k.startswith("e/") else k): v for k, v in d.items() if k != "e"}
     return m.replace(node_sets=strip(m.node_sets), face_sets=strip(m.face_sets),
                      element_sets=strip(m.element_sets))
@@ -629,7 +674,7 @@ def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
            else 0.0}
     if parts.band is not None:
         out.update(band_outcomes(parts, model, q, theta))
-    else:
+    elif not parts.sponge:
         out["buckle_free_motion_mm"] = float(q[parts.extra_dof])
         out["band_shortening_mm"] = (parts.p["tightening"] + float(q[parts.extra_dof]) / parts.d_per_mm
                                      if parts.buckle.encircling else 0.0)
@@ -667,9 +712,10 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path):
         ph = np.radians(parts.buckle.meridian_deg)
         normal = (-np.sin(ph), np.cos(ph), 0.0)
     vmax, title = None, ""
-    if parts.band is not None:  # the silicone band (MPa) would set the eye's colour scale
-        eye_el = np.setdiff1d(np.arange(mesh.n_elem), mesh.element_sets["band"])
-        vmax, title = float(np.percentile(vm[eye_el], 99)), " with the deformable band"
+    body = "band" if parts.band is not None else "sponge" if parts.sponge else None
+    if body:  # the silicone buckle (MPa) would set the eye's colour scale
+        eye_el = np.setdiff1d(np.arange(mesh.n_elem), mesh.element_sets[body])
+        vmax, title = float(np.percentile(vm[eye_el], 99)), f" with the deformable {body}"
     plot_section(out_dir / "section_von_mises.png", x, mesh.hexes, vm, normal=normal,
                  title="meridional section" + title, label="von Mises stress, kPa", vmax=vmax)
     plot_outside(out_dir / "outside_von_mises.png", x, mesh.hexes, vm,
