@@ -304,14 +304,10 @@ def surgery(p, materials):
         pressurised eye: its stress-free state is the snug fit."""
         model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
         scale = float(snug_scale(parts, q))
-        new_mesh = fit_band(parts, scale, q)
-        parts.eye = dataclasses.replace(parts.eye, mesh=new_mesh)
-        new = {"solid": dataclasses.replace(model.term("solid"), mesh=new_mesh),
-               "buckle": band_contact_term(parts).update(q, None),
-               "sutures": band_suture_term(parts),
-               "band_springs": band_spring_term(parts)}
-        model = Model(new_mesh, tuple(new.get(t.name, t) for t in model.terms), model.n_dof)
-        parts.scale = scale
+        _rereference(parts, fit_band(parts, scale, q), scale)
+        model = _with_terms(model, parts, {"buckle": band_contact_term(parts).update(q, None),
+                                           "sutures": band_suture_term(parts),
+                                           "band_springs": band_spring_term(parts)})
         return model, q, theta
 
     def place_sponge(model, q, theta):
@@ -319,14 +315,11 @@ def surgery(p, materials):
         pressurised eye."""
         model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
         scale = float(snug_scale(parts, q))
-        new_mesh = fit_sponge(parts.eye.mesh, b, g, p["mesh"], scale, q)
-        parts.eye = dataclasses.replace(parts.eye, mesh=new_mesh)
+        new_mesh = _rereference(parts, fit_sponge(parts.eye.mesh, b, g, p["mesh"], scale, q), scale)
         sut, parts.layout = sponge_suture_term(new_mesh, b, frame, p)
-        new = {"solid": dataclasses.replace(model.term("solid"), mesh=new_mesh),
-               "buckle": sponge_contact_term(new_mesh, SEED_MATERIALS["sclera"]).update(q, None),
-               "sutures": sut, "sponge_springs": sponge_spring_term(new_mesh, b, g)}
-        model = Model(new_mesh, tuple(new.get(t.name, t) for t in model.terms), model.n_dof)
-        parts.scale = scale
+        model = _with_terms(model, parts, {
+            "buckle": sponge_contact_term(new_mesh, SEED_MATERIALS["sclera"]).update(q, None),
+            "sutures": sut, "sponge_springs": sponge_spring_term(new_mesh, b, g)})
         return model, q, theta
 
     def tie_sutures(model, q, theta):
@@ -338,8 +331,7 @@ def surgery(p, materials):
     if sponge:
         sponge_all = node_dofs(mesh.node_set("sponge"))
         parked = (np.r_[held[0], sponge_all], np.zeros(len(held[0]) + len(sponge_all)))
-        tight = np.zeros(3 * p["n_sutures"])
-        tight[0::3] = tight[2::3] = p["suture_tightening"] / 2  # bite bars; the bar over the top 0
+        tight = _three_bar_tightening(p)
         sponge_terms = ("cavity", "buckle", "sponge_springs")
         stages = [
             Stage("pressurise", p["steps_pressurise"], parked, params={"iop": {"p": p_iop}},
@@ -357,8 +349,7 @@ def surgery(p, materials):
         pulled_ends = (np.r_[fix, parts.extra_dof, bd["mid_z"], bd["end0_x"], bd["end1_x"]],
                        np.r_[np.zeros(len(fix) + 1 + len(bd["mid_z"])),
                              np.full(len(bd["end0_x"]), half), np.full(len(bd["end1_x"]), -half)])
-        tight = np.zeros(3 * p["n_sutures"])
-        tight[0::3] = tight[2::3] = p["suture_tightening"] / 2  # bite bars; the bar over the top 0
+        tight = _three_bar_tightening(p)
         band_terms = ("cavity", "buckle", "band_springs")
         stages = [
             Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
@@ -518,6 +509,28 @@ def fit_band(parts: SurgeryParts, scale: float, q):
         nodes[node] += shift
         nodes[node + 1] += shift  # the outer node above (slit_band numbers columns inner, outer)
     return mesh.replace(nodes=nodes)
+
+
+def _rereference(parts: SurgeryParts, new_mesh, scale: float):
+    """Take ``new_mesh`` (a deformable buckle's reference moved snug) as the eye's mesh."""
+    parts.eye = dataclasses.replace(parts.eye, mesh=new_mesh)
+    parts.scale = scale
+    return new_mesh
+
+
+def _with_terms(model, parts: SurgeryParts, terms: dict) -> Model:
+    """The model on the parts' (re-referenced) mesh with the solid and these terms new."""
+    mesh = parts.eye.mesh
+    new = {"solid": dataclasses.replace(model.term("solid"), mesh=mesh), **terms}
+    return Model(mesh, tuple(new.get(t.name, t) for t in model.terms), model.n_dof)
+
+
+def _three_bar_tightening(p) -> np.ndarray:
+    """Shortening (mm) of each bar of three-bar sutures over a deformable buckle: the two
+    bite bars by suture_tightening / 2 each, the bar over the buckle 0 (tied at its length)."""
+    tight = np.zeros(3 * p["n_sutures"])
+    tight[0::3] = tight[2::3] = p["suture_tightening"] / 2
+    return tight
 
 
 def band_dofs(parts: SurgeryParts) -> dict:
