@@ -68,6 +68,11 @@ def test_deformable_buckles_are_a_band_or_a_radial_sponge():
         surgery(_params(tightening=1.0), None)
 
 
+def test_a_deformable_sponge_off_the_coarse_mesh_is_flagged(caplog):
+    surgery(_params(mesh="medium"), None)
+    assert "coarse mesh only" in caplog.text and "medium" in caplog.text
+
+
 def test_sponge_parked_then_fitted_snug():
     setup = surgery(_params(), None)
     parts = setup.parts

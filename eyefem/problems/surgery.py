@@ -18,6 +18,7 @@ the outcomes with respect to it.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -43,6 +44,8 @@ from ..units import MMHG
 from .base import Setup
 from .sponge import (SPONGE_PARK, fit_sponge, sponge_contact_term, sponge_mesh,
                      sponge_spring_term, sponge_suture_term)
+
+log = logging.getLogger(__name__)
 
 SEED_MATERIALS = {  # neo-Hookean c (MPa), seed 6.1; limbus: mean of cornea and sclera
     "cornea": 0.0333, "limbus": 0.0583, "sclera": 0.0833, "ciliary_body": 0.01,
@@ -247,6 +250,10 @@ def surgery(p, materials):
     band = None
     sponge = deformable and not b.encircling
     if sponge:  # parked SPONGE_PARK mm off the sclera until stage 2 fits it snug
+        if p["mesh"] != "coarse":
+            log.warning("deformable sponge on the %s eye mesh: it has been run to the end on "
+                        "the coarse mesh only; on the default mesh the last suture step did not "
+                        "converge (docs/surgery.md)", p["mesh"])
         mesh = with_band(mesh, sponge_mesh(b, g, p["mesh"], SPONGE_PARK), "sponge")
     elif deformable:  # parked BAND_PARK mm off the sclera until stage 2 fits it snug
         n_circ = band_n_circ(mesh, mesh.node_set("eye/sclera_outer"), b, g)
