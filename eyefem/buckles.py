@@ -258,6 +258,8 @@ def deformable_sponge(buckle: Buckle, g: EyeGeometry, axis_radius: float, n_len:
                          "'sponge_radial' has a deformable (hexahedral) sponge")
     if int(n_len) != n_len or n_len < 2 or n_len % 2:
         raise ValueError(f"deformable_sponge: n_len = {n_len}; must be even and >= 2")
+    if int(n_circ) != n_circ or n_circ < 8 or n_circ % 8:
+        raise ValueError(f"deformable_sponge: n_circ = {n_circ}; must be a multiple of 8")
     rho = buckle.width / 2
     nodes2d, quads, _ = _disk_section(0.75 * rho, 0.25 * rho, n_circ, 1, 1)
     s = np.linspace(-0.5, 0.5, n_len + 1) * SPONGE_LENGTH

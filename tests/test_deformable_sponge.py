@@ -59,6 +59,8 @@ def test_sponge_mesh_dimensions_and_sets():
         deformable_sponge(Buckle("tire_flat"), g, Rc)
     with pytest.raises(ValueError, match="n_len = 5"):
         deformable_sponge(b, g, Rc, n_len=5)
+    with pytest.raises(ValueError, match="n_circ = 12; must be a multiple of 8"):
+        deformable_sponge(b, g, Rc, n_circ=12)
 
 
 def test_deformable_buckles_are_a_band_or_a_radial_sponge():

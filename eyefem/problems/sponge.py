@@ -48,8 +48,8 @@ def sponge_mesh(buckle: Buckle, g: EyeGeometry, level: str, gap: float) -> Mesh:
                              n_len=n_len, n_circ=n_circ)
 
 
-def fit_sponge(mesh: Mesh, buckle: Buckle, g: EyeGeometry, level: str, scale: float, q,
-               shift: float = 0.0) -> Mesh:
+def fit_sponge(mesh: Mesh, buckle: Buckle, g: EyeGeometry, level: str, scale: float,
+               q) -> Mesh:
     """The mesh with the sponge's reference moved snug onto the eye at state q: built on
     the sphere of radius scale R + SPONGE_CLEARANCE, then moved along its centre normal
     until its closest node lies SPONGE_CLEARANCE off the (faceted) outer sclera."""

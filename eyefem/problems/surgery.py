@@ -62,7 +62,8 @@ SURGERY_FIELDS = [
           f"one of {list(KINDS)}"),
     Field("buckle_body", str, "rigid", "'rigid' (exact analytic surface, radial motion) or "
           "'deformable' (hexahedral silicone band tightened by pulling its ends, buckle = "
-          "'band'; or hexahedral radial sponge sewn on, buckle = 'sponge_radial')", lambda v: v in BODIES, f"one of {list(BODIES)}"),
+          "'band'; or hexahedral radial sponge sewn on, buckle = 'sponge_radial')",
+          lambda v: v in BODIES, f"one of {list(BODIES)}"),
     Field("buckle_distance", float, 12.0, "buckle centre behind the limbus (arc), mm "
           "(position A = 12, B = 15)", lambda v: 2 <= v <= 20, "2 to 20 mm"),
     Field("buckle_meridian_deg", float, 0.0, "meridian of a segmental buckle, degrees"),
