@@ -15,11 +15,7 @@ Placement: the buckle centre lies ``distance`` mm (arc length on the scleral sph
 behind the limbus at meridian ``meridian_deg`` (segmental); :func:`buckle_bodies` takes
 a radial scale so that the buckle is fitted snug on the pressurised eye.
 
-A deformable band (kind "band") is a hexahedral mesh (:func:`deformable_band`),
-tightened by pulling its two ends past each other; a deformable radial sponge
-(:func:`deformable_sponge`) is sewn on as the seed's segmental cases do (seed 6.2:
-"sponge deformable"); surgery ``buckle_body = "deformable"``, docs/surgery.md. Tires are
-rigid only (the seed itself sutures rigid band and tire, seed 6.1 step 3).
+Deformable (hexahedral) bands, tires and radial sponges: :mod:`eyefem.buckle_meshes`.
 """
 
 from __future__ import annotations
@@ -29,7 +25,6 @@ import dataclasses
 import numpy as np
 
 from .eyemodel import EyeGeometry
-from .mesh import Mesh, boundary_faces
 from .rigid import RigidBody, _grid_tris
 
 KINDS = {
@@ -177,108 +172,3 @@ def suture_anchor_frame(buckle: Buckle, g: EyeGeometry, n_sutures: int):
         a = across - (across @ n) * n
         cen.append(R * n), acr.append(a / np.linalg.norm(a)), nrm.append(n), body.append(0)
     return np.array(cen), np.array(acr), np.array(nrm), np.array(body)
-
-
-BAND_C10 = 1.0
-"""Silicone of a deformable band: neo-Hookean c10, MPa (material name "band")."""
-
-
-def deformable_band(buckle: Buckle, g: EyeGeometry, inner_radius: float, n_circ: int,
-                    n_width: int = 2, n_thick: int = 1, material: str = "band") -> Mesh:
-    """Hexahedral encircling band (kind "band": 2.5 mm wide, 0.6 mm thick) on the eye.
-
-    A :func:`eyefem.vessels.slit_band` (cut at the +y meridian) bent onto the globe: its
-    inner surface lies on the sphere of radius ``inner_radius`` (mm) about the globe
-    centre, spanning the polar angles theta_b -/+ width / (2 inner_radius) about the
-    buckle centre line theta_b (so it follows the sclera across its width, like the
-    rigid ring's profile); the thickness runs radially.
-
-    Args: n_circ, n_width, n_thick: elements around, across (even), through.
-    Node sets (slit_band's): "all", "end0", "end1" (the two ends on the cut), "mid"
-    (on the centre line theta_b), "inner"; face sets: "inner" (normals toward the
-    globe centre), "outer" (normals away from it).
-    Pulling end0 along +x (clockwise at the cut) and end1 along -x shortens the loop.
-    """
-    from .vessels import slit_band
-
-    if buckle.kind != "band":
-        raise ValueError(f"deformable_band: buckle kind '{buckle.kind}'; only 'band' has a "
-                         "deformable (hexahedral) body")
-    w, h = buckle.width, buckle.thickness
-    m = slit_band(1.0, h, w, n_circ, n_thick, n_width, z_centre=0.0, slit_angle=90.0,
-                  material=material)
-    X = m.nodes
-    rho = np.hypot(X[:, 0], X[:, 1])
-    c, s = X[:, 0] / rho, X[:, 1] / rho
-    r = inner_radius + (rho - 1.0)
-    # across coordinate z -> polar angle; z up = tau down keeps the elements' orientation
-    tau = buckle.centre_angle(g) - X[:, 2] / inner_radius
-    nodes = np.column_stack([r * np.sin(tau) * c, r * np.sin(tau) * s, r * np.cos(tau)])
-    bf = boundary_faces(m.hexes)
-    outer = bf[np.all(np.abs(rho[bf] - (1.0 + h)) < 1e-9, axis=1)]
-    return m.replace(nodes=nodes, face_sets={**m.face_sets, "outer": outer})
-
-
-def band_n_circ(mesh: Mesh, sclera_nodes: np.ndarray, buckle: Buckle, g: EyeGeometry) -> int:
-    """Elements around a deformable band: twice the number of outer scleral nodes on the
-    mesh ring nearest the buckle centre line (two band elements per scleral face)."""
-    X = mesh.nodes[sclera_nodes]
-    tau = np.arccos(np.clip(X[:, 2] / np.linalg.norm(X, axis=1), -1, 1))
-    a = g.scleral_radius * (tau - buckle.centre_angle(g))
-    ring = np.abs(a - a[np.argmin(np.abs(a))]) < 1e-3
-    return int(2 * max(ring.sum(), 12))
-
-
-SPONGE_C10 = 0.1
-"""Silicone sponge of a deformable sponge: neo-Hookean c10, MPa (seed 6.2; material
-"sponge")."""
-
-
-def deformable_sponge(buckle: Buckle, g: EyeGeometry, axis_radius: float, n_len: int = 10,
-                      n_circ: int = 8, material: str = "sponge") -> Mesh:
-    """Hexahedral radial silicone sponge (kind "sponge_radial": 5 mm across, 10 mm long).
-
-    A solid cylinder of radius w / 2 whose axis is the arc of radius ``axis_radius`` (mm)
-    about the globe centre in the sponge's meridian plane, centred on the polar angle of
-    the buckle centre line and spanning SPONGE_LENGTH of arc (as the rigid radial
-    sponge, which is curved along the sclera). Cross-section: an O-grid (square core
-    blended into the circle, :func:`eyefem.vessels._disk_section`) with ``n_circ``
-    elements around (a multiple of 8); ``n_len`` elements along (even).
-
-    Node sets: "all", "inner" (the mantle's nodes on the eye-facing side, up to 0.3 w / 2
-    above the axis: the contact's slave nodes), "mid" (the cross-section at the centre);
-    face sets: "outer" (mantle faces of the half away from the eye, normals outward: the
-    sutures' points over the sponge are embedded there), "mantle".
-    """
-    from .generators import _extrude
-    from .vessels import _disk_section
-
-    if buckle.kind != "sponge_radial":
-        raise ValueError(f"deformable_sponge: buckle kind '{buckle.kind}'; only "
-                         "'sponge_radial' has a deformable (hexahedral) sponge")
-    if int(n_len) != n_len or n_len < 2 or n_len % 2:
-        raise ValueError(f"deformable_sponge: n_len = {n_len}; must be even and >= 2")
-    if int(n_circ) != n_circ or n_circ < 8 or n_circ % 8:
-        raise ValueError(f"deformable_sponge: n_circ = {n_circ}; must be a multiple of 8")
-    rho = buckle.width / 2
-    nodes2d, quads, _ = _disk_section(0.75 * rho, 0.25 * rho, n_circ, 1, 1)
-    s = np.linspace(-0.5, 0.5, n_len + 1) * SPONGE_LENGTH
-    X, hexes, _ = _extrude(nodes2d, quads, s)
-    u, v, t = X[:, 0], X[:, 1], X[:, 2]  # u: radial (out of the eye), v: across, t: arc
-    th, ph = buckle.centre_angle(g) + t / axis_radius, np.radians(buckle.meridian_deg)
-    n = np.column_stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
-    e = np.array([-np.sin(ph), np.cos(ph), 0.0])
-    nodes = (axis_radius + u)[:, None] * n + v[:, None] * e
-    # (u, v, t) -> (n, e, m) is left-handed (n x e = -m): mirror across to keep the
-    # elements' orientation
-    nodes -= 2 * v[:, None] * e
-    tol = 1e-9 * rho
-    r2 = np.hypot(u, v)
-    bf = boundary_faces(hexes)
-    on_mantle = np.all(np.abs(r2[bf] - rho) < tol, axis=1)
-    outer = on_mantle & np.all(u[bf] > -tol, axis=1)
-    node_sets = {"all": np.arange(len(nodes)),
-                 "inner": np.nonzero((np.abs(r2 - rho) < tol) & (u < 0.3 * rho))[0],
-                 "mid": np.nonzero(np.abs(t) < tol)[0]}
-    face_sets = {"outer": bf[outer], "mantle": bf[on_mantle]}
-    return Mesh(nodes, hexes, np.zeros(len(hexes), np.int64), (material,), node_sets, face_sets)

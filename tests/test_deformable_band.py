@@ -5,10 +5,12 @@ import json
 import numpy as np
 import pytest
 
-from eyefem.buckles import Buckle, deformable_band
+from eyefem.buckle_meshes import deformable_band, ring_fit_groups
+from eyefem.buckles import Buckle
 from eyefem.eyemodel import EyeGeometry
-from eyefem.problems.surgery import (BAND_CLEARANCE, SURGERY_FIELDS, band_contact_term, fit_band,
-                                     surgery)
+from eyefem.mesh import hex_geometry
+from eyefem.problems.band import BAND_CLEARANCE, band_contact_term, fit_band
+from eyefem.problems.surgery import SEED_MATERIALS, SURGERY_FIELDS, surgery
 
 
 def _params(**kw):
@@ -37,9 +39,54 @@ def test_band_mesh_dimensions_and_sets():
     assert m.jacobian_ratio().min() > 0.9
 
 
-def test_deformable_needs_a_band():
-    with pytest.raises(ValueError, match="buckle = 'band' and 'sponge_radial'; got 'tire_ridged'"):
-        surgery(_params(buckle="tire_ridged"), None)
+def _zone_volume(a, b, t1, t2):
+    """Volume between the spheres of radii a < b and the polar angles t1 < t2, mm^3."""
+    return 2 * np.pi / 3 * (b**3 - a**3) * (np.cos(t1) - np.cos(t2))
+
+
+@pytest.mark.parametrize("kind", ["tire_flat", "tire_ridged"])
+def test_tire_mesh_dimensions_sets_and_volume(kind):
+    g, Ri = EyeGeometry(), 11.6
+    b = Buckle(kind, 12.0)
+    m = deformable_band(b, g, Ri, 80)
+    ridged = kind == "tire_ridged"
+    assert m.materials == ("tire",)
+    assert m.n_elem == 80 * (12 if ridged else 8)  # 8 across (+ 4 in the ridge)
+    assert m.jacobian_ratio().min() > 0.85
+    _, dv, det = hex_geometry(m.nodes, m.hexes)
+    assert det.min() > 0
+    # closed form: the tire's base (7 mm wide, 1.25 mm thick) on the ridge (3 x 0.75 mm)
+    th, h = b.centre_angle(g), 0.75 if ridged else 0.0
+    exact = _zone_volume(Ri + h, Ri + h + 1.25, th - 3.5 / Ri, th + 3.5 / Ri)
+    if ridged:
+        exact += _zone_volume(Ri, Ri + h, th - 1.5 / Ri, th + 1.5 / Ri)
+    assert dv.sum() == pytest.approx(exact, rel=3e-3)  # facets around: 80 chords
+    r = np.linalg.norm(m.nodes, axis=1)
+    tau = np.arccos(m.nodes[:, 2] / r)
+    inner = m.node_set("inner")
+    bottom = inner[np.abs(r[inner] - Ri) < 1e-9]
+    assert np.ptp(tau[bottom]) * Ri == pytest.approx(3.0 if ridged else 7.0, abs=1e-9)
+    seat = np.setdiff1d(inner, bottom)  # a ridged tire's base beside the ridge and flank tops
+    assert len(seat) == (80 + 1) * (6 if ridged else 0)
+    np.testing.assert_allclose(r[seat], Ri + h, atol=1e-12)
+    outer = np.unique(m.face_set("outer"))
+    np.testing.assert_allclose(r[outer], Ri + h + 1.25, atol=1e-12)
+    assert np.ptp(tau[outer]) * Ri == pytest.approx(7.0, abs=1e-9)
+    # inner faces face the globe centre, outer faces away from it
+    for name, sign in (("inner", -1), ("outer", 1)):
+        P = m.nodes[m.face_set(name)]
+        nrm = np.cross(P[:, 2] - P[:, 0], P[:, 3] - P[:, 1])
+        c = P.mean(1)
+        flank = np.abs(np.einsum("ij,ij->i", nrm, c)) < 0.5 * np.linalg.norm(nrm, axis=1) * np.linalg.norm(c, axis=1)
+        assert np.all(sign * np.einsum("ij,ij->i", nrm, c)[~flank] > 0)
+        assert flank.sum() == (2 * 80 if ridged and name == "inner" else 0)  # ridge flanks
+    # fitted as columns (band, flat tire) or rigid cross-sections (ridged tire)
+    groups = ring_fit_groups(b, 80)
+    assert len(groups) == m.n_nodes
+    assert len(np.unique(groups)) == (81 if ridged else 81 * 9)
+
+
+def test_deformable_band_refuses_a_pulling_force():
     with pytest.raises(ValueError, match="band_tension"):
         surgery(_params(band_tension=0.2, tightening=0.0), None)
 
@@ -51,16 +98,41 @@ def test_band_fitted_on_the_sclera_all_around():
     assert setup.model.mesh.n_elem == 2470 + 2 * band.n_circ  # coarse eye + band
     # parked 0.3 mm off the sclera during stage 1
     q = np.zeros(setup.model.n_dof)
-    g0, _, _ = band_contact_term(parts)._gaps(q)
+    g0, _, _ = band_contact_term(parts, SEED_MATERIALS["sclera"])._gaps(q)
     assert g0.min() > 0.2
     # fitted on an eye inflated by 1 %: every inner band node BAND_CLEARANCE off the sclera
     u = 0.01 * parts.eye.mesh.nodes
     u[band.nodes] = 0.0
     q[: u.size] = u.ravel()
     parts.eye = parts.eye.__class__(**{**parts.eye.__dict__, "mesh": fit_band(parts, 1.01, q)})
-    g, nodes, _ = band_contact_term(parts).update(q, None)._gaps(q)
+    g, nodes, _ = band_contact_term(parts, SEED_MATERIALS["sclera"]).update(q, None)._gaps(q)
     assert len(nodes) == len(parts.eye.mesh.node_set("band/inner"))
     np.testing.assert_allclose(g, BAND_CLEARANCE, atol=2e-4)
+
+
+def test_ridged_tire_fitted_with_its_ridge_on_the_sclera():
+    setup = surgery(_params(buckle="tire_ridged", tightening=10.0), None)
+    parts = setup.parts
+    assert setup.model.mesh.n_elem == 2470 + 12 * parts.band.n_circ  # coarse eye + tire
+    assert "tire" in setup.model.mesh.materials
+    q = np.zeros(setup.model.n_dof)
+    u = 0.01 * parts.eye.mesh.nodes
+    u[parts.band.nodes] = 0.0
+    q[: u.size] = u.ravel()
+    parts.eye = parts.eye.__class__(**{**parts.eye.__dict__, "mesh": fit_band(parts, 1.01, q)})
+    mesh = parts.eye.mesh
+    g, nodes, _ = band_contact_term(parts, SEED_MATERIALS["sclera"]).update(q, None)._gaps(q)
+    assert len(nodes) == len(mesh.node_set("band/inner"))
+    # each cross-section moved as a whole: its closest node BAND_CLEARANCE off the sclera
+    station = (nodes - parts.band.nodes[0]) // 23  # 23 nodes in a ridged cross-section
+    closest = np.full(station.max() + 1, np.inf)
+    np.minimum.at(closest, station, g)
+    np.testing.assert_allclose(closest, BAND_CLEARANCE, atol=1e-9)
+    # the ridge's bottom touches (within the facets' sag), its base stands 0.75 mm off
+    r = np.linalg.norm(mesh.nodes[nodes], axis=1)
+    bottom = r < r.min() + 0.1
+    assert g[bottom].max() < 0.05
+    np.testing.assert_allclose(g[r > r.min() + 0.7], 0.75, atol=0.05)
 
 
 @pytest.mark.slow
@@ -84,6 +156,28 @@ def test_deformable_band_case_coarse(tmp_path):
     import csv
     rows = list(csv.DictReader(open(tmp_path / "surgery_history.csv")))
     assert max(float(r["band_springs/force_N"]) for r in rows if r["band_springs/force_N"]) < 0.002
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind, hexes, tightening, indent, iop", [
+    ("ridged", 12, 10.0, 1.0, 30.0),  # case 4: strong tightening
+    ("flat", 8, 5.0, 0.4, 22.0)])  # case 1: weak
+def test_deformable_tire_cases_coarse(tmp_path, kind, hexes, tightening, indent, iop):
+    from eyefem.cli import main
+
+    assert main(["run", f"cases/surgery/deformable_{kind}_tire.toml", "--no-vtu", "--out",
+                 str(tmp_path)]) == 0
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["buckle_body"] == "deformable" and s["elements"] == 2470 + hexes * 80
+    # the tire is pressed in and the closed cavity squeezed
+    assert s["indentation_mm"] > indent
+    assert s["iop_after_tightening_mmhg"] > iop
+    assert s["iop_mmhg"] > s["iop_after_tightening_mmhg"]  # the sutures add to it
+    assert s["band_shortening_mm"] == pytest.approx(tightening)
+    # the end overlap shortens the loop and stretches the tire; neither takes all of it
+    assert 0.0 < s["band_stretch_mm"] < s["band_loop_shortening_mm"] < tightening
+    assert s["band_tension_N"] > 0.1 and s["max_suture_force_N"] > 0.0
+    assert (tmp_path / "section_von_mises.png").stat().st_size > 10_000
 
 
 def test_design_gradients_refuse_the_deformable_band():

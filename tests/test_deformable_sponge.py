@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from eyefem.buckles import SPONGE_LENGTH, Buckle, deformable_sponge
+from eyefem.buckle_meshes import deformable_sponge
+from eyefem.buckles import SPONGE_LENGTH, Buckle
 from eyefem.eyemodel import EyeGeometry
 from eyefem.mesh import hex_geometry
 from eyefem.problems.sponge import (SPONGE_CLEARANCE, SPONGE_SPRING, fit_sponge,
@@ -63,8 +64,9 @@ def test_sponge_mesh_dimensions_and_sets():
         deformable_sponge(b, g, Rc, n_circ=12)
 
 
-def test_deformable_buckles_are_a_band_or_a_radial_sponge():
-    with pytest.raises(ValueError, match="'band' and 'sponge_radial'; got 'sponge_circumferential'"):
+def test_deformable_buckles_are_a_band_a_tire_or_a_radial_sponge():
+    with pytest.raises(ValueError, match="'band', 'tire_flat', 'tire_ridged', 'sponge_radial'; "
+                       "got 'sponge_circumferential'.*set buckle to one of those"):
         surgery(_params(buckle="sponge_circumferential"), None)
     with pytest.raises(ValueError, match="tightening = 1.0 mm.*set tightening = 0"):
         surgery(_params(tightening=1.0), None)

@@ -42,9 +42,10 @@ def test_bad_flags_are_reported(tmp_path, capsys):
 
 def test_answers_that_clash_across_fields_write_nothing(tmp_path, capsys):
     """Each answer can be valid alone and the combination not: a deformable body for a
-    tire, a band tension on a segmental sponge or with a prescribed tightening. The dialogue says which and writes no file."""
-    for sets, words in ((["buckle=tire_ridged", "buckle_body=deformable"],
-                         "'band' and 'sponge_radial'; got 'tire_ridged'"),
+    circumferential sponge, a band tension on a segmental sponge or with a prescribed
+    tightening. The dialogue says which and writes no file."""
+    for sets, words in ((["buckle=sponge_circumferential", "buckle_body=deformable"],
+                         "'sponge_radial'; got 'sponge_circumferential'"),
                         (["buckle=sponge_radial", "band_tension=0.5"], "needs an encircling"),
                         (["band_tension=0.5", "tightening=5"], "give one")):
         out = tmp_path / "c.toml"

@@ -1,6 +1,6 @@
 """A deformable radial sponge sewn onto the eye (seed 6.2: "sponge deformable").
 
-The sponge (:func:`eyefem.buckles.deformable_sponge`, neo-Hookean c10 = 0.1 MPa,
+The sponge (:func:`eyefem.buckle_meshes.deformable_sponge`, neo-Hookean c10 = 0.1 MPa,
 material "sponge") waits parked SPONGE_PARK mm off the sclera while the eye is
 pressurised, is fitted snug on the pressurised eye (its stress-free reference moved
 radially until its closest node is SPONGE_CLEARANCE mm off the sclera) when the cavity
@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..bars import TiedBars
-from ..buckles import Buckle, deformable_sponge
+from ..buckle_meshes import deformable_sponge
+from ..buckles import Buckle
 from ..contact import SurfaceContact
 from ..eyemodel import EyeGeometry
 from ..mesh import Mesh

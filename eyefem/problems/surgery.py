@@ -24,23 +24,25 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from ..bars import AnchoredBars, Bars, TiedBars
+from ..bars import AnchoredBars, Bars
 from ..buckle_contact import BuckleContact
-from ..buckles import (BAND_C10, KINDS, SPONGE_C10, SPONGE_LENGTH, Buckle, band_n_circ,
-                       deformable_band, suture_anchor_frame)
+from ..buckle_meshes import (BAND_C10, RING_KINDS, SPONGE_C10, TIRE_C10, band_n_circ,
+                             deformable_band)
+from ..buckles import KINDS, SPONGE_LENGTH, Buckle, suture_anchor_frame
 from ..casefile import Field, positive
 from ..cavity import WATER_BULK, FluidCavity, close_cavity
-from ..contact import SurfaceContact
 from ..eyemodel import LEVELS, EyeGeometry, axial_length, build_eye
 from ..materials import MooneyRivlin
-from ..mesh import merge
-from ..model import Model, node_dofs, solid_model
-from ..output import write_csv, write_text
+from ..model import node_dofs, solid_model
+from ..output import write_csv
 from ..solver import Stage
 from ..surface import PressureLoad
-from ..sutures import generate_sutures, suture_bar_ends
+from ..sutures import generate_sutures
 from ..terms import DofForce, NodeSprings, OrbitSpring
 from ..units import MMHG
+from .band import (BAND_OUTPUTS, BAND_PARK, BandInfo, _rereference, _three_bar_tightening,
+                   _with_terms, band_contact_term, band_dofs, band_outcomes, band_spring_term,
+                   band_suture_term, fit_band, with_band)
 from .base import Setup
 from .sponge import (SPONGE_PARK, fit_sponge, sponge_contact_term, sponge_mesh,
                      sponge_spring_term, sponge_suture_term)
@@ -52,8 +54,8 @@ SEED_MATERIALS = {  # neo-Hookean c (MPa), seed 6.1; limbus: mean of cornea and 
     "choroid": 0.0083, "retina": 0.0008, "optic_nerve": 0.05, "lens": 10.0}
 
 BODIES = ("rigid", "deformable")
-"""Buckle bodies: the rigid analytic surface, or a deformable hexahedral band or radial
-sponge."""
+"""Buckle bodies: the rigid analytic surface, or a deformable hexahedral band, tire (with
+its band) or radial sponge."""
 
 SURGERY_FIELDS = [
     Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)}", lambda v: v in LEVELS,
@@ -61,8 +63,9 @@ SURGERY_FIELDS = [
     Field("buckle", str, "tire_flat", f"buckle kind: {', '.join(KINDS)}", lambda v: v in KINDS,
           f"one of {list(KINDS)}"),
     Field("buckle_body", str, "rigid", "'rigid' (exact analytic surface, radial motion) or "
-          "'deformable' (hexahedral silicone band tightened by pulling its ends, buckle = "
-          "'band'; or hexahedral radial sponge sewn on, buckle = 'sponge_radial')",
+          "'deformable' (hexahedral silicone band, or tire with its band, tightened by pulling "
+          "its ends: buckle = 'band', 'tire_flat', 'tire_ridged'; or hexahedral radial sponge "
+          "sewn on: buckle = 'sponge_radial')",
           lambda v: v in BODIES, f"one of {list(BODIES)}"),
     Field("buckle_distance", float, 12.0, "buckle centre behind the limbus (arc), mm "
           "(position A = 12, B = 15)", lambda v: 2 <= v <= 20, "2 to 20 mm"),
@@ -101,7 +104,8 @@ SURGERY_FIELDS = [
     Field("contact_smoothing", float, 0.0, "buckle contact smoothing length eps, mm: the "
           "penalty acts on eps softplus(-gap / eps) (larger: a softer touch-down, easier "
           "Newton steps, a stand-off of about eps); 0: automatic, 0.01 mm for an encircling "
-          "buckle, 0.002 mm for a sponge (whose indentation is ten times smaller)",
+          "buckle, 0.002 mm for a sponge (whose indentation is ten times smaller) and for a "
+          "deformable band (0.01 mm for a deformable tire)",
           lambda v: v == 0 or 1e-4 <= v <= 0.1, "0 (automatic) or 1e-4 to 0.1 mm"),
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
@@ -110,7 +114,8 @@ SURGERY_FIELDS = [
 
 def _materials(materials):
     out = {k: MooneyRivlin.from_terms(k, {"c10": c}) for k, c in SEED_MATERIALS.items()}
-    out["band"] = MooneyRivlin.from_terms("band", {"c10": BAND_C10})  # a deformable band
+    out["band"] = MooneyRivlin.from_terms("band", {"c10": BAND_C10})  # a deformable band,
+    out["tire"] = MooneyRivlin.from_terms("tire", {"c10": TIRE_C10})  # tire,
     out["sponge"] = MooneyRivlin.from_terms("sponge", {"c10": SPONGE_C10})  # ... or sponge
     out.update(materials or {})
     return out
@@ -276,7 +281,7 @@ def surgery(p, materials):
         band_hold = (sponge_spring_term(mesh, b, g),)
     elif deformable:
         sutures = band_suture_term(parts)
-        buckle = band_contact_term(parts)
+        buckle = band_contact_term(parts, SEED_MATERIALS["sclera"])
         band_hold = (band_spring_term(parts),)
     else:
         sutures = suture_term(parts, 1.0)
@@ -313,7 +318,8 @@ def surgery(p, materials):
         model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
         scale = float(snug_scale(parts, q))
         _rereference(parts, fit_band(parts, scale, q), scale)
-        model = _with_terms(model, parts, {"buckle": band_contact_term(parts).update(q, None),
+        contact = band_contact_term(parts, SEED_MATERIALS["sclera"]).update(q, None)
+        model = _with_terms(model, parts, {"buckle": contact,
                                            "sutures": band_suture_term(parts),
                                            "band_springs": band_spring_term(parts)})
         return model, q, theta
@@ -416,24 +422,6 @@ def surgery(p, materials):
     return setup
 
 
-# --- a deformable band on the eye -----------------------------------------------------------
-BAND_PARK = 0.3
-"""Gap between the sclera and the deformable band while it waits for stage 2, mm."""
-BAND_CLEARANCE = 4e-3
-"""Gap of the band fitted snug on the pressurised eye over its outermost scleral node, mm."""
-BAND_SPRING = (1e-2, 1e-3)
-"""Weak springs on the band's rigid motion (its centre line's best-fit rotation, N mm/rad,
-and mean lateral displacement, N/mm; eyefem.terms.OrbitSpring), against a free drift
-of the band before contact holds it. The band's material slides toward the pulled ends
-(its mean displacement is about 0.5 mm at 5 mm of tightening), so the springs must be
-this weak: their force (band_springs/force_N, about 5e-4 N) is then negligible next to
-the band tension (about 0.3 N)."""
-BAND_SMOOTHING = 2e-3
-"""Smoothing length of the band's contact on the sclera, mm (SurfaceContact smoothing)."""
-BAND_OUTPUTS = ("band_tension_N", "band_loop_shortening_mm", "band_stretch_mm",
-                "band_shortening_mm")
-
-
 def check_parameters(p):
     """Checks across fields (each field alone is checked by its schema): ValueError
     naming the values and the fix. ``eyefem new-case`` runs it before writing a case."""
@@ -450,11 +438,12 @@ def check_parameters(p):
 
 def _check_deformable(p):
     """Clear errors for the cases a deformable buckle does not cover."""
-    if p["buckle"] not in ("band", "sponge_radial"):
-        raise ValueError(f"buckle_body = 'deformable' is implemented for buckle = 'band' and "
-                         f"'sponge_radial'; got '{p['buckle']}' (tires and circumferential "
-                         "sponges are rigid bodies): set buckle = 'band' or 'sponge_radial', "
-                         "or buckle_body = 'rigid'")
+    kinds = RING_KINDS + ("sponge_radial",)
+    if p["buckle"] not in kinds:
+        raise ValueError(f"buckle_body = 'deformable' is implemented for buckle = "
+                         f"{', '.join(repr(k) for k in kinds)}; got '{p['buckle']}' (the "
+                         "circumferential sponge is a rigid body only): set buckle to one of "
+                         "those, or buckle_body = 'rigid'")
     for name, unit in (("band_tension", "N"), ("buckle_shift", "mm")):
         if p[name] != 0:
             raise ValueError(f"{name} = {p[name]} {unit} applies to the rigid buckle only; with "
@@ -462,138 +451,6 @@ def _check_deformable(p):
     if p["buckle"] == "sponge_radial" and p["tightening"] != 0:
         raise ValueError(f"tightening = {p['tightening']} mm: a deformable sponge is pressed in "
                          "by its sutures alone (suture_tightening); set tightening = 0")
-
-
-@dataclasses.dataclass
-class BandInfo:
-    """Node ids of a deformable band in the merged mesh: all (n,), end0 / end1 (k,) (the
-    ends on the cut), mid-line inner nodes (m,) ordered around from end0 to end1."""
-
-    nodes: np.ndarray
-    end0: np.ndarray
-    end1: np.ndarray
-    line: np.ndarray
-    n_circ: int
-
-    def __init__(self, mesh, n_circ):
-        self.nodes, self.n_circ = mesh.node_set("band"), n_circ
-        self.end0, self.end1 = mesh.node_set("band/end0"), mesh.node_set("band/end1")
-        line = np.intersect1d(mesh.node_set("band/mid"), mesh.node_set("band/inner"))
-        X = mesh.nodes[line]
-        ang = np.mod(np.arctan2(X[:, 1], X[:, 0]) - np.pi / 2, 2 * np.pi)  # from the cut (+y)
-        ang[np.isin(line, self.end1)] = 2 * np.pi
-        self.line = line[np.argsort(ang, kind="stable")]
-
-
-def with_band(eye_mesh, band_mesh, name="band"):
-    """The eye mesh with the band (or another body) appended: the eye's sets keep their
-    names, the band's get the prefix 'band/' (node set 'band': all its nodes)."""
-    m = merge(("e", eye_mesh), (name, band_mesh))
-    strip = lambda d: {(k[2:] if k.startswith("e/") else k): v for k, v in d.items() if k != "e"}
-    return m.replace(node_sets=strip(m.node_sets), face_sets=strip(m.face_sets),
-                     element_sets=strip(m.element_sets))
-
-
-def fit_band(parts: SurgeryParts, scale: float, q):
-    """The mesh with the band's reference moved snug onto the pressurised eye (state q):
-    first onto the sphere of radius scale R + BAND_CLEARANCE, then each radial column of
-    band nodes moved along the radius so that its inner node lies BAND_CLEARANCE off the
-    (faceted) outer sclera: the band's stress-free state, touching all around."""
-    b, g, mesh, info = parts.buckle, parts.eye.geometry, parts.eye.mesh, parts.band
-    band = deformable_band(b, g, scale * g.scleral_radius + BAND_CLEARANCE, info.n_circ)
-    nodes = mesh.nodes.copy()
-    nodes[info.nodes] = band.nodes
-    inner = mesh.node_set("band/inner")
-    q = np.asarray(q)
-    for _ in range(3):
-        m = mesh.replace(nodes=nodes)
-        c = SurfaceContact("fit", m, "band/inner", "eye/sclera_outer").update(q, None)
-        gap, node, _ = c._gaps(q)
-        if len(node) != len(inner):
-            raise RuntimeError(f"fit_band: {len(inner) - len(node)} band nodes find no sclera "
-                               "under them")
-        radial = nodes[node] / np.linalg.norm(nodes[node], axis=1, keepdims=True)
-        shift = (BAND_CLEARANCE - gap)[:, None] * radial
-        nodes[node] += shift
-        nodes[node + 1] += shift  # the outer node above (slit_band numbers columns inner, outer)
-    return mesh.replace(nodes=nodes)
-
-
-def _rereference(parts: SurgeryParts, new_mesh, scale: float):
-    """Take ``new_mesh`` (a deformable buckle's reference moved snug) as the eye's mesh."""
-    parts.eye = dataclasses.replace(parts.eye, mesh=new_mesh)
-    parts.scale = scale
-    return new_mesh
-
-
-def _with_terms(model, parts: SurgeryParts, terms: dict) -> Model:
-    """The model on the parts' (re-referenced) mesh with the solid and these terms new."""
-    mesh = parts.eye.mesh
-    new = {"solid": dataclasses.replace(model.term("solid"), mesh=mesh), **terms}
-    return Model(mesh, tuple(new.get(t.name, t) for t in model.terms), model.n_dof)
-
-
-def _three_bar_tightening(p) -> np.ndarray:
-    """Shortening (mm) of each bar of three-bar sutures over a deformable buckle: the two
-    bite bars by suture_tightening / 2 each, the bar over the buckle 0 (tied at its length)."""
-    tight = np.zeros(3 * p["n_sutures"])
-    tight[0::3] = tight[2::3] = p["suture_tightening"] / 2
-    return tight
-
-
-def band_dofs(parts: SurgeryParts) -> dict:
-    """Prescribed band dofs: z of the centre-line nodes (holds its position across the
-    globe and its tilt), x of the two ends (the cut is at +y, so x is along the band)."""
-    mesh = parts.eye.mesh
-    return {"mid_z": node_dofs(mesh.node_set("band/mid"), "z"),
-            "end0_x": node_dofs(parts.band.end0, "x"), "end1_x": node_dofs(parts.band.end1, "x")}
-
-
-def band_spring_term(parts: SurgeryParts) -> OrbitSpring:
-    """Weak springs on the band's rigid-body motion (BAND_SPRING)."""
-    line = parts.band.line
-    k_rot, k_trans = BAND_SPRING
-    return OrbitSpring("band_springs", line, parts.eye.mesh.nodes[line], k_rot=(k_rot,) * 3,
-                       k_trans=k_trans)
-
-
-def band_contact_term(parts: SurgeryParts) -> SurfaceContact:
-    """Node-to-segment contact of the band's inner nodes (slave) on the outer sclera
-    (master); penalty from the sclera's Young's modulus."""
-    return SurfaceContact("buckle", parts.eye.mesh, "band/inner", "eye/sclera_outer",
-                          modulus=6 * SEED_MATERIALS["sclera"], smoothing=BAND_SMOOTHING)
-
-
-def band_suture_term(parts: SurgeryParts) -> TiedBars:
-    """Sutures over the deformable band: per suture three tension-only bars, bite A ->
-    the band's outer face near edge A -> near edge B -> bite B (points embedded in the
-    band's outer faces at +-0.45 of its width from the centre line)."""
-    b, p, mesh = parts.buckle, parts.p, parts.eye.mesh
-    cen, acr, nrm, _ = parts.frame
-    layout = generate_sutures(mesh.nodes, mesh.face_set("eye/sclera_outer"), cen, acr, nrm,
-                              width=p["suture_width"], angle_deg=p["suture_angle_deg"], n_bars=3,
-                              buckle_faces=mesh.face_set("band/outer"),
-                              buckle_half_width=0.45 * b.width)
-    parts.layout = layout
-    na, xa, nb, xb, _ = suture_bar_ends(layout)
-    return TiedBars("sutures", na, nb, xa, xb, mesh.nodes, EA=p["suture_EA"])
-
-
-def band_outcomes(parts: SurgeryParts, model, q, theta) -> dict:
-    """Band tension (N, the pull on end0), loop shortening (2 pi x the drop of the mean
-    cylindrical radius of its inner centre line since the snug fit, mm), its stretch
-    (length change of that line, mm) and the prescribed shortening (end overlap, mm)."""
-    mesh, info = parts.eye.mesh, parts.band
-    d = band_dofs(parts)
-    X = mesh.nodes[info.line]
-    x = X + q[: 3 * mesh.n_nodes].reshape(-1, 3)[info.line]
-    rho = lambda y: np.hypot(y[:, 0], y[:, 1]).mean()
-    length = lambda y: np.linalg.norm(np.diff(y, axis=0), axis=1).sum()
-    tension = float(model.gradient(q, theta, ("solid",))[d["end0_x"]].sum())
-    return {"band_tension_N": tension,
-            "band_loop_shortening_mm": float(2 * np.pi * (rho(X) - rho(x))),
-            "band_stretch_mm": float(length(x) - length(X)),
-            "band_shortening_mm": float(q[d["end0_x"]].mean() - q[d["end1_x"]].mean())}
 
 
 def snug_scale(parts: SurgeryParts, q, node=None):
@@ -736,7 +593,8 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path):
     body = "band" if parts.band is not None else "sponge" if parts.sponge else None
     if body:  # the silicone buckle (MPa) would set the eye's colour scale
         eye_el = np.setdiff1d(np.arange(mesh.n_elem), mesh.element_sets[body])
-        vmax, title = float(np.percentile(vm[eye_el], 99)), f" with the deformable {body}"
+        name = "tire" if parts.buckle.kind.startswith("tire") else body
+        vmax, title = float(np.percentile(vm[eye_el], 99)), f" with the deformable {name}"
     plot_section(out_dir / "section_von_mises.png", x, mesh.hexes, vm, normal=normal,
                  title="meridional section" + title, label="von Mises stress, kPa", vmax=vmax)
     plot_outside(out_dir / "outside_von_mises.png", x, mesh.hexes, vm,
