@@ -22,7 +22,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import numpy as np  # noqa: E402
 
 from bench_core import _median  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from eyefem.design import SurgerySimulator, default_parameters  # noqa: E402

@@ -137,7 +137,10 @@ class Assembler:
         low_rank = []
         for t in model._active(active):
             if getattr(t, "dynamic", False):
-                g, H = model.local_grad_hess(t, q, theta)
+                if gauss_newton and t.grad_hess_gauss_newton is not None:
+                    g, H = model.local_grad_hess_gauss_newton(t, q, theta)
+                else:
+                    g, H = model.local_grad_hess(t, q, theta)
                 extra.append(self._coo(t, H))
             else:
                 if gauss_newton and t.grad_hess_gauss_newton is not None:

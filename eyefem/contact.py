@@ -34,6 +34,7 @@ import copy
 import dataclasses
 import logging
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
@@ -372,6 +373,32 @@ class SurfaceContact(Term):
             return 0.5 * a * p * p
         g = jnp.minimum(jnp.einsum("pi,pi->p", xh - xt, n), 0.0)
         return 0.5 * a * g * g
+
+    def local_gaps(self, q_loc, data):
+        """Signed normal gaps (P,) mm of the pairs at local dofs q_loc (P, 15)."""
+        xh, xt, n = self.kinematics(q_loc, data)
+        return jnp.einsum("pi,pi->p", xh - xt, n)
+
+    def grad_hess_gauss_newton(self, q, params, data, dofs):
+        """Local gradients (P, 15) and Hessians (P, 15, 15) without the curvature term
+        a p p' grad^2 g of the gap (sliding; a sticking pair's are exact): a (p'^2 + p p'')
+        grad g grad g^T, positive semidefinite (``NewtonOptions.contact_curvature``). A
+        slave node pressed on the faceted master surface near a facet edge or on a curved
+        face has a negative tangential stiffness in that term."""
+        q_loc = q[dofs]
+        if self.mode == "sticking":
+            return self.local_grad_hess(q_loc, params, data)
+        g = self.local_gaps(q_loc, data)
+        G = jax.grad(lambda x: jnp.sum(self.local_gaps(x, data)))(q_loc)  # pair i: row i
+        a = params["scale"] * data["w"] * data["alpha"]
+        if self.smoothing is not None:
+            eps = data["eps"]
+            s = jax.nn.sigmoid(-g / eps)
+            p = eps * jnp.logaddexp(-g / eps, 0.0)
+            grad, h = (-a * p * s)[:, None] * G, a * (s * s + p * s * (1.0 - s) / eps)
+        else:
+            grad, h = (a * jnp.minimum(g, 0.0))[:, None] * G, a * (g < 0)
+        return grad, h[:, None, None] * G[:, :, None] * G[:, None, :]
 
     def _gaps(self, q):
         xh, xt, n = (np.asarray(a) for a in self.kinematics(np.asarray(q)[self.dofs], self.data))

@@ -292,3 +292,40 @@ def test_smoothed_sliding_contact_closed_form():
     Q *= np.sign(np.linalg.det(Q))
     x5 = at_gap(-0.003)
     assert energy(x5 @ Q.T + [1.0, -2.0, 0.5]) == pytest.approx(energy(x5), rel=1e-10)
+
+
+@pytest.mark.parametrize("smoothing", [None, 0.01])
+def test_surface_contact_gauss_newton_tangent_is_the_exact_one_less_the_gap_curvature(smoothing):
+    """The solver's modified tangent of node-to-segment contact (contact_curvature): the
+    energy's gradient, Hessian = exact Hessian - a p p' hess(g) (the gap's curvature
+    term, from autodiff of the gaps alone), positive semidefinite."""
+    import jax
+    import jax.numpy as jnp
+    from scipy.special import expit
+
+    lo = generators.box(1, 1, 0.5, 3, 3, 1, material="r")
+    hi = generators.box(1, 1, 0.5, 4, 4, 1, origin=(0, 0, 0.5), material="r")
+    m = merge(("lo", lo), ("hi", hi))
+    rng = np.random.default_rng(4)
+    q = 0.03 * rng.standard_normal(3 * m.n_nodes)
+    q[2::3][m.node_set("hi")] -= 0.02  # the upper block sunk into the lower one
+    t = SurfaceContact("c", m, "hi/z0", "lo/z1", penalty=1e3, smoothing=smoothing).update(q, None)
+    params = {"scale": 1.0}
+    q_loc = jnp.asarray(q[t.dofs])
+    g_gn, H_gn = (np.asarray(a) for a in t.grad_hess_gauss_newton(jnp.asarray(q), params, t.data,
+                                                                  t.dofs))
+    g_ex, H_ex = (np.asarray(a) for a in t.local_grad_hess(q_loc, params, t.data))
+    np.testing.assert_allclose(g_gn, g_ex, rtol=1e-12, atol=1e-12 * np.abs(g_ex).max())
+    gaps = np.asarray(t.local_gaps(q_loc, t.data))
+    a = t.data["w"] * t.data["alpha"]
+    assert (gaps[a > 0] < 0).sum() >= 5 and (gaps[a > 0] > 0).sum() >= 1
+    if smoothing is None:
+        c = a * np.minimum(gaps, 0.0)
+    else:
+        c = -a * smoothing * np.logaddexp(-gaps / smoothing, 0.0) * expit(-gaps / smoothing)
+    # pair i's gap depends on row i only: the Hessian of sum_i c_i g_i is block diagonal
+    full = np.asarray(jax.hessian(lambda x: jnp.sum(c * t.local_gaps(x, t.data)))(q_loc))
+    curv = np.stack([full[i, :, i, :] for i in range(len(gaps))])
+    np.testing.assert_allclose(H_gn + curv, H_ex, rtol=1e-9, atol=1e-9 * np.abs(H_ex).max())
+    assert np.abs(curv).max() > 1e-3 * np.abs(H_ex).max()  # the dropped term is not negligible
+    assert np.linalg.eigvalsh(H_gn).min() > -1e-9 * np.abs(H_gn).max()

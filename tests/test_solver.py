@@ -14,7 +14,7 @@ from eyefem import generators
 from eyefem.casefile import CaseError, load_case
 from eyefem.cli import main as cli_main
 from eyefem.linsolve import LinearSolveError, NegativeCurvature, SaddlePointSolver, available_backends
-from eyefem.materials import MooneyRivlin, mooney_rivlin, neo_hookean
+from eyefem.materials import MooneyRivlin, neo_hookean
 from eyefem.mesh import Mesh
 from eyefem.model import node_dofs, solid_model
 from eyefem.problems import PROBLEMS
@@ -62,7 +62,6 @@ def test_fast_element_hessian_equals_hessian_of_energy(cube):
 
 
 def test_energy_invariant_under_rigid_rotation(cube):
-    solid = cube.terms[0]
     rng = np.random.default_rng(2)
     X = cube.mesh.nodes
     u = 0.1 * rng.standard_normal(X.shape)
@@ -706,3 +705,15 @@ def test_a_failing_long_step_is_damped_to_max_step():
         NewtonOptions(max_step=0.0)
     with pytest.raises(ValueError, match=r"contact_curvature = -0.001; must be >= 0"):
         NewtonOptions(contact_curvature=-1e-3)
+
+
+def test_the_predictor_backs_off_to_a_state_without_inverted_elements():
+    from eyefem.solver import _predicted
+
+    q0, corr = np.array([1.0, 0.0, 0.0]), np.array([0.0, 2.0, -4.0])
+    # an element inverts once the second dof passes 0.6: the largest fraction short of it
+    inverted = lambda q: np.full(3, np.nan if q[1] > 0.6 else 1.0)
+    np.testing.assert_array_equal(_predicted(q0, corr, inverted), q0 + 0.25 * corr)
+    np.testing.assert_array_equal(_predicted(q0, corr, lambda q: q), q0 + corr)
+    # inverted even without the correction: the full one, for Newton to report
+    np.testing.assert_array_equal(_predicted(q0, corr, lambda q: np.full(3, np.inf)), q0 + corr)
