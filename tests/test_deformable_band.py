@@ -86,6 +86,12 @@ def test_tire_mesh_dimensions_sets_and_volume(kind):
     assert len(np.unique(groups)) == (81 if ridged else 81 * 9)
 
 
+def test_a_deformable_tire_off_the_coarse_mesh_is_flagged(caplog):
+    surgery(_params(mesh="medium", buckle="tire_flat"), None)
+    assert "deformable tire_flat on the medium eye mesh" in caplog.text
+    assert "coarse mesh only" in caplog.text
+
+
 def test_deformable_band_refuses_a_pulling_force():
     with pytest.raises(ValueError, match="band_tension"):
         surgery(_params(band_tension=0.2, tightening=0.0), None)

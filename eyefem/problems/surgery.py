@@ -255,11 +255,12 @@ def surgery(p, materials):
     b = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
     band = None
     sponge = deformable and not b.encircling
+    if deformable and p["mesh"] != "coarse":
+        log.warning("deformable %s on the %s eye mesh: deformable buckles have been run to the "
+                    "end on the coarse mesh only; on the default mesh the band's, tires' and "
+                    "sponge's load steps were cut on residual plateaus until they stopped "
+                    "(docs/surgery.md)", b.kind, p["mesh"])
     if sponge:  # parked SPONGE_PARK mm off the sclera until stage 2 fits it snug
-        if p["mesh"] != "coarse":
-            log.warning("deformable sponge on the %s eye mesh: it has been run to the end on "
-                        "the coarse mesh only; on the default mesh the last suture step did not "
-                        "converge (docs/surgery.md)", p["mesh"])
         mesh = with_band(mesh, sponge_mesh(b, g, p["mesh"], SPONGE_PARK), "sponge")
     elif deformable:  # parked BAND_PARK mm off the sclera until stage 2 fits it snug
         n_circ = band_n_circ(mesh, mesh.node_set("eye/sclera_outer"), b, g)
