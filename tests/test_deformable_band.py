@@ -80,6 +80,12 @@ def test_tire_mesh_dimensions_sets_and_volume(kind):
         flank = np.abs(np.einsum("ij,ij->i", nrm, c)) < 0.5 * np.linalg.norm(nrm, axis=1) * np.linalg.norm(c, axis=1)
         assert np.all(sign * np.einsum("ij,ij->i", nrm, c)[~flank] > 0)
         assert flank.sum() == (2 * 80 if ridged and name == "inner" else 0)  # ridge flanks
+    with pytest.raises(ValueError, match="kind 'sponge_radial'; the deformable encircling"):
+        deformable_band(Buckle("sponge_radial"), g, Ri, 80)
+    with pytest.raises(ValueError, match="n_circ = 8; must be an integer >= 12"):
+        deformable_band(b, g, Ri, 8)
+    with pytest.raises(ValueError, match="n_thick = 0"):
+        deformable_band(b, g, Ri, 80, n_thick=0)
     # fitted as columns (band, flat tire) or rigid cross-sections (ridged tire)
     groups = ring_fit_groups(b, 80)
     assert len(groups) == m.n_nodes
