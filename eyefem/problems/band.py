@@ -107,21 +107,21 @@ def fit_band(parts: SurgeryParts, scale: float, q):
     return mesh.replace(nodes=nodes)
 
 
-def _rereference(parts: SurgeryParts, new_mesh, scale: float):
+def rereference(parts: SurgeryParts, new_mesh, scale: float):
     """Take ``new_mesh`` (a deformable buckle's reference moved snug) as the eye's mesh."""
     parts.eye = dataclasses.replace(parts.eye, mesh=new_mesh)
     parts.scale = scale
     return new_mesh
 
 
-def _with_terms(model, parts: SurgeryParts, terms: dict) -> Model:
+def with_refitted_terms(model, parts: SurgeryParts, terms: dict) -> Model:
     """The model on the parts' (re-referenced) mesh with the solid and these terms new."""
     mesh = parts.eye.mesh
     new = {"solid": dataclasses.replace(model.term("solid"), mesh=mesh), **terms}
     return Model(mesh, tuple(new.get(t.name, t) for t in model.terms), model.n_dof)
 
 
-def _three_bar_tightening(p) -> np.ndarray:
+def three_bar_tightening(p) -> np.ndarray:
     """Shortening (mm) of each bar of three-bar sutures over a deformable buckle: the two
     bite bars by suture_tightening / 2 each, the bar over the buckle 0 (tied at its length)."""
     tight = np.zeros(3 * p["n_sutures"])

@@ -40,9 +40,9 @@ from ..surface import PressureLoad
 from ..sutures import generate_sutures
 from ..terms import DofForce, NodeSprings, OrbitSpring
 from ..units import MMHG
-from .band import (BAND_OUTPUTS, BAND_PARK, BandInfo, _rereference, _three_bar_tightening,
-                   _with_terms, band_contact_term, band_dofs, band_outcomes, band_spring_term,
-                   band_suture_term, fit_band, with_band)
+from .band import (BAND_OUTPUTS, BAND_PARK, BandInfo, band_contact_term, band_dofs,
+                   band_outcomes, band_spring_term, band_suture_term, fit_band, rereference,
+                   three_bar_tightening, with_band, with_refitted_terms)
 from .base import Setup
 from .sponge import (SPONGE_PARK, fit_sponge, sponge_contact_term, sponge_mesh,
                      sponge_spring_term, sponge_suture_term)
@@ -318,9 +318,9 @@ def surgery(p, materials):
         pressurised eye: its stress-free state is the snug fit."""
         model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
         scale = float(snug_scale(parts, q))
-        _rereference(parts, fit_band(parts, scale, q), scale)
+        rereference(parts, fit_band(parts, scale, q), scale)
         contact = band_contact_term(parts, SEED_MATERIALS["sclera"]).update(q, None)
-        model = _with_terms(model, parts, {"buckle": contact,
+        model = with_refitted_terms(model, parts, {"buckle": contact,
                                            "sutures": band_suture_term(parts),
                                            "band_springs": band_spring_term(parts)})
         return model, q, theta
@@ -330,9 +330,9 @@ def surgery(p, materials):
         pressurised eye."""
         model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
         scale = float(snug_scale(parts, q))
-        new_mesh = _rereference(parts, fit_sponge(parts.eye.mesh, b, g, p["mesh"], scale, q), scale)
+        new_mesh = rereference(parts, fit_sponge(parts.eye.mesh, b, g, p["mesh"], scale, q), scale)
         sut, parts.layout = sponge_suture_term(new_mesh, b, frame, p)
-        model = _with_terms(model, parts, {
+        model = with_refitted_terms(model, parts, {
             "buckle": sponge_contact_term(new_mesh, SEED_MATERIALS["sclera"]).update(q, None),
             "sutures": sut, "sponge_springs": sponge_spring_term(new_mesh, b, g)})
         return model, q, theta
@@ -346,7 +346,7 @@ def surgery(p, materials):
     if sponge:
         sponge_all = node_dofs(mesh.node_set("sponge"))
         parked = (np.r_[held[0], sponge_all], np.zeros(len(held[0]) + len(sponge_all)))
-        tight = _three_bar_tightening(p)
+        tight = three_bar_tightening(p)
         sponge_terms = ("cavity", "buckle", "sponge_springs")
         stages = [
             Stage("pressurise", p["steps_pressurise"], parked, params={"iop": {"p": p_iop}},
@@ -364,7 +364,7 @@ def surgery(p, materials):
         pulled_ends = (np.r_[fix, parts.extra_dof, bd["mid_z"], bd["end0_x"], bd["end1_x"]],
                        np.r_[np.zeros(len(fix) + 1 + len(bd["mid_z"])),
                              np.full(len(bd["end0_x"]), half), np.full(len(bd["end1_x"]), -half)])
-        tight = _three_bar_tightening(p)
+        tight = three_bar_tightening(p)
         band_terms = ("cavity", "buckle", "band_springs")
         stages = [
             Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
