@@ -321,8 +321,8 @@ def surgery(p, materials):
         rereference(parts, fit_band(parts, scale, q), scale)
         contact = band_contact_term(parts, SEED_MATERIALS["sclera"]).update(q, None)
         model = with_refitted_terms(model, parts, {"buckle": contact,
-                                           "sutures": band_suture_term(parts),
-                                           "band_springs": band_spring_term(parts)})
+                                                   "sutures": band_suture_term(parts),
+                                                   "band_springs": band_spring_term(parts)})
         return model, q, theta
 
     def place_sponge(model, q, theta):
