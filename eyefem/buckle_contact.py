@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .bars import rotate_z
-from .contact import node_areas
+from .contact import node_areas, penalty_gauss_newton
 from .mesh import Mesh
 from .terms import Term
 
@@ -196,13 +196,8 @@ class BuckleContact(Term):
         exceed the soft sclera's own and make the tangent near-singular."""
         q_loc = q[dofs]
         g = self.gaps(q_loc, params, data)
-        G = self.gap_gradients(q_loc, params, data)
-        eps, a = self.smoothing, data["alpha"]
-        s = jax.nn.sigmoid(-g / eps)
-        p = smooth_penetration(g, eps)
-        grad = (-a * p * s)[:, None] * G
-        h = a * (s * s + p * s * (1.0 - s) / eps)
-        return grad, h[:, None, None] * G[:, :, None] * G[:, None, :]
+        return penalty_gauss_newton(data["alpha"], g, self.gap_gradients(q_loc, params, data),
+                                    self.smoothing)
 
     def gap_linearisation(self, q_loc, dq_loc, params, data):
         g, dg = jax.jvp(lambda x: self.gaps(x, params, data), (q_loc,), (dq_loc,))

@@ -233,6 +233,17 @@ def project_to_quads(x, quads_x, cand, iters=25):
     return best
 
 
+def penalty_gauss_newton(a, g, G, eps):
+    """Gradients (n, k) and Gauss-Newton Hessians (n, k, k) of penalty energies
+    1/2 a p(g)^2, p = eps softplus(-g / eps), from the gaps g (n,) mm, their gradients
+    G (n, k) and a (n,) N/mm: a p p' G and a (p'^2 + p p'') G G^T (the term a p p'
+    grad^2 g of the surface's curvature dropped; positive semidefinite)."""
+    s = jax.nn.sigmoid(-g / eps)
+    p = eps * jnp.logaddexp(-g / eps, 0.0)
+    h = a * (s * s + p * s * (1.0 - s) / eps)
+    return (-a * p * s)[:, None] * G, h[:, None, None] * G[:, :, None] * G[:, None, :]
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class SurfaceContact(Term):
     """Node-to-segment penalty contact of a slave node set against a master face set.
@@ -367,11 +378,11 @@ class SurfaceContact(Term):
         if self.mode == "sticking":
             d = xh - xt
             return 0.5 * a * jnp.sum(d * d, axis=1)
+        g = jnp.einsum("pi,pi->p", xh - xt, n)
         if self.smoothing is not None:
-            g = jnp.einsum("pi,pi->p", xh - xt, n)
             p = data["eps"] * jnp.logaddexp(-g / data["eps"], 0.0)
             return 0.5 * a * p * p
-        g = jnp.minimum(jnp.einsum("pi,pi->p", xh - xt, n), 0.0)
+        g = jnp.minimum(g, 0.0)
         return 0.5 * a * g * g
 
     def local_gaps(self, q_loc, data):
@@ -392,12 +403,8 @@ class SurfaceContact(Term):
         G = jax.grad(lambda x: jnp.sum(self.local_gaps(x, data)))(q_loc)  # pair i: row i
         a = params["scale"] * data["w"] * data["alpha"]
         if self.smoothing is not None:
-            eps = data["eps"]
-            s = jax.nn.sigmoid(-g / eps)
-            p = eps * jnp.logaddexp(-g / eps, 0.0)
-            grad, h = (-a * p * s)[:, None] * G, a * (s * s + p * s * (1.0 - s) / eps)
-        else:
-            grad, h = (a * jnp.minimum(g, 0.0))[:, None] * G, a * (g < 0)
+            return penalty_gauss_newton(a, g, G, data["eps"])
+        grad, h = (a * jnp.minimum(g, 0.0))[:, None] * G, a * (g < 0)
         return grad, h[:, None, None] * G[:, :, None] * G[:, None, :]
 
     def _gaps(self, q):
