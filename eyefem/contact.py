@@ -40,7 +40,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .mesh import Mesh, boundary_faces
-from .rigid import RigidBody
 from .terms import Term
 
 log = logging.getLogger(__name__)
@@ -261,6 +260,13 @@ class SurfaceContact(Term):
       smoothing: sliding mode only: eps (mm) of a smoothed penetration eps softplus(-g / eps)
         in place of <-g> (as eyefem.buckle_contact): C-infinity, with stiffness at a
         touching gap, and a stand-off force alpha eps ln 2 / 2 at g = 0; None: plain.
+      normals: sliding mode: "facet" (the normal of the paired face, differentiated in
+        full) or "nodal": the master nodes' area-averaged normals interpolated at the
+        target point, n = normalize(sum_a N_a(xi) n_a), computed at each re-pairing and
+        held between them (the gap is then linear in the positions). Nodal normals are
+        continuous over the master surface: a slave node crossing a facet edge feels no
+        jump of the force direction, and its pairing flipping between the two facets of
+        an edge changes nothing (the same point, normal and nodes).
     """
 
     name: str
@@ -273,9 +279,16 @@ class SurfaceContact(Term):
     search_gap: float | None = None
     max_initial_penetration: float | None = None
     smoothing: float | None = None
+    normals: str = "facet"
     dynamic = True
 
     def __post_init__(self):
+        if self.normals not in ("facet", "nodal"):
+            raise ValueError(f"contact '{self.name}': normals '{self.normals}'; use 'facet' or "
+                             "'nodal'")
+        if self.normals == "nodal" and self.mode != "sliding":
+            raise ValueError(f"contact '{self.name}': normals 'nodal' needs mode 'sliding' "
+                             f"(mode '{self.mode}')")
         if self.smoothing is not None and not (self.smoothing > 0 and self.mode == "sliding"):
             raise ValueError(f"contact '{self.name}': smoothing = {self.smoothing} mm; needs "
                              "mode 'sliding' and a value > 0 (or None)")
@@ -299,7 +312,19 @@ class SurfaceContact(Term):
         self._pair(np.zeros(3 * self.mesh.n_nodes), initial=True)
 
     def static_key(self):
-        return (self.mode, self.smoothing is not None)
+        return (self.mode, self.smoothing is not None, self.normals)
+
+    def _nodal_normals(self, qx, f, xi):
+        """Unit normals (n, 3) at points xi (n, 2) of faces f (n,) interpolated from the
+        master nodes' normals (sums of the adjacent faces' area vectors, normalised);
+        qx (m, 4, 3) the faces' current node positions."""
+        area = 0.5 * np.cross(qx[:, 2] - qx[:, 0], qx[:, 3] - qx[:, 1])  # (m, 3)
+        nodal = np.zeros((self.mesh.n_nodes, 3))
+        np.add.at(nodal, self.faces.ravel(), np.repeat(area, 4, axis=0))
+        nodal /= np.maximum(np.linalg.norm(nodal, axis=1, keepdims=True), 1e-300)
+        N, _ = (np.asarray(a) for a in _shape(xi))
+        n = np.einsum("na,nai->ni", N, nodal[self.faces[f]])
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
 
     def _pair(self, q, initial=False):
         u = q[: 3 * self.mesh.n_nodes].reshape(-1, 3)
@@ -313,8 +338,11 @@ class SurfaceContact(Term):
         N, dN = (np.asarray(a) for a in _shape(xi))
         p = np.einsum("na,nai->ni", N, qx[f])
         t = np.einsum("nak,nai->nki", dN, qx[f])
-        nrm = np.cross(t[:, 0], t[:, 1])
-        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        if self.normals == "nodal":
+            nrm = self._nodal_normals(qx, f, xi)
+        else:
+            nrm = np.cross(t[:, 0], t[:, 1])
+            nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
         g = np.einsum("ni,ni->n", x - p, nrm)
         sg = self.search_gap if self.search_gap is not None else 1.5 * self.h
         inside = np.all(np.abs(xi) < 1 - 1e-9, axis=1) | (np.abs(g) < sg)
@@ -350,9 +378,12 @@ class SurfaceContact(Term):
         amap = dict(zip(self.nodes.tolist(), self.area.tolist()))
         area = np.array([amap.get(int(s), 1.0) for s in snode])
         object.__setattr__(self, "dofs", (3 * nodes5[:, :, None] + np.arange(3)).reshape(P, 15))
-        object.__setattr__(self, "data", {"X": self.mesh.nodes[nodes5], "xi": xi_p, "w": w,
-                                          "alpha": np.full(P, self.alpha), "area": area,
-                                          "eps": np.full(P, self.smoothing or 1.0)})
+        data = {"X": self.mesh.nodes[nodes5], "xi": xi_p, "w": w,
+                "alpha": np.full(P, self.alpha), "area": area,
+                "eps": np.full(P, self.smoothing or 1.0)}
+        if self.normals == "nodal":
+            data["n"] = np.concatenate([nrm[sel], np.tile([0.0, 0.0, 1.0], (pad, 1))])
+        object.__setattr__(self, "data", data)
         object.__setattr__(self, "n_pairs", len(slave_nodes))
 
     def update(self, q, params):
@@ -363,10 +394,13 @@ class SurfaceContact(Term):
 
     @staticmethod
     def kinematics(q_loc, data):
-        """Hitting node x_h (P, 3), target point x_t (P, 3), unit normal n_t (P, 3)."""
+        """Hitting node x_h (P, 3), target point x_t (P, 3), unit normal n_t (P, 3) (the
+        held nodal normal where data has one, "n")."""
         x = data["X"] + q_loc.reshape(-1, 5, 3)
         N, dN = _shape(data["xi"])
         xt = jnp.einsum("pa,pai->pi", N, x[:, 1:])
+        if "n" in data:
+            return x[:, 0], xt, data["n"]
         t = jnp.einsum("pak,pai->pki", dN, x[:, 1:])
         n = jnp.cross(t[:, 0], t[:, 1])
         n = n / jnp.linalg.norm(n, axis=1, keepdims=True)

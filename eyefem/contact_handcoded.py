@@ -13,6 +13,7 @@ four face nodes) D = [n, -N_1 n, ..., -N_4 n]:
 with dg = D + (the normal's variation), Dm = [I, -N_1 I, ..., -N_4 I] (3 x 15). The
 normal n = m / |m|, m = t_1 x t_2, t_k = sum_a N_a,k x_a is differentiated in full:
 dn = P dm / |m| (P = I - n n^T), d2m[u, v] = dt_1[u] x dt_2[v] + dt_1[v] x dt_2[u].
+With a held (nodal) normal n the gap is linear: dg = D = Dm^T n, d2g = 0.
 """
 
 from __future__ import annotations
@@ -38,13 +39,14 @@ def rigid_residual_tangent(x, c, n, alpha):
     return alpha * g * n, alpha * np.outer(n, n)
 
 
-def node_quad_residual_tangent(x5, xi, alpha, mode="sliding", smoothing=None):
+def node_quad_residual_tangent(x5, xi, alpha, mode="sliding", smoothing=None, normal=None):
     """Residual (15,) and tangent (15, 15) of a hitting node x5[0] against face x5[1:5].
 
     Args: x5 (5, 3) current positions, mm; xi (2,) parametric point; alpha N/mm;
       smoothing: eps (mm) of the smoothed penetration p = eps softplus(-g / eps) (energy
       1/2 alpha p^2: dE/dg = -alpha p s, d2E/dg2 = alpha (s^2 + p s (1 - s) / eps) with
-      s = sigmoid(-g / eps)); None: the plain penalty 1/2 alpha <-g>^2.
+      s = sigmoid(-g / eps)); None: the plain penalty 1/2 alpha <-g>^2; normal: a held
+      unit normal (3,) (nodal normals), None: the face's own.
     """
     N, dN = quad_shape(xi)
     Dm = np.hstack([np.eye(3)] + [-N[a] * np.eye(3) for a in range(4)])  # (3, 15)
@@ -52,6 +54,9 @@ def node_quad_residual_tangent(x5, xi, alpha, mode="sliding", smoothing=None):
     r = xh - N @ xf
     if mode == "sticking":
         return alpha * Dm.T @ r, alpha * Dm.T @ Dm
+    if normal is not None:
+        g, dg = float(r @ normal), Dm.T @ normal
+        return _penalty(g, dg, np.zeros((15, 15)), alpha, smoothing)
     t1, t2 = dN[:, 0] @ xf, dN[:, 1] @ xf
     m = np.cross(t1, t2)
     lm = np.linalg.norm(m)
@@ -77,7 +82,15 @@ def node_quad_residual_tangent(x5, xi, alpha, mode="sliding", smoothing=None):
             d2n_r = (-(r @ dnv) * (n @ dmu) / lm - g * (dnv @ dmu) / lm
                      - (n @ dmv) * (r @ P @ dmu) / lm**2 + r @ P @ d2m / lm)
             d2g[i, j] = dru @ dnv + drv @ dnu + d2n_r
+    return _penalty(g, dg, d2g, alpha, smoothing)
+
+
+def _penalty(g, dg, d2g, alpha, smoothing):
+    """Residual and tangent of the penalty energy at gap g with its first and second
+    derivatives dg (15,), d2g (15, 15)."""
     if smoothing is None:
+        if g >= 0:
+            return np.zeros(15), np.zeros((15, 15))
         return alpha * g * dg, alpha * (np.outer(dg, dg) + g * d2g)
     sg = 1.0 / (1.0 + np.exp(g / smoothing))  # sigmoid(-g / eps)
     pen = smoothing * np.logaddexp(-g / smoothing, 0.0)
@@ -122,7 +135,7 @@ def _rigid_check(rng):
                      f"gap {float((x - c - d * dirv) @ n):.3f} mm, moving body")
 
 
-def _surface_check(mode, smoothing=None):
+def _surface_check(mode, smoothing=None, nodal=False):
     def check(rng):
         import jax
         import jax.numpy as jnp
@@ -140,6 +153,11 @@ def _surface_check(mode, smoothing=None):
         alpha = 40.0
         data = {"X": X[None], "xi": xi[None], "w": np.ones(1), "alpha": np.full(1, alpha),
                 "area": np.ones(1), "eps": np.full(1, smoothing or 1.0)}
+        normal = None
+        if nodal:  # a held normal tilted off the face's
+            normal = np.array([0.1, -0.15, 1.0]) + 0.05 * rng.standard_normal(3)
+            normal /= np.linalg.norm(normal)
+            data["n"] = normal[None]
         term = SurfaceContact.__new__(SurfaceContact)  # the kernel only: no mesh needed
         object.__setattr__(term, "mode", mode)
         object.__setattr__(term, "smoothing", smoothing)
@@ -149,12 +167,13 @@ def _surface_check(mode, smoothing=None):
 
         grad = jax.jit(jax.grad(energy))
         u = (x5 - X).ravel()
-        r_h, K_h = node_quad_residual_tangent(x5, xi, alpha, mode, smoothing)
+        r_h, K_h = node_quad_residual_tangent(x5, xi, alpha, mode, smoothing, normal)
         return CheckData(np.asarray(grad(jnp.asarray(u))), r_h,
                          np.asarray(jax.hessian(energy)(jnp.asarray(u))), K_h,
                          lambda y: np.asarray(grad(jnp.asarray(y))), u,
                          f"node on a warped quad, {mode}"
-                         + (f", smoothed (eps {smoothing} mm)" if smoothing else ""))
+                         + (f", smoothed (eps {smoothing} mm)" if smoothing else "")
+                         + (", held nodal normal" if nodal else ""))
 
     return check
 
@@ -167,3 +186,5 @@ def register_checks():
     register_check("surface_contact_sliding", _surface_check("sliding"))
     register_check("surface_contact_sticking", _surface_check("sticking"))
     register_check("surface_contact_smoothed", _surface_check("sliding", smoothing=0.02))
+    register_check("surface_contact_nodal_normals",
+                   _surface_check("sliding", smoothing=0.02, nodal=True))

@@ -324,6 +324,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
             flips.append(nf2)
             model, r, rf, nf, frozen = repaired, r2, r2[free], nf2, False
             asm.model = model
+            history, best = [], None  # the iterates before are out of balance with this pairing
         elif nf <= opts.contact_freeze * fref and any(t.dynamic for t in model.terms):
             frozen = True
         history.append(nf)
@@ -332,13 +333,22 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         k = opts.stall_iterations
         # stalled: the best residual of the last k iterations is not 10% below the best
         # before them (on a plateau the residual wanders up and down)
-        stalled = it >= k and min(history[-k:]) > 0.9 * min(history[:-k])
+        stalled = len(history) > k and min(history[-k:]) > 0.9 * min(history[:-k])
         if not final and stalled and best is not None and best[0] <= opts.stall_rtol * fref:
-            log.warning("step accepted on a stall: |r_u| = %.3e N, the best of %d iterations "
-                        "(%.1e of the reference %.3e N; tolerance %.1e)", best[0], it,
-                        best[0] / fref, fref, opts.rtol)
-            asm.model = best[2]
-            return best[2], best[1], it, best[0], solver, fref, "stall"
+            accepted, nf_best = best[2], best[0]
+            if frozen:  # balanced with the frozen pairs: accepted only if it is re-paired too
+                accepted = best[2].update(best[1], theta)
+                nf_best = np.linalg.norm(accepted.gradient(best[1], theta, active)[free])
+            if nf_best <= opts.stall_rtol * fref:
+                log.warning("step accepted on a stall: |r_u| = %.3e N, the best of %d "
+                            "iterations (%.1e of the reference %.3e N; tolerance %.1e)",
+                            nf_best, it, nf_best / fref, fref, opts.rtol)
+                asm.model = accepted
+                return accepted, best[1], it, nf_best, solver, fref, "stall"
+            log.debug("  stalled with the pairs frozen; re-paired, %.3e N: pairs released",
+                      nf_best)
+            frozen, history, best = False, [], None
+            continue
         if opts.stall_cut and stalled and min(history) <= opts.modified_newton * fref:
             raise _StepFailed(f"stalled at |r_u| = {nf:.3e} N (reference {fref:.3e} N, volume "
                               f"residual {nm:.2e}) after {it} iterations")

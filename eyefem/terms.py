@@ -202,20 +202,22 @@ class NodeSprings(Term):
 @dataclasses.dataclass(frozen=True, eq=False)
 class OrbitSpring(Term):
     """Springs on the rigid-body motion of a ring of nodes: its best-fit small rotation
-    about the x, y, z axes through the ring's centroid c and its mean lateral (x, y)
-    translation (or the translation along two other directions, ``shift_axes``).
+    about the x, y, z axes through the ring's centroid c, its mean lateral (x, y)
+    translation (or the translation along two other directions, ``shift_axes``) and its
+    mean axial translation (along the normal of those two: z by default).
 
     rotation theta = I^-1 sum_i r_i x u_i (rad; r_i = X_i - c, I = sum_i |r_i|^2 1 - r_i r_i^T:
     the rigid rotation that best fits u), translation t = mean_i u_i (mm); energy
-    1/2 sum_a k_a theta_a^2 + 1/2 k_t (t_x^2 + t_y^2). A deformation with no net
-    rotation or lateral shift (any one symmetric about the x = 0 and y = 0 planes)
-    stores nothing and feels no force.
+    1/2 sum_a k_a theta_a^2 + 1/2 k_t (t_x^2 + t_y^2) + 1/2 k_z t_z^2. A deformation with
+    no net rotation or shift (any one symmetric about the x = 0 and y = 0 planes, with
+    k_z = 0) stores nothing and feels no force.
 
     Args: name; nodes (n,) node ids; xyz (n, 3) their reference positions, mm;
       k_rot: rotational stiffnesses about x, y, z, N mm/rad (3,); k_trans: lateral
-      stiffness, N/mm (params {"k": (5,)}: k_rot then k_trans twice); shift_axes: (2, 3)
-      unit directions of the restrained translation (default x and y; a deformable sponge
-      uses its across and along directions, leaving free its motion into the sclera).
+      stiffness, N/mm; k_axial: axial stiffness, N/mm (params {"k": (6,)}: k_rot, k_trans
+      twice, k_axial); shift_axes: (2, 3) unit directions of the lateral translation
+      (default x and y; a deformable sponge uses its across and along directions, leaving
+      free its motion into the sclera).
     """
 
     name: str
@@ -224,21 +226,25 @@ class OrbitSpring(Term):
     k_rot: tuple = (1.0, 1.0, 1.0)
     k_trans: float = 0.0
     shift_axes: tuple | None = None
+    k_axial: float = 0.0
 
     def __post_init__(self):
         n = np.asarray(self.nodes, np.int64).ravel()
         axes = np.eye(3)[:2] if self.shift_axes is None else np.asarray(self.shift_axes, float)
-        if axes.shape != (2, 3) or not np.allclose(np.linalg.norm(axes, axis=1), 1.0):
+        if (axes.shape != (2, 3) or not np.allclose(np.linalg.norm(axes, axis=1), 1.0)
+                or np.linalg.norm(np.cross(axes[0], axes[1])) < 1e-6):
             raise ValueError(f"orbit spring '{self.name}': shift_axes = {self.shift_axes}; "
-                             "expected two unit vectors (2, 3)")
+                             "expected two unit, non-parallel vectors (2, 3)")
         r = np.asarray(self.xyz, np.float64).reshape(len(n), 3)
         r = r - r.mean(axis=0)
         inertia = np.sum(r * r) * np.eye(3) - r.T @ r
-        k = np.r_[np.asarray(self.k_rot, np.float64).ravel(), self.k_trans, self.k_trans]
-        if len(k) != 5 or np.any(k < 0) or np.linalg.cond(inertia) > 1e12:
+        k = np.r_[np.asarray(self.k_rot, np.float64).ravel(), self.k_trans, self.k_trans,
+                  self.k_axial]
+        if len(k) != 6 or np.any(k < 0) or np.linalg.cond(inertia) > 1e12:
             raise ValueError(f"orbit spring '{self.name}': k_rot = {self.k_rot} N mm/rad (three "
-                             f"values >= 0), k_trans = {self.k_trans} N/mm (>= 0), on {len(n)} "
-                             "nodes that must not lie on one line")
+                             f"values >= 0), k_trans = {self.k_trans} N/mm and k_axial = "
+                             f"{self.k_axial} N/mm (>= 0), on {len(n)} nodes that must not "
+                             "lie on one line")
         object.__setattr__(self, "dofs", (3 * n[:, None] + np.arange(3)).reshape(1, -1))
         object.__setattr__(self, "params", {"k": k})
         # d (sum r x u) / du per node: the rows of -[r]x, (3, n, 3)
@@ -246,12 +252,15 @@ class OrbitSpring(Term):
         cross = np.stack([np.stack([z, -r[:, 2], r[:, 1]], 1), np.stack([r[:, 2], z, -r[:, 0]], 1),
                           np.stack([-r[:, 1], r[:, 0], z], 1)])
         rot = np.linalg.solve(inertia, cross.reshape(3, -1))
+        normal = np.cross(axes[0], axes[1])
+        axes = np.vstack([axes, normal / np.linalg.norm(normal)])
         shift = np.repeat(axes[:, None, :], len(n), axis=1) / len(n)
-        modes = np.vstack([rot, shift.reshape(2, -1)])  # (5, 3n): d (theta, t_xy) / du
+        modes = np.vstack([rot, shift.reshape(3, -1)])  # (6, 3n): d (theta, t) / du
         object.__setattr__(self, "data", {"modes": modes[None]})
 
     def motion(self, q):
-        """(rotation about x, y, z (rad), translation along the shift axes (mm)) at q."""
+        """(rotation about x, y, z (rad), translation along the shift axes and the axial
+        direction (mm)) at q (6,)."""
         return self.data["modes"][0] @ np.asarray(q)[self.dofs[0]]
 
     def local_energy(self, q_loc, params, data):
@@ -262,7 +271,7 @@ class OrbitSpring(Term):
         m = self.motion(q)
         deg = np.degrees(m[:3])
         return {"twist_deg": float(deg[2]), "tilt_deg": float(np.hypot(deg[0], deg[1])),
-                "shift_mm": float(np.hypot(m[3], m[4])),
+                "shift_mm": float(np.hypot(m[3], m[4])), "axial_shift_mm": float(m[5]),
                 "moment_Nmm": float(np.linalg.norm(params["k"][:3] * m[:3])),
                 "force_N": float(np.linalg.norm(params["k"][3:] * m[3:]))}
 

@@ -187,20 +187,21 @@ def _orbit_check(rng, tilted=False):
     """The orbit springs on a perturbed ring of 12 nodes, displaced at random. Hand-coded:
     each rigid mode's unit-amplitude field (a rotation about an axis through the
     centroid, a shift along an axis) projected by least squares, r = sum k_a m_a (m_a . u).
-    ``tilted``: the shifts along two random orthonormal directions (``shift_axes``)."""
+    ``tilted``: the lateral shifts along two random orthonormal directions (``shift_axes``),
+    the axial one along their normal."""
     phi = 2 * np.pi * np.arange(12) / 12
     X = np.stack([11 * np.cos(phi), 11 * np.sin(phi), np.zeros(12)], 1) + 0.3 * rng.standard_normal((12, 3))
-    k = np.array([5.0, 6.0, 7.0, 0.8, 0.8])
-    axes = np.linalg.qr(rng.standard_normal((3, 3)))[0][:, :2].T if tilted else np.eye(3)[:2]
-    term = OrbitSpring("orbit", np.arange(12), X, k_rot=tuple(k[:3]), k_trans=0.8,
-                       shift_axes=tuple(map(tuple, axes)) if tilted else None)
+    k = np.array([5.0, 6.0, 7.0, 0.8, 0.8, 0.3])
+    axes = np.linalg.qr(rng.standard_normal((3, 3)))[0].T if tilted else np.eye(3)
+    term = OrbitSpring("orbit", np.arange(12), X, k_rot=tuple(k[:3]), k_trans=0.8, k_axial=0.3,
+                       shift_axes=tuple(map(tuple, axes[:2])) if tilted else None)
     u = 0.05 * rng.standard_normal(36)
     kern = jax.jit(term.local_grad_hess)
     g, H = kern(jnp.asarray(u)[None], term.params, term.data)
     c = X.mean(axis=0)
     fields = [np.cross(np.eye(3)[a], X - c).ravel() for a in range(3)]
-    fields += [np.tile(axes[a], 12) for a in range(2)]
-    A = np.stack(fields, 1)  # (36, 5): u ~ A m, least squares m = (A^T A)^-1 A^T u
+    fields += [np.tile(axes[a], 12) for a in range(3)]
+    A = np.stack(fields, 1)  # (36, 6): u ~ A m, least squares m = (A^T A)^-1 A^T u
     M = np.linalg.solve(A[:, :3].T @ A[:, :3], A[:, :3].T)  # rotations fitted about c
     M = np.vstack([M, A[:, 3:].T / 12])  # shifts: mean displacement
     K_hand = M.T @ np.diag(k) @ M

@@ -329,3 +329,50 @@ def test_surface_contact_gauss_newton_tangent_is_the_exact_one_less_the_gap_curv
     np.testing.assert_allclose(H_gn + curv, H_ex, rtol=1e-9, atol=1e-9 * np.abs(H_ex).max())
     assert np.abs(curv).max() > 1e-3 * np.abs(H_ex).max()  # the dropped term is not negligible
     assert np.linalg.eigvalsh(H_gn).min() > -1e-9 * np.abs(H_gn).max()
+
+
+@pytest.mark.parametrize("normals", ["facet", "nodal"])
+def test_nodal_normals_carry_the_force_continuously_over_a_facet_edge(normals):
+    """A node pressed 0.01 mm into a roof of two faces meeting at a ridge (slopes +-0.2):
+    on either side of the ridge, with facet normals its force turns by 2 x 11.3 degrees
+    (the faces' normals (-+0.196, 0, 0.981)); with nodal normals it is continuous and
+    vertical at the ridge (the ridge nodes' normal (0, 0, 1)), the same whichever face
+    it is paired with. Either way the pair's forces sum to zero."""
+    import jax
+
+    lo = generators.box(2, 1, 0.5, 2, 1, 1, material="r")
+    hi = generators.box(0.2, 0.2, 0.2, 1, 1, 1, origin=(0.9, 0.4, 0.8), material="r")
+    m = merge(("lo", lo), ("hi", hi))
+    X = m.nodes
+    ridge = np.flatnonzero(np.isclose(X[:, 0], 1.0) & np.isclose(X[:, 2], 0.5))
+    ridge = ridge[np.isin(ridge, m.node_set("lo"))]
+    node = int(m.node_set("hi/z0")[np.argmin(np.linalg.norm(X[m.node_set("hi/z0")] - [0.9, 0.4, 0.8],
+                                                               axis=1))])
+    alpha = 1e3
+
+    def force(x):
+        q = np.zeros(3 * m.n_nodes)
+        q[3 * ridge + 2] = 0.2
+        q[3 * node: 3 * node + 3] = np.array([x, 0.5, 0.7 - 0.2 * abs(x - 1.0) - 0.01]) - X[node]
+        t = SurfaceContact("c", m, "hi/z0", "lo/z1", penalty=alpha, normals=normals).update(q, None)
+        g = np.asarray(jax.grad(lambda y: t.energy(y, t.params, t.data, t.dofs))(q))
+        assert np.abs(g.reshape(-1, 3).sum(axis=0)).max() < 1e-12 * np.abs(g).max()
+        return -g[3 * node: 3 * node + 3]
+
+    left, right = force(1.0 - 1e-4), force(1.0 + 1e-4)
+    size = np.linalg.norm(left)
+    assert size == pytest.approx(alpha * 0.01, rel=0.05)  # depth along the normal
+    if normals == "nodal":
+        np.testing.assert_allclose(right, left, atol=1e-3 * size)
+        assert abs(left[0]) < 1e-3 * size and left[2] > 0
+    else:
+        np.testing.assert_allclose([left[0], right[0]], [-0.196 * size, 0.196 * size], rtol=0.02)
+
+
+def test_nodal_normals_need_sliding_contact():
+    m = merge(("lo", generators.box(1, 1, 0.5, 2, 2, 1, material="r")),
+              ("hi", generators.box(1, 1, 0.5, 3, 3, 1, origin=(0, 0, 0.6), material="r")))
+    with pytest.raises(ValueError, match="normals 'nodal' needs mode 'sliding'"):
+        SurfaceContact("c", m, "hi/z0", "lo/z1", mode="sticking", normals="nodal")
+    with pytest.raises(ValueError, match="normals 'smooth'; use 'facet' or 'nodal'"):
+        SurfaceContact("c", m, "hi/z0", "lo/z1", normals="smooth")

@@ -122,13 +122,14 @@ def test_band_pull_term_is_the_work_of_the_tension():
         DofForce("pull", -1)
 
 
-def test_orbit_spring_holds_rotations_and_lateral_shift_with_the_given_stiffnesses():
+def test_orbit_spring_holds_rotations_and_shifts_with_the_given_stiffnesses():
     """The orbit's hold: a small rigid rotation delta about the x, y or z axis through the
     equatorial ring's centre stores 1/2 K delta^2 (K the case's globe_rotation or
     globe_torsion, N mm/rad), a lateral shift s stores 1/2 K_t s^2 (globe_translation,
-    N/mm); an axial shift and a deformation symmetric about x = 0 and y = 0 (radial,
-    axial) store nothing. The gradient against the planar ring's hand-coded modes:
-    twist (-y, x, 0) / sum rho^2, tilt about x (0, 0, y) / sum y^2, shift 1/n."""
+    N/mm), an axial one 1/2 K_z s^2 (globe_axial; nothing with the default 0); a
+    deformation symmetric about x = 0 and y = 0 (radial, axial) stores nothing. The
+    gradient against the planar ring's hand-coded modes: twist (-y, x, 0) / sum rho^2,
+    tilt about x (0, 0, y) / sum y^2, shifts 1/n."""
     import jax
     import numpy as np
 
@@ -137,7 +138,7 @@ def test_orbit_spring_holds_rotations_and_lateral_shift_with_the_given_stiffness
 
     mesh = build_eye(EyeGeometry(), "coarse").mesh
     outer = np.unique(mesh.face_set("eye/sclera_outer"))
-    p = {"globe_rotation": 5.0, "globe_torsion": 7.0, "globe_translation": 0.8}
+    p = {"globe_rotation": 5.0, "globe_torsion": 7.0, "globe_translation": 0.8, "globe_axial": 0.0}
     t = orbit_spring(mesh, outer, p)
     X = mesh.nodes
     c = X[t.nodes].mean(axis=0)
@@ -156,10 +157,14 @@ def test_orbit_spring_holds_rotations_and_lateral_shift_with_the_given_stiffness
     for axis in (0, 1):
         assert energy(np.tile(0.01 * np.eye(3)[axis], (len(X), 1))) == pytest.approx(
             0.5 * 0.8 * 0.01**2, rel=1e-12)
-    assert energy(np.tile([0.0, 0.0, 0.3], (len(X), 1))) == pytest.approx(0.0, abs=1e-20)
+    u_axial = np.tile([0.0, 0.0, 0.3], (len(X), 1))
+    assert energy(u_axial) == pytest.approx(0.0, abs=1e-20)
     rho = np.hypot(X[:, 0], X[:, 1])
     u_sym = np.stack([0.1 * X[:, 0], 0.1 * X[:, 1], 0.05 * np.cos(rho)], axis=1)
     assert energy(u_sym) == pytest.approx(0.0, abs=1e-20)
+    t = orbit_spring(mesh, outer, {**p, "globe_axial": 0.6})
+    assert energy(u_axial) == pytest.approx(0.5 * 0.6 * 0.3**2, rel=1e-12)
+    assert t.report(u_axial.ravel(), t.params)["axial_shift_mm"] == pytest.approx(0.3, rel=1e-12)
     rng = np.random.default_rng(0)
     q_loc = rng.standard_normal(t.dofs.shape)
     Xr = X[t.nodes]
@@ -168,9 +173,10 @@ def test_orbit_spring_holds_rotations_and_lateral_shift_with_the_given_stiffness
              np.stack([zero, zero, -Xr[:, 0]], 1) / np.sum(Xr[:, 0] ** 2),
              np.stack([-Xr[:, 1], Xr[:, 0], zero], 1) / np.sum(Xr[:, :2] ** 2),
              np.stack([zero + 1, zero, zero], 1) / len(Xr),
-             np.stack([zero, zero + 1, zero], 1) / len(Xr)]
+             np.stack([zero, zero + 1, zero], 1) / len(Xr),
+             np.stack([zero, zero, zero + 1], 1) / len(Xr)]
     g_hand = sum(k * (q_loc[0] @ w.ravel()) * w.ravel()
-                 for k, w in zip((5.0, 5.0, 7.0, 0.8, 0.8), modes))
+                 for k, w in zip((5.0, 5.0, 7.0, 0.8, 0.8, 0.6), modes))
     g_ad = jax.grad(lambda q: t.local_energy(q, t.params, t.data).sum())(q_loc)
     np.testing.assert_allclose(np.asarray(g_ad)[0], g_hand, rtol=1e-10, atol=1e-14)
     with pytest.raises(ValueError, match="k_trans = -1.0 N/mm"):

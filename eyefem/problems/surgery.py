@@ -98,6 +98,9 @@ SURGERY_FIELDS = [
     Field("globe_translation", float, 1.0, "the orbit's hold on the globe's lateral (x, y) "
           "translation (orbital fat, Tenon's capsule), N/mm; 0: the nerve stub alone",
           lambda v: v >= 0, ">= 0"),
+    Field("globe_axial", float, 0.0, "the orbit's hold on the globe's axial (z) translation, "
+          "N/mm; 0: the nerve stub alone (the deformable buckles' case files set 1.0)",
+          lambda v: v >= 0, ">= 0"),
     Field("steps_pressurise", int, 2, "load steps of stage 1", positive, ">= 1"),
     Field("steps_tighten", int, 8, "load steps of stage 2", positive, ">= 1"),
     Field("steps_suture", int, 3, "load steps of stage 3", positive, ">= 1"),
@@ -494,7 +497,7 @@ def orbit_spring(mesh, sclera_nodes, p) -> OrbitSpring:
     ring = np.abs(X[:, 2] - X[np.argmax(rho), 2]) < 1e-6
     k_rot = (p["globe_rotation"], p["globe_rotation"], p["globe_torsion"])
     return OrbitSpring("orbit", sclera_nodes[ring], X[ring], k_rot=k_rot,
-                       k_trans=p["globe_translation"])
+                       k_trans=p["globe_translation"], k_axial=p["globe_axial"])
 
 
 def _buckle_coords(parts: SurgeryParts):
