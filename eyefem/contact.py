@@ -232,6 +232,64 @@ def project_to_quads(x, quads_x, cand, iters=25):
     return best
 
 
+_NAGATA_EDGES = ((0, 1), (1, 2), (3, 2), (0, 3))
+"""A face's edges (from node, to node) along s = (xi_0 + 1) / 2 at t = 0, along t at s = 1,
+along s at t = 1, along t at s = 0 (t = (xi_1 + 1) / 2)."""
+
+
+def nagata_coefficients(xf, n4, xnp=np):
+    """Curvature vectors c (n, 4, 3) of a face's edges (_NAGATA_EDGES): the edge from x_i to
+    x_j is the quadratic x(s) = (1 - s) x_i + s x_j - s (1 - s) c, c the least-norm vector
+    with its end tangents normal to the unit nodal normals n_i, n_j (Nagata 2005):
+    c = alpha n_i + beta n_j, c . n_i = d . n_i, c . n_j = -d . n_j (d = x_j - x_i); a
+    straight edge where n_i and n_j are parallel. Linear in the positions xf (n, 4, 3) for
+    given normals n4 (n, 4, 3)."""
+    cs = []
+    for i, j in _NAGATA_EDGES:
+        d, ni, nj = xf[:, j] - xf[:, i], n4[:, i], n4[:, j]
+        gam = xnp.sum(ni * nj, axis=-1)
+        a_i, a_j = xnp.sum(d * ni, axis=-1), xnp.sum(d * nj, axis=-1)
+        den = 1.0 - gam * gam
+        ok = den > 1e-10
+        den = xnp.where(ok, den, 1.0)
+        alpha = xnp.where(ok, (a_i + gam * a_j) / den, 0.0)
+        beta = xnp.where(ok, -(a_j + gam * a_i) / den, 0.0)
+        cs.append(alpha[:, None] * ni + beta[:, None] * nj)
+    return xnp.stack(cs, axis=1)
+
+
+def nagata_patch(xi, xf, n4, xnp=np):
+    """Point (n, 3) and tangents d/dxi (n, 2, 3) of the quadratic Nagata patch through a
+    face's nodes xf (n, 4, 3) with nodal normals n4 (n, 4, 3) at xi (n, 2) in [-1, 1]^2:
+    the bilinear face less the edges' curvature terms blended over it,
+    x = sum_a N_a x_a - c_1 s(1-s)(1-t) - c_2 s t(1-t) - c_3 s(1-s) t - c_4 (1-s) t(1-t).
+    Neighbouring patches share their edge curves (continuous surface), and the tangent
+    planes at the nodes are normal to n_a (the normal's jump across an edge is of second
+    order in the facet angle, not of first as between flat faces)."""
+    N, dN = _shape(xi)
+    c = nagata_coefficients(xf, n4, xnp)
+    s, t = 0.5 * (xi[:, 0] + 1.0), 0.5 * (xi[:, 1] + 1.0)
+    b = xnp.stack([s * (1 - s) * (1 - t), s * t * (1 - t), s * (1 - s) * t, (1 - s) * t * (1 - t)], 1)
+    bs = xnp.stack([(1 - 2 * s) * (1 - t), t * (1 - t), (1 - 2 * s) * t, -t * (1 - t)], 1)
+    bt = xnp.stack([-s * (1 - s), s * (1 - 2 * t), s * (1 - s), (1 - s) * (1 - 2 * t)], 1)
+    x = xnp.einsum("na,nai->ni", N, xf) - xnp.einsum("ne,nei->ni", b, c)
+    tan = xnp.einsum("nak,nai->nki", dN, xf) - 0.5 * xnp.stack(
+        [xnp.einsum("ne,nei->ni", bs, c), xnp.einsum("ne,nei->ni", bt, c)], axis=1)
+    return x, tan
+
+
+def project_to_patches(x, xf, n4, xi, iters=12):
+    """Closest points xi (n, 2) (clipped to the face) of points x (n, 3) on the Nagata
+    patches of faces xf (n, 4, 3) with normals n4, from xi (n, 2) (Gauss-Newton)."""
+    for _ in range(iters):
+        p, tan = (np.asarray(a) for a in nagata_patch(xi, xf, n4))
+        A = np.einsum("nki,nli->nkl", tan, tan)
+        b = np.einsum("nki,ni->nk", tan, x - p)
+        step = np.linalg.solve(A + 1e-14 * np.eye(2), b[..., None])[..., 0]
+        xi = np.clip(xi + step, -1.0, 1.0)
+    return xi
+
+
 def penalty_gauss_newton(a, g, G, eps):
     """Gradients (n, k) and Gauss-Newton Hessians (n, k, k) of penalty energies
     1/2 a p(g)^2, p = eps softplus(-g / eps), from the gaps g (n,) mm, their gradients
@@ -260,13 +318,13 @@ class SurfaceContact(Term):
       smoothing: sliding mode only: eps (mm) of a smoothed penetration eps softplus(-g / eps)
         in place of <-g> (as eyefem.buckle_contact): C-infinity, with stiffness at a
         touching gap, and a stand-off force alpha eps ln 2 / 2 at g = 0; None: plain.
-      normals: sliding mode: "facet" (the normal of the paired face, differentiated in
-        full) or "nodal": the master nodes' area-averaged normals interpolated at the
-        target point, n = normalize(sum_a N_a(xi) n_a), computed at each re-pairing and
-        held between them (the gap is then linear in the positions). Nodal normals are
-        continuous over the master surface: a slave node crossing a facet edge feels no
-        jump of the force direction, and its pairing flipping between the two facets of
-        an edge changes nothing (the same point, normal and nodes).
+      normals: sliding mode: "facet" (the flat bilinear faces) or "nodal": the master
+        surface is the quadratic Nagata patches (:func:`nagata_patch`) through the faces'
+        nodes with their area-averaged nodal normals (computed at each re-pairing, held
+        between them): continuous, with a tangent plane that turns smoothly over an edge
+        where the flat faces' jumps by the angle between them, so a slave node sliding
+        across a facet edge feels no jump of the force direction. The target point, gap
+        and normal are then taken on the patch as on a face.
     """
 
     name: str
@@ -314,17 +372,14 @@ class SurfaceContact(Term):
     def static_key(self):
         return (self.mode, self.smoothing is not None, self.normals)
 
-    def _nodal_normals(self, qx, f, xi):
-        """Unit normals (n, 3) at points xi (n, 2) of faces f (n,) interpolated from the
-        master nodes' normals (sums of the adjacent faces' area vectors, normalised);
-        qx (m, 4, 3) the faces' current node positions."""
+    def _nodal_normals(self, qx):
+        """Unit normals (m, 4, 3) of the master faces' nodes: the sums of the adjacent
+        faces' area vectors, normalised; qx (m, 4, 3) the faces' node positions."""
         area = 0.5 * np.cross(qx[:, 2] - qx[:, 0], qx[:, 3] - qx[:, 1])  # (m, 3)
         nodal = np.zeros((self.mesh.n_nodes, 3))
         np.add.at(nodal, self.faces.ravel(), np.repeat(area, 4, axis=0))
         nodal /= np.maximum(np.linalg.norm(nodal, axis=1, keepdims=True), 1e-300)
-        N, _ = (np.asarray(a) for a in _shape(xi))
-        n = np.einsum("na,nai->ni", N, nodal[self.faces[f]])
-        return n / np.linalg.norm(n, axis=1, keepdims=True)
+        return nodal[self.faces]
 
     def _pair(self, q, initial=False):
         u = q[: 3 * self.mesh.n_nodes].reshape(-1, 3)
@@ -339,7 +394,12 @@ class SurfaceContact(Term):
         p = np.einsum("na,nai->ni", N, qx[f])
         t = np.einsum("nak,nai->nki", dN, qx[f])
         if self.normals == "nodal":
-            nrm = self._nodal_normals(qx, f, xi)
+            n4_all = self._nodal_normals(qx)
+            n4 = n4_all[f]
+            xi = project_to_patches(x, qx[f], n4, xi)
+            p, t = (np.asarray(a) for a in nagata_patch(xi, qx[f], n4))
+            nrm = np.cross(t[:, 0], t[:, 1])
+            nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
         else:
             nrm = np.cross(t[:, 0], t[:, 1])
             nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
@@ -382,7 +442,7 @@ class SurfaceContact(Term):
                 "alpha": np.full(P, self.alpha), "area": area,
                 "eps": np.full(P, self.smoothing or 1.0)}
         if self.normals == "nodal":
-            data["n"] = np.concatenate([nrm[sel], np.tile([0.0, 0.0, 1.0], (pad, 1))])
+            data["n4"] = np.concatenate([n4[sel], np.repeat(n4_all[:1], pad, axis=0)])
         object.__setattr__(self, "data", data)
         object.__setattr__(self, "n_pairs", len(slave_nodes))
 
@@ -394,14 +454,15 @@ class SurfaceContact(Term):
 
     @staticmethod
     def kinematics(q_loc, data):
-        """Hitting node x_h (P, 3), target point x_t (P, 3), unit normal n_t (P, 3) (the
-        held nodal normal where data has one, "n")."""
+        """Hitting node x_h (P, 3), target point x_t (P, 3), unit normal n_t (P, 3) (on the
+        Nagata patch of held nodal normals where data has them, "n4" (P, 4, 3))."""
         x = data["X"] + q_loc.reshape(-1, 5, 3)
-        N, dN = _shape(data["xi"])
-        xt = jnp.einsum("pa,pai->pi", N, x[:, 1:])
-        if "n" in data:
-            return x[:, 0], xt, data["n"]
-        t = jnp.einsum("pak,pai->pki", dN, x[:, 1:])
+        if "n4" in data:
+            xt, t = nagata_patch(data["xi"], x[:, 1:], data["n4"], jnp)
+        else:
+            N, dN = _shape(data["xi"])
+            xt = jnp.einsum("pa,pai->pi", N, x[:, 1:])
+            t = jnp.einsum("pak,pai->pki", dN, x[:, 1:])
         n = jnp.cross(t[:, 0], t[:, 1])
         n = n / jnp.linalg.norm(n, axis=1, keepdims=True)
         return x[:, 0], xt, n

@@ -13,7 +13,10 @@ four face nodes) D = [n, -N_1 n, ..., -N_4 n]:
 with dg = D + (the normal's variation), Dm = [I, -N_1 I, ..., -N_4 I] (3 x 15). The
 normal n = m / |m|, m = t_1 x t_2, t_k = sum_a N_a,k x_a is differentiated in full:
 dn = P dm / |m| (P = I - n n^T), d2m[u, v] = dt_1[u] x dt_2[v] + dt_1[v] x dt_2[u].
-With a held (nodal) normal n the gap is linear: dg = D = Dm^T n, d2g = 0.
+On a Nagata patch (held nodal normals) the target point and tangents are still linear
+in the positions, x_t = sum_a M_a x_a and t_k = sum_a M_a,k x_a with 3 x 3 matrices
+(the edges' curvature vectors are linear in the edge vectors): the same formulas with
+N_a I -> M_a and N_a,k I -> M_a,k (the matrices from the patch formula, column by column).
 """
 
 from __future__ import annotations
@@ -39,25 +42,45 @@ def rigid_residual_tangent(x, c, n, alpha):
     return alpha * g * n, alpha * np.outer(n, n)
 
 
-def node_quad_residual_tangent(x5, xi, alpha, mode="sliding", smoothing=None, normal=None):
+def _linear_maps(xi, n4):
+    """(Dm, T1, T2) (3, 15): x_h - x_t = Dm x, t_k = T_k x for the 15 positions x of a
+    hitting node and a face: bilinear (n4 None) or the Nagata patch of nodal normals n4
+    (4, 3), columns from the patch at unit positions (linear for fixed normals)."""
+    if n4 is None:
+        N, dN = quad_shape(xi)
+        Dm = np.hstack([np.eye(3)] + [-N[a] * np.eye(3) for a in range(4)])
+        T = [np.hstack([np.zeros((3, 3))] + [dN[a, k] * np.eye(3) for a in range(4)])
+             for k in range(2)]
+        return Dm, T[0], T[1]
+    from .contact import nagata_patch
+
+    cols = []
+    for j in range(12):
+        xf = np.zeros(12)
+        xf[j] = 1.0
+        p, tan = nagata_patch(xi[None], xf.reshape(1, 4, 3), n4[None])
+        cols.append(np.concatenate([np.asarray(p)[0], np.asarray(tan)[0].ravel()]))
+    M = np.array(cols).T  # (9, 12): x_t, t_1, t_2 per unit face position
+    Dm = np.hstack([np.eye(3), -M[:3]])
+    zero = np.zeros((3, 3))
+    return Dm, np.hstack([zero, M[3:6]]), np.hstack([zero, M[6:9]])
+
+
+def node_quad_residual_tangent(x5, xi, alpha, mode="sliding", smoothing=None, n4=None):
     """Residual (15,) and tangent (15, 15) of a hitting node x5[0] against face x5[1:5].
 
     Args: x5 (5, 3) current positions, mm; xi (2,) parametric point; alpha N/mm;
       smoothing: eps (mm) of the smoothed penetration p = eps softplus(-g / eps) (energy
       1/2 alpha p^2: dE/dg = -alpha p s, d2E/dg2 = alpha (s^2 + p s (1 - s) / eps) with
-      s = sigmoid(-g / eps)); None: the plain penalty 1/2 alpha <-g>^2; normal: a held
-      unit normal (3,) (nodal normals), None: the face's own.
+      s = sigmoid(-g / eps)); None: the plain penalty 1/2 alpha <-g>^2; n4: held nodal
+      unit normals (4, 3) (the Nagata patch), None: the flat face.
     """
-    N, dN = quad_shape(xi)
-    Dm = np.hstack([np.eye(3)] + [-N[a] * np.eye(3) for a in range(4)])  # (3, 15)
-    xh, xf = x5[0], x5[1:]
-    r = xh - N @ xf
+    Dm, T1, T2 = _linear_maps(np.asarray(xi, float), n4)
+    x = x5.ravel()
+    r = Dm @ x
     if mode == "sticking":
         return alpha * Dm.T @ r, alpha * Dm.T @ Dm
-    if normal is not None:
-        g, dg = float(r @ normal), Dm.T @ normal
-        return _penalty(g, dg, np.zeros((15, 15)), alpha, smoothing)
-    t1, t2 = dN[:, 0] @ xf, dN[:, 1] @ xf
+    t1, t2 = T1 @ x, T2 @ x
     m = np.cross(t1, t2)
     lm = np.linalg.norm(m)
     n = m / lm
@@ -68,8 +91,7 @@ def node_quad_residual_tangent(x5, xi, alpha, mode="sliding", smoothing=None, no
     E = np.eye(15)
 
     def parts(u):  # variations of r, t1, t2, m, n along a 15-vector u
-        ua = u[3:].reshape(4, 3)
-        dt1, dt2 = dN[:, 0] @ ua, dN[:, 1] @ ua
+        dt1, dt2 = T1 @ u, T2 @ u
         dm = np.cross(dt1, t2) + np.cross(t1, dt2)
         return Dm @ u, dt1, dt2, dm, P @ dm / lm
 
@@ -153,11 +175,12 @@ def _surface_check(mode, smoothing=None, nodal=False):
         alpha = 40.0
         data = {"X": X[None], "xi": xi[None], "w": np.ones(1), "alpha": np.full(1, alpha),
                 "area": np.ones(1), "eps": np.full(1, smoothing or 1.0)}
-        normal = None
-        if nodal:  # a held normal tilted off the face's
-            normal = np.array([0.1, -0.15, 1.0]) + 0.05 * rng.standard_normal(3)
-            normal /= np.linalg.norm(normal)
-            data["n"] = normal[None]
+        n4 = None
+        if nodal:  # nodal normals tilted off the face's, as on a curved surface
+            n4 = (np.array([[-0.2, -0.2, 1.0], [0.2, -0.2, 1.0], [0.2, 0.2, 1.0], [-0.2, 0.2, 1.0]])
+                  + 0.05 * rng.standard_normal((4, 3)))
+            n4 /= np.linalg.norm(n4, axis=1, keepdims=True)
+            data["n4"] = n4[None]
         term = SurfaceContact.__new__(SurfaceContact)  # the kernel only: no mesh needed
         object.__setattr__(term, "mode", mode)
         object.__setattr__(term, "smoothing", smoothing)
@@ -167,13 +190,13 @@ def _surface_check(mode, smoothing=None, nodal=False):
 
         grad = jax.jit(jax.grad(energy))
         u = (x5 - X).ravel()
-        r_h, K_h = node_quad_residual_tangent(x5, xi, alpha, mode, smoothing, normal)
+        r_h, K_h = node_quad_residual_tangent(x5, xi, alpha, mode, smoothing, n4)
         return CheckData(np.asarray(grad(jnp.asarray(u))), r_h,
                          np.asarray(jax.hessian(energy)(jnp.asarray(u))), K_h,
                          lambda y: np.asarray(grad(jnp.asarray(y))), u,
                          f"node on a warped quad, {mode}"
                          + (f", smoothed (eps {smoothing} mm)" if smoothing else "")
-                         + (", held nodal normal" if nodal else ""))
+                         + (", Nagata patch of nodal normals" if nodal else ""))
 
     return check
 

@@ -331,42 +331,57 @@ def test_surface_contact_gauss_newton_tangent_is_the_exact_one_less_the_gap_curv
     assert np.linalg.eigvalsh(H_gn).min() > -1e-9 * np.abs(H_gn).max()
 
 
-@pytest.mark.parametrize("normals", ["facet", "nodal"])
-def test_nodal_normals_carry_the_force_continuously_over_a_facet_edge(normals):
-    """A node pressed 0.01 mm into a roof of two faces meeting at a ridge (slopes +-0.2):
-    on either side of the ridge, with facet normals its force turns by 2 x 11.3 degrees
-    (the faces' normals (-+0.196, 0, 0.981)); with nodal normals it is continuous and
-    vertical at the ridge (the ridge nodes' normal (0, 0, 1)), the same whichever face
-    it is paired with. Either way the pair's forces sum to zero."""
+def _arc_force(normals, x, depth=0.01, alpha=1e3, theta=0.1, radius=10.0):
+    """Force (3,) N on a node pressed depth mm below the top of a faceted cylinder (four
+    faces over 0.4 rad of a 10 mm radius about the y axis, top node row at x = 2, z = 0.5)
+    at x; the pair's forces must sum to zero."""
     import jax
 
-    lo = generators.box(2, 1, 0.5, 2, 1, 1, material="r")
-    hi = generators.box(0.2, 0.2, 0.2, 1, 1, 1, origin=(0.9, 0.4, 0.8), material="r")
+    lo = generators.box(4, 1, 0.5, 4, 1, 1, material="r")
+    hi = generators.box(0.2, 0.2, 0.2, 1, 1, 1, origin=(1.9, 0.4, 0.8), material="r")
     m = merge(("lo", lo), ("hi", hi))
     X = m.nodes
-    ridge = np.flatnonzero(np.isclose(X[:, 0], 1.0) & np.isclose(X[:, 2], 0.5))
-    ridge = ridge[np.isin(ridge, m.node_set("lo"))]
-    node = int(m.node_set("hi/z0")[np.argmin(np.linalg.norm(X[m.node_set("hi/z0")] - [0.9, 0.4, 0.8],
-                                                               axis=1))])
-    alpha = 1e3
+    q = np.zeros(3 * m.n_nodes)
+    top = np.flatnonzero(np.isclose(X[:, 2], 0.5) & np.isin(np.arange(len(X)), m.node_set("lo")))
+    phi = (X[top, 0] - 2.0) * theta
+    arc = np.stack([2.0 + radius * np.sin(phi), X[top, 1], 0.5 - radius * (1 - np.cos(phi))], 1)
+    q.reshape(-1, 3)[top] = arc - X[top]
+    z0 = m.node_set("hi/z0")
+    node = int(z0[np.argmin(np.linalg.norm(X[z0] - [1.9, 0.4, 0.8], axis=1))])
+    top_z = 0.5 - radius * (1 - np.sqrt(1 - ((x - 2.0) / radius) ** 2))
+    q[3 * node: 3 * node + 3] = np.array([x, 0.5, top_z - depth]) - X[node]
+    t = SurfaceContact("c", m, "hi/z0", "lo/z1", penalty=alpha, normals=normals).update(q, None)
+    g = np.asarray(jax.grad(lambda y: t.energy(y, t.params, t.data, t.dofs))(q))
+    assert np.abs(g).max() > 0 and np.abs(g.reshape(-1, 3).sum(axis=0)).max() < 1e-12 * np.abs(g).max()
+    return -g[3 * node: 3 * node + 3]
 
-    def force(x):
-        q = np.zeros(3 * m.n_nodes)
-        q[3 * ridge + 2] = 0.2
-        q[3 * node: 3 * node + 3] = np.array([x, 0.5, 0.7 - 0.2 * abs(x - 1.0) - 0.01]) - X[node]
-        t = SurfaceContact("c", m, "hi/z0", "lo/z1", penalty=alpha, normals=normals).update(q, None)
-        g = np.asarray(jax.grad(lambda y: t.energy(y, t.params, t.data, t.dofs))(q))
-        assert np.abs(g.reshape(-1, 3).sum(axis=0)).max() < 1e-12 * np.abs(g).max()
-        return -g[3 * node: 3 * node + 3]
 
-    left, right = force(1.0 - 1e-4), force(1.0 + 1e-4)
+@pytest.mark.parametrize("normals", ["facet", "nodal"])
+def test_nodal_normals_carry_the_force_continuously_over_a_facet_edge(normals):
+    """A node pressed 0.01 mm into a faceted cylinder (faces 0.1 rad apart) just either
+    side of the edge on its top: with flat faces its force turns by 0.1 rad across the
+    edge (x component -+sin(0.05) of it); on the Nagata patches of the nodal normals
+    it is continuous and vertical there (the edge nodes' normal), and its size is that
+    of the penalty at the depth below the cylinder (the patches follow the arc, where
+    the faces lie up to 3 um inside it at their middles)."""
+    left, right = _arc_force(normals, 2.0 - 1e-4), _arc_force(normals, 2.0 + 1e-4)
     size = np.linalg.norm(left)
-    assert size == pytest.approx(alpha * 0.01, rel=0.05)  # depth along the normal
+    assert size == pytest.approx(1e3 * 0.01, rel=2e-3)
     if normals == "nodal":
-        np.testing.assert_allclose(right, left, atol=1e-3 * size)
-        assert abs(left[0]) < 1e-3 * size and left[2] > 0
+        np.testing.assert_allclose(right, left, atol=1e-4 * size)
+        assert abs(left[0]) < 1e-4 * size and left[2] > 0
     else:
-        np.testing.assert_allclose([left[0], right[0]], [-0.196 * size, 0.196 * size], rtol=0.02)
+        np.testing.assert_allclose([left[0], right[0]], [-np.sin(0.05) * size, np.sin(0.05) * size],
+                                   rtol=1e-3)
+
+
+def test_nagata_patch_follows_the_arc_the_faces_cut_across():
+    """Between the edges of the faceted cylinder the flat faces lie up to R (1 - cos 0.05)
+    = 12.5 um inside it; on the Nagata patches a node pressed 0.02 mm below the cylinder
+    over a face's middle feels the penalty of 0.02 mm (flat faces: of 0.0075 mm)."""
+    on_patch, on_face = (np.linalg.norm(_arc_force(n, 2.5, depth=0.02)) for n in ("nodal", "facet"))
+    assert on_patch == pytest.approx(1e3 * 0.02, rel=1e-3)
+    assert on_face == pytest.approx(1e3 * (0.02 - 10.0 * (1 - np.cos(0.05))), rel=2e-2)
 
 
 def test_nodal_normals_need_sliding_contact():

@@ -93,7 +93,8 @@ def fit_band(parts: SurgeryParts, scale: float, q):
     q = np.asarray(q)
     for _ in range(3):
         m = mesh.replace(nodes=nodes)
-        c = SurfaceContact("fit", m, "band/inner", "eye/sclera_outer").update(q, None)
+        c = SurfaceContact("fit", m, "band/inner", "eye/sclera_outer",
+                           normals=parts.p["contact_normals"]).update(q, None)
         gap, node, _ = c._gaps(q)
         if len(node) != len(inner):
             raise RuntimeError(f"fit_band: {len(inner) - len(node)} band nodes find no sclera "
@@ -147,12 +148,14 @@ def band_spring_term(parts: SurgeryParts) -> OrbitSpring:
 
 def band_contact_term(parts: SurgeryParts, sclera_c10: float) -> SurfaceContact:
     """Node-to-segment contact of the band's inner nodes (slave) on the outer sclera
-    (master); penalty from the sclera's Young's modulus; smoothing: the case's
-    contact_smoothing, or automatic (BAND_SMOOTHING for a band, TIRE_SMOOTHING for a tire)."""
+    (master; its faces or their Nagata patches, the case's contact_normals); penalty from
+    the sclera's Young's modulus; smoothing: the case's contact_smoothing, or automatic (BAND_SMOOTHING for a
+    band, TIRE_SMOOTHING for a tire)."""
     eps = parts.p.get("contact_smoothing", 0.0) or (
         BAND_SMOOTHING if parts.buckle.kind == "band" else TIRE_SMOOTHING)
     return SurfaceContact("buckle", parts.eye.mesh, "band/inner", "eye/sclera_outer",
-                          modulus=6 * sclera_c10, smoothing=eps)
+                          modulus=6 * sclera_c10, smoothing=eps,
+                          normals=parts.p["contact_normals"])
 
 
 def band_suture_term(parts: SurgeryParts) -> TiedBars:

@@ -50,10 +50,11 @@ def sponge_mesh(buckle: Buckle, g: EyeGeometry, level: str, gap: float) -> Mesh:
 
 
 def fit_sponge(mesh: Mesh, buckle: Buckle, g: EyeGeometry, level: str, scale: float,
-               q) -> Mesh:
+               q, normals: str = "facet") -> Mesh:
     """The mesh with the sponge's reference moved snug onto the eye at state q: built on
     the sphere of radius scale R + SPONGE_CLEARANCE, then moved along its centre normal
-    until its closest node lies SPONGE_CLEARANCE off the (faceted) outer sclera."""
+    until its closest node lies SPONGE_CLEARANCE off the outer sclera (its faces, or
+    their Nagata patches with normals = "nodal")."""
     nodes = mesh.nodes.copy()
     ids = mesh.node_set("sponge")
     gap0 = (scale - 1.0) * g.scleral_radius + SPONGE_CLEARANCE
@@ -63,19 +64,20 @@ def fit_sponge(mesh: Mesh, buckle: Buckle, g: EyeGeometry, level: str, scale: fl
     q = np.asarray(q)
     for _ in range(3):
         m = mesh.replace(nodes=nodes)
-        gap, node, _ = SurfaceContact("fit", m, "sponge/inner", "eye/sclera_outer").update(
-            q, None)._gaps(q)
+        gap, node, _ = SurfaceContact("fit", m, "sponge/inner", "eye/sclera_outer",
+                                      normals=normals).update(q, None)._gaps(q)
         if len(node) == 0:
             raise RuntimeError("fit_sponge: no sponge node finds the sclera under it")
         nodes[ids] += (SPONGE_CLEARANCE - gap.min()) * n0
     return mesh.replace(nodes=nodes)
 
 
-def sponge_contact_term(mesh: Mesh, sclera_c10: float) -> SurfaceContact:
+def sponge_contact_term(mesh: Mesh, sclera_c10: float, normals: str = "facet") -> SurfaceContact:
     """Node-to-segment contact of the sponge's eye-facing nodes (slave) on the outer
-    sclera (master); penalty from the sclera's Young's modulus."""
+    sclera (master; normals: SurfaceContact's); penalty from the sclera's Young's
+    modulus."""
     return SurfaceContact("buckle", mesh, "sponge/inner", "eye/sclera_outer",
-                          modulus=6 * sclera_c10, smoothing=SPONGE_SMOOTHING)
+                          modulus=6 * sclera_c10, smoothing=SPONGE_SMOOTHING, normals=normals)
 
 
 def sponge_suture_term(mesh: Mesh, buckle: Buckle, frame, p: dict):

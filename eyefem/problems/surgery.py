@@ -110,6 +110,10 @@ SURGERY_FIELDS = [
           "buckle, 0.002 mm for a sponge (whose indentation is ten times smaller) and for a "
           "deformable band (0.01 mm for a deformable tire)",
           lambda v: v == 0 or 1e-4 <= v <= 0.1, "0 (automatic) or 1e-4 to 0.1 mm"),
+    Field("contact_normals", str, "facet", "a deformable buckle's contact on the faceted "
+          "sclera: 'facet' (its flat faces) or 'nodal' (the quadratic Nagata patches through "
+          "them with the nodes' normals: no jump of the contact normal at facet edges)",
+          lambda v: v in ("facet", "nodal"), "'facet' or 'nodal'"),
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
 ]
@@ -281,7 +285,7 @@ def surgery(p, materials):
     cavity = FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"])
     if sponge:
         sutures, parts.layout = sponge_suture_term(mesh, b, frame, p)
-        buckle = sponge_contact_term(mesh, SEED_MATERIALS["sclera"])
+        buckle = sponge_contact_term(mesh, SEED_MATERIALS["sclera"], p["contact_normals"])
         band_hold = (sponge_spring_term(mesh, b, g),)
     elif deformable:
         sutures = band_suture_term(parts)
@@ -333,10 +337,12 @@ def surgery(p, materials):
         pressurised eye."""
         model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
         scale = float(snug_scale(parts, q))
-        new_mesh = rereference(parts, fit_sponge(parts.eye.mesh, b, g, p["mesh"], scale, q), scale)
+        new_mesh = rereference(parts, fit_sponge(parts.eye.mesh, b, g, p["mesh"], scale, q,
+                                                 p["contact_normals"]), scale)
         sut, parts.layout = sponge_suture_term(new_mesh, b, frame, p)
         model = with_refitted_terms(model, parts, {
-            "buckle": sponge_contact_term(new_mesh, SEED_MATERIALS["sclera"]).update(q, None),
+            "buckle": sponge_contact_term(new_mesh, SEED_MATERIALS["sclera"],
+                                          p["contact_normals"]).update(q, None),
             "sutures": sut, "sponge_springs": sponge_spring_term(new_mesh, b, g)})
         return model, q, theta
 
