@@ -393,16 +393,13 @@ class SurfaceContact(Term):
         N, dN = (np.asarray(a) for a in _shape(xi))
         p = np.einsum("na,nai->ni", N, qx[f])
         t = np.einsum("nak,nai->nki", dN, qx[f])
-        if self.normals == "nodal":
+        if self.normals == "nodal":  # from the face's closest point on to its patch's
             n4_all = self._nodal_normals(qx)
             n4 = n4_all[f]
             xi = project_to_patches(x, qx[f], n4, xi)
             p, t = (np.asarray(a) for a in nagata_patch(xi, qx[f], n4))
-            nrm = np.cross(t[:, 0], t[:, 1])
-            nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-        else:
-            nrm = np.cross(t[:, 0], t[:, 1])
-            nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        nrm = np.cross(t[:, 0], t[:, 1])
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
         g = np.einsum("ni,ni->n", x - p, nrm)
         sg = self.search_gap if self.search_gap is not None else 1.5 * self.h
         inside = np.all(np.abs(xi) < 1 - 1e-9, axis=1) | (np.abs(g) < sg)

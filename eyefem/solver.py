@@ -294,10 +294,11 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                        lambda z: model.gradient(z, theta, active))
         fref = np.linalg.norm(rhs[free])
     frozen = False
-    history, best = [], None  # best: (force residual, q, model, pairs frozen) of the best iterate
+    history, best = [], None  # best: (force residual, q, model, paired earlier) of the best iterate
     flips = []  # residuals left by re-pairing converged states
     for it in range(opts.max_iter + 1):
-        if not frozen:
+        paired_here = not frozen  # this iterate is re-paired at its own state
+        if paired_here:
             model = model.update(q, theta)
         asm.model = model
         r = model.gradient(q, theta, active)
@@ -327,20 +328,20 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                             max(fref, fc))
                 return model, q, it, nf, solver, fref, "contact cycle"
             flips.append(nf2)
-            model, r, rf, nf, frozen = repaired, r2, r2[free], nf2, False
+            model, r, rf, nf, frozen, paired_here = repaired, r2, r2[free], nf2, False, True
             asm.model = model
         elif nf <= opts.contact_freeze * fref and any(t.dynamic for t in model.terms):
             frozen = True
         history.append(nf)
         if nm <= opts.stall_vtol and (best is None or nf < best[0]):
-            best = (nf, q, model, frozen)
+            best = (nf, q, model, not paired_here)
         k = opts.stall_iterations
         # stalled: the best residual of the last k iterations is not 10% below the best
         # before them (on a plateau the residual wanders up and down)
         stalled = len(history) > k and min(history[-k:]) > 0.9 * min(history[:-k])
         if not final and stalled and best is not None and best[0] <= opts.stall_rtol * fref:
             repaired_note = ""
-            if best[3]:  # in balance with frozen pairs: accepted if nearly so re-paired
+            if best[3]:  # in balance with earlier pairs: accepted if nearly so re-paired
                 _, _, nf2, fc = _repaired(best[2], best[1], theta, active, free)
                 if nf2 > opts.stall_repair_rtol * max(fref, fc):
                     log.debug("  stalled; its best iterate, re-paired, is %.3e N out of "
