@@ -66,8 +66,8 @@ def ring_profile(buckle: Buckle, n_thick: int = 1):
 
 
 def deformable_band(buckle: Buckle, g: EyeGeometry, inner_radius: float, n_circ: int,
-                    n_thick: int = 1, material: str | None = None) -> Mesh:
-    """Hexahedral encircling band or tire (with its band) on the eye, cut at +y.
+                    n_thick: int = 1, material: str | None = None, closed: bool = False) -> Mesh:
+    """Hexahedral encircling band or tire (with its band) on the eye, cut at +y (or closed).
 
     The cross-section :func:`ring_profile` swept around the optical axis in ``n_circ``
     elements from the +y meridian counterclockwise (seen from +z): a node at (v, u) of
@@ -77,9 +77,11 @@ def deformable_band(buckle: Buckle, g: EyeGeometry, inner_radius: float, n_circ:
     rigid ring's profile) and the thickness runs radially.
 
     Args: n_circ, n_thick: elements around and through the base; material: default
-      "band" for a band, "tire" for a tire.
+      "band" for a band, "tire" for a tire; closed: no cut, the last cross-section of
+      nodes is the first (a closed loop, tightened by shortening its rest length:
+      :class:`eyefem.loop_solid.ShortenedLoopSolid`).
     Node sets: "all", "end0", "end1" (the two ends on the cut: coincident, distinct
-    nodes), "mid" (on the centre line theta_b), "inner" (eye-facing: the contact's slave
+    nodes; the same nodes, the cross-section at +y, on a closed ring), "mid" (on the centre line theta_b), "inner" (eye-facing: the contact's slave
     nodes); face sets: "inner" (eye-facing), "outer" (the upper face, normals away from
     the globe: the sutures' points over the buckle are embedded there).
     Pulling end0 along +x (clockwise at the cut) and end1 along -x shortens the loop.
@@ -104,23 +106,29 @@ def deformable_band(buckle: Buckle, g: EyeGeometry, inner_radius: float, n_circ:
     hexes = np.where((det < 0)[:, None], hexes[:, [4, 5, 6, 7, 0, 1, 2, 3]], hexes)
     level = np.repeat(np.arange(n_circ + 1), len(uv))
     inner, outer = np.tile(inner2, n_circ + 1), np.tile(outer2, n_circ + 1)
+    if closed:  # the nodes are level-major: the last level's become the first's
+        last = n_circ * len(uv)
+        hexes = np.where(hexes >= last, hexes - last, hexes)
+        nodes, v, level, inner, outer = (a[:last] for a in (nodes, v, level, inner, outer))
     bf = boundary_faces(hexes)
     node_sets = {"all": np.arange(len(nodes)), "end0": np.nonzero(level == 0)[0],
-                 "end1": np.nonzero(level == n_circ)[0], "inner": np.nonzero(inner)[0],
+                 "end1": np.nonzero(level == (0 if closed else n_circ))[0], "inner": np.nonzero(inner)[0],
                  "mid": np.nonzero(np.abs(v) < 1e-9 * buckle.width)[0]}
     face_sets = {"inner": bf[np.all(inner[bf], axis=1)], "outer": bf[np.all(outer[bf], axis=1)]}
     return Mesh(nodes, hexes, np.zeros(len(hexes), np.int64), (material,), node_sets, face_sets)
 
 
-def ring_fit_groups(buckle: Buckle, n_circ: int, n_thick: int = 1) -> np.ndarray:
+def ring_fit_groups(buckle: Buckle, n_circ: int, n_thick: int = 1,
+                    closed: bool = False) -> np.ndarray:
     """Group of every node of :func:`deformable_band` (n,) moved together when it is
     fitted snug on the eye: a band's or flat tire's radial columns (each settles on the
     sclera under it), a ridged tire's cross-sections (so that its ridge keeps its height)."""
     uv, _, column, _, _ = ring_profile(buckle, n_thick)
-    level = np.repeat(np.arange(n_circ + 1), len(uv))
+    n_levels = n_circ if closed else n_circ + 1
+    level = np.repeat(np.arange(n_levels), len(uv))
     if KINDS[buckle.kind][2] > 0:
         return level
-    return level * (column.max() + 1) + np.tile(column, n_circ + 1)
+    return level * (column.max() + 1) + np.tile(column, n_levels)
 
 
 def band_n_circ(mesh: Mesh, sclera_nodes: np.ndarray, buckle: Buckle, g: EyeGeometry) -> int:

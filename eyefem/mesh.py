@@ -79,13 +79,18 @@ def hex_geometry(nodes, hexes):
       dv: (n_elem, 8) Gauss weight times det(dX/dxi), mm^3 (the volume each point carries).
       det: (n_elem, 8) det(dX/dxi).
     """
+    return element_geometry(np.asarray(nodes)[hexes], np)
+
+
+def element_geometry(xe, xp=np):
+    """:func:`hex_geometry` from element node coordinates xe (n_elem, 8, 3), mm, with the
+    array module ``xp`` (numpy, or jax.numpy to differentiate with respect to xe)."""
     xg, wg = hex_gauss_points()
     _, dn = hex_shape(xg)  # (8g, 8a, 3)
-    xe = nodes[hexes]  # (E, 8, 3)
-    jac = np.einsum("eai,gaj->egij", xe, dn)  # dX_i/dxi_j
-    det = np.linalg.det(jac)
-    inv = np.linalg.inv(np.where(np.abs(det)[..., None, None] > 0, jac, np.eye(3)))
-    grad_n = np.einsum("gaj,egji->egai", dn, inv)
+    jac = xp.einsum("eai,gaj->egij", xe, dn)  # dX_i/dxi_j
+    det = xp.linalg.det(jac)
+    inv = xp.linalg.inv(xp.where(xp.abs(det)[..., None, None] > 0, jac, np.eye(3)))
+    grad_n = xp.einsum("gaj,egji->egai", dn, inv)
     return grad_n, det * wg, det
 
 

@@ -328,6 +328,11 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                             max(fref, fc))
                 return model, q, it, nf, solver, fref, "contact cycle"
             flips.append(nf2)
+            if log.isEnabledFor(logging.DEBUG):
+                node, f_node = _largest_nodal_force(r2, free, model.mesh.n_nodes)
+                log.debug("  converged with the pairs frozen; re-paired, %.3e N out of balance "
+                          "(pairing changed at nodes %s; largest force %.3e N at node %d)",
+                          nf2, _node_list(_repaired_nodes(model, repaired)), f_node, node)
             model, r, rf, nf, frozen, paired_here = repaired, r2, r2[free], nf2, False, True
             asm.model = model
         elif nf <= opts.contact_freeze * fref and any(t.dynamic for t in model.terms):
@@ -424,7 +429,11 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
             # no trial lowers the residual, or every trial inverts an element (a
             # near-singular tangent: the soft retina's tangential modes): damp the step
             far, shift = True, min(mu for mu in SHIFTS if mu > max(shift, solver.shift))
-            log.debug("  line search failed on a %.3g mm step: shift %g", longest, shift)
+            if log.isEnabledFor(logging.DEBUG):
+                norms = np.linalg.norm(dq[:model.n_u].reshape(-1, 3), axis=1)
+                log.debug("  line search failed on a %.3g mm step (at node %d; nodes over "
+                          "half of it: %d): shift %g", longest, int(np.argmax(norms)),
+                          int(np.sum(norms > 0.5 * longest)), shift)
     raise _StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
                       f"reference {fref:.3e} N, volume residual {nm:.2e})")
 
@@ -472,6 +481,15 @@ def _repaired_nodes(old: Model, new: Model) -> np.ndarray:
             rows.append({tuple(r) for r in np.asarray(t.dofs)[w].tolist()})
         nodes += [r[0] // 3 for r in rows[0] ^ rows[1]]
     return np.unique(np.array(nodes, dtype=np.int64))
+
+
+def _largest_nodal_force(r, free, n_nodes):
+    """(node, force N) of the largest unbalanced free nodal force in the residual r (n_dof,)."""
+    f = np.zeros(3 * n_nodes)
+    sel = free[free < 3 * n_nodes]
+    f[sel] = r[sel]
+    norms = np.linalg.norm(f.reshape(-1, 3), axis=1)
+    return int(np.argmax(norms)), float(norms.max())
 
 
 def _node_list(nodes, at_most=8) -> str:

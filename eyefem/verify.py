@@ -20,6 +20,7 @@ from .handcoded import (bar_residual_tangent, pressure_face_residual_tangent, q1
                         smoothed_bar_residual_tangent)
 from .materials import MooneyRivlin
 from .mesh import HEX_CORNERS, HEX_FACES, Mesh
+from .loop_solid import ShortenedLoopSolid
 from .solid import SolidQ1P0
 from .surface import face_cone_volume
 from .terms import OrbitSpring
@@ -87,11 +88,22 @@ def random_deformation(rng, scale=0.5):
     return Q @ (0.5 * (U + U.T))
 
 
-def _solid_check(terms):
+def _solid_check(terms, loop=False):
+    """One Q1P0 element; ``loop``: off the z axis, in a loop shortened by a random length
+    (:class:`eyefem.loop_solid.ShortenedLoopSolid`), the hand-coded element evaluated at
+    the loop's reference X - shortening e_rho / (2 pi) with u + shortening e_rho / (2 pi)."""
     def check(rng):
         X = HEX_CORNERS * 0.5 + 0.08 * rng.standard_normal((8, 3))
+        X += [6.0, 1.0, 0.0] if loop else 0.0
         c = MooneyRivlin.from_terms("m", terms).coeffs
-        term = SolidQ1P0("solid", Mesh(X, np.arange(8)[None], [0]), c[None], 24)
+        mesh = Mesh(X, np.arange(8)[None], [0])
+        if loop:
+            term = ShortenedLoopSolid("solid", mesh, c[None], 24, loop_nodes=np.arange(8))
+            s = float(rng.uniform(2.0, 6.0))
+            params = {**term.params, "shortening": s}
+        else:
+            term, s = SolidQ1P0("solid", mesh, c[None], 24), 0.0
+            params = term.params
         F = random_deformation(rng)
         u = X @ F.T - X + 0.03 * rng.standard_normal((8, 3))
         lam = float(rng.uniform(-1, 1))
@@ -99,12 +111,15 @@ def _solid_check(terms):
         kern = jax.jit(term.local_grad_hess)
 
         def r_fun(y):
-            return np.asarray(kern(jnp.asarray(y)[None], term.params, term.data)[0][0])
+            return np.asarray(kern(jnp.asarray(y)[None], params, term.data)[0][0])
 
-        g, H = kern(jnp.asarray(x)[None], term.params, term.data)
-        r, K = q1p0_residual_tangent(X, u, lam, c)
+        g, H = kern(jnp.asarray(x)[None], params, term.data)
+        shift = s / (2 * np.pi) * np.column_stack([X[:, :2], np.zeros(8)]) \
+            / np.hypot(X[:, 0], X[:, 1])[:, None]
+        r, K = q1p0_residual_tangent(X - shift, u + shift, lam, c)
         return CheckData(np.asarray(g[0]), r, np.asarray(H[0]), K, r_fun, x,
-                         f"det F = {np.linalg.det(F):.3f}, lambda = {lam:.3f} MPa")
+                         f"det F = {np.linalg.det(F):.3f}, lambda = {lam:.3f} MPa"
+                         + (f", shortening {s:.2f} mm" if loop else ""))
     return check
 
 
@@ -210,6 +225,7 @@ def _orbit_check(rng, tilted=False):
                      u, "perturbed ring, random displacement")
 
 
+register_check("solid_q1p0_shortened_loop", _solid_check({"c10": 1.0, "c01": 0.1}, loop=True))
 register_check("follower_pressure", _pressure_check)
 register_check("orbit_spring", _orbit_check)
 register_check("orbit_spring_tilted_shift", lambda rng: _orbit_check(rng, tilted=True))

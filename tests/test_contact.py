@@ -384,6 +384,28 @@ def test_nagata_patch_follows_the_arc_the_faces_cut_across():
     assert on_face == pytest.approx(1e3 * (0.02 - 10.0 * (1 - np.cos(0.05))), rel=2e-2)
 
 
+def test_nagata_patch_stays_near_its_face_when_a_node_leaves_its_held_normals():
+    """Nodal normals 0.02 rad apart (a fine mesh of a sphere) are held while a node moves
+    0.1 mm along them (one Newton step indenting the sclera): the patch bends by the
+    normals' angle times the edge, not by the step over the angle squared."""
+    from eyefem.contact import nagata_patch
+
+    h, ang = 0.5, 0.02
+    xf = np.array([[0, 0, 0], [h, 0, 0], [h, h, 0], [0, h, 0]], float)[None]
+    tilt = lambda a: np.array([np.sin(a), 0.0, np.cos(a)])
+    n4 = np.stack([tilt(-ang / 2), tilt(ang / 2), tilt(ang / 2), tilt(-ang / 2)])[None]
+    xi = np.stack(np.meshgrid(np.linspace(-1, 1, 9), np.linspace(-1, 1, 9)), -1).reshape(-1, 2)
+    dev = []
+    for lift in (0.0, 0.1):
+        x = xf.copy()
+        x[0, 1, 2] += lift
+        p, _ = nagata_patch(xi, np.repeat(x, len(xi), 0), np.repeat(n4, len(xi), 0))
+        N = 0.25 * (1 + xi[:, :1] * [-1, 1, 1, -1]) * (1 + xi[:, 1:] * [-1, -1, 1, 1])
+        dev.append(np.abs(np.asarray(p) - N @ x[0]).max())
+    assert dev[0] == pytest.approx(h * ang / 8, rel=0.05)  # the arc's sag at mid-edge
+    assert dev[1] < 2 * h * ang
+
+
 def test_nodal_normals_need_sliding_contact():
     m = merge(("lo", generators.box(1, 1, 0.5, 2, 2, 1, material="r")),
               ("hi", generators.box(1, 1, 0.5, 3, 3, 1, origin=(0, 0, 0.6), material="r")))

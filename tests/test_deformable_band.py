@@ -160,7 +160,7 @@ def test_deformable_band_case_coarse(tmp_path):
     assert s["iop_after_tightening_mmhg"] > 18.0
     assert s["iop_mmhg"] > s["iop_after_tightening_mmhg"]  # the sutures add to it
     assert s["band_tension_N"] > 0.05 and s["max_suture_force_N"] > 0.0
-    # the loop shortens by the end overlap minus the band's own stretch
+    # the loop shortens by the tightening (its rest length taken up) less the band's stretch
     assert s["band_shortening_mm"] == pytest.approx(5.0)
     assert 0.0 < s["band_stretch_mm"] < 5.0
     assert s["band_loop_shortening_mm"] + s["band_stretch_mm"] == pytest.approx(5.0, abs=0.3)
@@ -171,14 +171,18 @@ def test_deformable_band_case_coarse(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind, hexes, tightening, indent, iop", [
-    ("ridged", 12, 10.0, 1.0, 30.0),  # case 4: strong tightening
-    ("flat", 8, 5.0, 0.4, 22.0)])  # case 1: weak
-def test_deformable_tire_cases_coarse(tmp_path, kind, hexes, tightening, indent, iop):
+@pytest.mark.parametrize("kind, hexes, tightening, indent, iop, how", [
+    ("ridged", 12, 10.0, 1.0, 30.0, "shortened_loop"),  # case 4: strong tightening
+    ("flat", 8, 5.0, 0.4, 22.0, "shortened_loop"),  # case 1: weak
+    ("flat", 8, 5.0, 0.4, 22.0, "pulled_ends")])  # the tire cut, its ends pulled
+def test_deformable_tire_cases_coarse(tmp_path, kind, hexes, tightening, indent, iop, how):
     from eyefem.cli import main
 
-    assert main(["run", f"cases/surgery/deformable_{kind}_tire.toml", "--no-vtu", "--out",
-                 str(tmp_path)]) == 0
+    text = open(f"cases/surgery/deformable_{kind}_tire.toml").read()
+    assert 'deformable_tightening = "shortened_loop"' in text
+    case = tmp_path / "case.toml"
+    case.write_text(text.replace('"shortened_loop"', f'"{how}"'))
+    assert main(["run", str(case), "--no-vtu", "--out", str(tmp_path)]) == 0
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["buckle_body"] == "deformable" and s["elements"] == 2470 + hexes * 80
     # the tire is pressed in and the closed cavity squeezed
@@ -186,7 +190,7 @@ def test_deformable_tire_cases_coarse(tmp_path, kind, hexes, tightening, indent,
     assert s["iop_after_tightening_mmhg"] > iop
     assert s["iop_mmhg"] > s["iop_after_tightening_mmhg"]  # the sutures add to it
     assert s["band_shortening_mm"] == pytest.approx(tightening)
-    # the end overlap shortens the loop and stretches the tire; neither takes all of it
+    # the tightening shortens the loop and stretches the tire; neither takes all of it
     assert 0.0 < s["band_stretch_mm"] < s["band_loop_shortening_mm"] < tightening
     assert s["band_tension_N"] > 0.1 and s["max_suture_force_N"] > 0.0
     assert (tmp_path / "section_von_mises.png").stat().st_size > 10_000
@@ -197,3 +201,37 @@ def test_design_gradients_refuse_the_deformable_band():
 
     with pytest.raises(ValueError, match="buckle_body = 'deformable'.*set buckle_body = 'rigid'"):
         SurgerySimulator(_params())
+
+
+def test_a_shortened_loop_tire_is_closed_and_tightened_by_its_rest_length():
+    from eyefem.loop_solid import ShortenedLoopSolid
+
+    setup = surgery(_params(buckle="tire_ridged", tightening=10.0,
+                            deformable_tightening="shortened_loop"), None)
+    parts, model = setup.parts, setup.model
+    n_circ = parts.band.n_circ
+    # closed: one cross-section of nodes fewer than the cut tire, the same elements
+    assert len(parts.band.nodes) == 23 * n_circ and model.mesh.n_elem == 2470 + 12 * n_circ
+    assert parts.band.closed and np.array_equal(parts.band.end0, parts.band.end1)
+    solid = model.term("solid")
+    assert isinstance(solid, ShortenedLoopSolid) and len(solid.data["loop_el"]) == 12 * n_circ
+    tighten = next(s for s in setup.stages if s.name == "tighten")
+    assert tighten.params["solid"] == {"shortening": 10.0}
+    # held: the centre line across the globe, the +y cross-section along the loop (x = 0)
+    dofs, values = tighten.prescribed
+    assert set(3 * parts.band.end0) <= set(dofs.tolist()) and not values.any()
+    suture = next(s for s in setup.stages if s.name == "suture")
+    assert np.array_equal(suture.prescribed[0], dofs) and "solid" not in suture.params
+
+
+def test_a_tire_with_pulled_ends_is_cut_and_its_ends_pulled_past_each_other():
+    setup = surgery(_params(buckle="tire_ridged", tightening=10.0,
+                            deformable_tightening="pulled_ends"), None)
+    band = setup.parts.band
+    assert not band.closed and len(band.nodes) == 23 * (band.n_circ + 1)
+    assert not np.intersect1d(band.end0, band.end1).size
+    assert type(setup.model.term("solid")).__name__ == "SolidQ1P0"
+    tighten = next(s for s in setup.stages if s.name == "tighten")
+    assert "solid" not in tighten.params
+    target = dict(zip(*tighten.prescribed))
+    assert {target[3 * n] for n in band.end0} == {5.0} and {target[3 * n] for n in band.end1} == {-5.0}

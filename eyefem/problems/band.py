@@ -3,10 +3,17 @@ and the helpers it shares with the deformable sponge (:mod:`eyefem.problems.spon
 
 The band (or the tire with its band, one silicone body: :func:`eyefem.buckle_meshes.deformable_band`)
 waits parked BAND_PARK mm off the sclera while the eye is pressurised, is fitted snug on
-the pressurised eye when the cavity closes (its stress-free state), and is tightened by
-pulling its two ends past each other (the seed's displacement condition at the band
-ends, 6.1 stage 2), held by its contact on the sclera and weak springs on its rigid
-motion; three-bar tension-only sutures tie it down in stage 3.
+the pressurised eye when the cavity closes (its stress-free state), and is tightened in
+one of two ways (case field ``deformable_tightening``):
+
+- "pulled_ends": the band is cut at +y and its two ends are pulled past each other
+  (the seed's displacement condition at the band ends, 6.1 stage 2);
+- "shortened_loop": the band is a closed loop whose rest length is shortened
+  (:class:`eyefem.loop_solid.ShortenedLoopSolid`): what pulling the ends through a
+  sleeve does to the loop, without the cut and the overlapping ends.
+
+It is held by its contact on the sclera and weak springs on its rigid motion;
+three-bar tension-only sutures tie it down in stage 3.
 """
 
 from __future__ import annotations
@@ -50,21 +57,24 @@ BAND_OUTPUTS = ("band_tension_N", "band_loop_shortening_mm", "band_stretch_mm",
 @dataclasses.dataclass
 class BandInfo:
     """Node ids of a deformable band in the merged mesh: all (n,), end0 / end1 (k,) (the
-    ends on the cut), mid-line inner nodes (m,) ordered around from end0 to end1."""
+    ends on the cut; on a closed loop both the cross-section at +y), mid-line inner nodes
+    (m,) ordered around from end0 to end1."""
 
     nodes: np.ndarray
     end0: np.ndarray
     end1: np.ndarray
     line: np.ndarray
     n_circ: int
+    closed: bool
 
-    def __init__(self, mesh, n_circ):
-        self.nodes, self.n_circ = mesh.node_set("band"), n_circ
+    def __init__(self, mesh, n_circ, closed=False):
+        self.nodes, self.n_circ, self.closed = mesh.node_set("band"), n_circ, closed
         self.end0, self.end1 = mesh.node_set("band/end0"), mesh.node_set("band/end1")
         line = np.intersect1d(mesh.node_set("band/mid"), mesh.node_set("band/inner"))
         X = mesh.nodes[line]
         ang = np.mod(np.arctan2(X[:, 1], X[:, 0]) - np.pi / 2, 2 * np.pi)  # from the cut (+y)
-        ang[np.isin(line, self.end1)] = 2 * np.pi
+        if not closed:
+            ang[np.isin(line, self.end1)] = 2 * np.pi
         self.line = line[np.argsort(ang, kind="stable")]
 
 
@@ -85,8 +95,9 @@ def fit_band(parts: SurgeryParts, scale: float, q):
     outer sclera lies BAND_CLEARANCE off it: the band's stress-free state, touching all
     around."""
     b, g, mesh, info = parts.buckle, parts.eye.geometry, parts.eye.mesh, parts.band
-    band = deformable_band(b, g, scale * g.scleral_radius + BAND_CLEARANCE, info.n_circ)
-    groups = ring_fit_groups(b, info.n_circ)
+    band = deformable_band(b, g, scale * g.scleral_radius + BAND_CLEARANCE, info.n_circ,
+                           closed=info.closed)
+    groups = ring_fit_groups(b, info.n_circ, closed=info.closed)
     nodes = mesh.nodes.copy()
     nodes[info.nodes] = band.nodes
     inner = mesh.node_set("band/inner")
@@ -132,10 +143,30 @@ def three_bar_tightening(p) -> np.ndarray:
 
 def band_dofs(parts: SurgeryParts) -> dict:
     """Prescribed band dofs: z of the centre-line nodes (holds its position across the
-    globe and its tilt), x of the two ends (the cut is at +y, so x is along the band)."""
+    globe and its tilt), x of the two ends (the cut is at +y, so x is along the band; a
+    closed loop's cross-section at +y, held at x = 0 against its spin about the axis)."""
     mesh = parts.eye.mesh
-    return {"mid_z": node_dofs(mesh.node_set("band/mid"), "z"),
-            "end0_x": node_dofs(parts.band.end0, "x"), "end1_x": node_dofs(parts.band.end1, "x")}
+    out = {"mid_z": node_dofs(mesh.node_set("band/mid"), "z"),
+           "end0_x": node_dofs(parts.band.end0, "x")}
+    if not parts.band.closed:
+        out["end1_x"] = node_dofs(parts.band.end1, "x")
+    return out
+
+
+def tightened_band(parts: SurgeryParts, fixed: np.ndarray, tightening: float):
+    """(prescribed dofs, values at the end of the tightening, stage params) of a deformable
+    band or tire: its centre line held across the globe, and either its ends pulled past
+    each other by tightening / 2 each, or a closed loop's +y cross-section held along the
+    loop and its rest length shortened by ``tightening`` (mm)."""
+    bd = band_dofs(parts)
+    held = np.r_[fixed, bd["mid_z"]]
+    if parts.band.closed:
+        return (np.r_[held, bd["end0_x"]], np.zeros(len(held) + len(bd["end0_x"])),
+                {"solid": {"shortening": tightening}})
+    half = 0.5 * tightening
+    return (np.r_[held, bd["end0_x"], bd["end1_x"]],
+            np.r_[np.zeros(len(held)), np.full(len(bd["end0_x"]), half),
+                  np.full(len(bd["end1_x"]), -half)], {})
 
 
 def band_spring_term(parts: SurgeryParts) -> OrbitSpring:
@@ -174,17 +205,25 @@ def band_suture_term(parts: SurgeryParts) -> TiedBars:
 
 
 def band_outcomes(parts: SurgeryParts, model, q, theta) -> dict:
-    """Band tension (N, the pull on end0), loop shortening (2 pi x the drop of the mean
-    cylindrical radius of its inner centre line since the snug fit, mm), its stretch
-    (length change of that line, mm) and the prescribed shortening (end overlap, mm)."""
+    """Band tension (N: the pull on end0; a closed loop's d(energy)/d(shortening)), loop
+    shortening (2 pi x the drop of the mean cylindrical radius of its inner centre line
+    since the snug fit, mm), its stretch (that line's length over its rest length: the
+    snug fit's, less a closed loop's shortening, mm) and the prescribed shortening (end overlap, or the loop's rest length taken up, mm)."""
     mesh, info = parts.eye.mesh, parts.band
     d = band_dofs(parts)
     X = mesh.nodes[info.line]
     x = X + q[: 3 * mesh.n_nodes].reshape(-1, 3)[info.line]
     rho = lambda y: np.hypot(y[:, 0], y[:, 1]).mean()
-    length = lambda y: np.linalg.norm(np.diff(y, axis=0), axis=1).sum()
-    tension = float(model.gradient(q, theta, ("solid",))[d["end0_x"]].sum())
+    loop = (lambda y: np.vstack([y, y[:1]])) if info.closed else (lambda y: y)
+    length = lambda y: np.linalg.norm(np.diff(loop(y), axis=0), axis=1).sum()
+    if info.closed:
+        tension = model.term("solid").tension(q, theta["solid"])
+        shortening = float(theta["solid"]["shortening"])
+    else:
+        tension = float(model.gradient(q, theta, ("solid",))[d["end0_x"]].sum())
+        shortening = float(q[d["end0_x"]].mean() - q[d["end1_x"]].mean())
+    rest = length(X) - (shortening if info.closed else 0.0)  # the loop's rest length
     return {"band_tension_N": tension,
             "band_loop_shortening_mm": float(2 * np.pi * (rho(X) - rho(x))),
-            "band_stretch_mm": float(length(x) - length(X)),
-            "band_shortening_mm": float(q[d["end0_x"]].mean() - q[d["end1_x"]].mean())}
+            "band_stretch_mm": float(length(x) - rest),
+            "band_shortening_mm": shortening}

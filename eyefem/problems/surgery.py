@@ -32,6 +32,7 @@ from ..buckles import KINDS, SPONGE_LENGTH, Buckle, suture_anchor_frame
 from ..casefile import Field, positive
 from ..cavity import WATER_BULK, FluidCavity, close_cavity
 from ..eyemodel import LEVELS, EyeGeometry, axial_length, build_eye
+from ..loop_solid import ShortenedLoopSolid
 from ..materials import MooneyRivlin
 from ..model import node_dofs, solid_model
 from ..output import write_csv
@@ -40,9 +41,9 @@ from ..surface import PressureLoad
 from ..sutures import generate_sutures
 from ..terms import DofForce, NodeSprings, OrbitSpring
 from ..units import MMHG
-from .band import (BAND_OUTPUTS, BAND_PARK, BandInfo, band_contact_term, band_dofs,
-                   band_outcomes, band_spring_term, band_suture_term, fit_band, rereference,
-                   three_bar_tightening, with_band, with_refitted_terms)
+from .band import (BAND_OUTPUTS, BAND_PARK, BandInfo, band_contact_term, band_outcomes,
+                   band_spring_term, band_suture_term, fit_band, rereference,
+                   three_bar_tightening, tightened_band, with_band, with_refitted_terms)
 from .base import Setup
 from .sponge import (SPONGE_PARK, fit_sponge, sponge_contact_term, sponge_mesh,
                      sponge_spring_term, sponge_suture_term)
@@ -57,14 +58,18 @@ BODIES = ("rigid", "deformable")
 """Buckle bodies: the rigid analytic surface, or a deformable hexahedral band, tire (with
 its band) or radial sponge."""
 
+TIGHTENINGS = ("pulled_ends", "shortened_loop")
+"""How a deformable band or tire is tightened (eyefem.problems.band)."""
+
 SURGERY_FIELDS = [
     Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)}", lambda v: v in LEVELS,
           f"one of {list(LEVELS)}"),
     Field("buckle", str, "tire_flat", f"buckle kind: {', '.join(KINDS)}", lambda v: v in KINDS,
           f"one of {list(KINDS)}"),
     Field("buckle_body", str, "rigid", "'rigid' (exact analytic surface, radial motion) or "
-          "'deformable' (hexahedral silicone band, or tire with its band, tightened by pulling "
-          "its ends: buckle = 'band', 'tire_flat', 'tire_ridged'; or hexahedral radial sponge "
+          "'deformable' (hexahedral silicone band, or tire with its band, tightened as "
+          "deformable_tightening says: buckle = 'band', 'tire_flat', 'tire_ridged'; or "
+          "hexahedral radial sponge "
           "sewn on: buckle = 'sponge_radial')",
           lambda v: v in BODIES, f"one of {list(BODIES)}"),
     Field("buckle_distance", float, 12.0, "buckle centre behind the limbus (arc), mm "
@@ -74,6 +79,12 @@ SURGERY_FIELDS = [
           "(a differentiable design variable)"),
     Field("tightening", float, 5.0, "band circumference shortening, mm (weak 5, strong 10; "
           "segmental: radial push of the sponge x 2 pi)", lambda v: 0 <= v <= 30, "0 to 30 mm"),
+    Field("deformable_tightening", str, "shortened_loop", "how a deformable band or tire is "
+          "tightened: 'pulled_ends' (cut at +y, its ends pulled past each other by tightening / 2 "
+          "each: the seed's displacement condition at the band ends) or 'shortened_loop' (a "
+          "closed loop whose rest length is shortened by tightening: the loop a pull through "
+          "the sleeve leaves, without the cut)", lambda v: v in TIGHTENINGS,
+          f"one of {list(TIGHTENINGS)}"),
     Field("band_tension", float, 0.0, "encircling band pulled with this tension instead of a "
           "prescribed shortening (then tightening must be 0), N; 0: shortening prescribed",
           lambda v: v >= 0, ">= 0"),
@@ -99,7 +110,7 @@ SURGERY_FIELDS = [
           "translation (orbital fat, Tenon's capsule), N/mm; 0: the nerve stub alone",
           lambda v: v >= 0, ">= 0"),
     Field("globe_axial", float, 0.0, "the orbit's hold on the globe's axial (z) translation, "
-          "N/mm; 0: the nerve stub alone (the deformable buckles' case files set 1.0)",
+          "N/mm; 0: the nerve stub alone",
           lambda v: v >= 0, ">= 0"),
     Field("steps_pressurise", int, 2, "load steps of stage 1", positive, ">= 1"),
     Field("steps_tighten", int, 8, "load steps of stage 2", positive, ">= 1"),
@@ -271,8 +282,10 @@ def surgery(p, materials):
         mesh = with_band(mesh, sponge_mesh(b, g, p["mesh"], SPONGE_PARK), "sponge")
     elif deformable:  # parked BAND_PARK mm off the sclera until stage 2 fits it snug
         n_circ = band_n_circ(mesh, mesh.node_set("eye/sclera_outer"), b, g)
-        mesh = with_band(mesh, deformable_band(b, g, g.scleral_radius + BAND_PARK, n_circ))
-        band = BandInfo(mesh, n_circ)
+        closed = p["deformable_tightening"] == "shortened_loop"
+        mesh = with_band(mesh, deformable_band(b, g, g.scleral_radius + BAND_PARK, n_circ,
+                                               closed=closed))
+        band = BandInfo(mesh, n_circ, closed)
     eye = dataclasses.replace(eye, mesh=mesh)
     frame = suture_anchor_frame(b, g, p["n_sutures"])
     parts = SurgeryParts(eye, b, p, mesh.node_set("eye/sclera_outer"), frame,
@@ -304,6 +317,11 @@ def surgery(p, materials):
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
                         (zonule, iop, cavity, buckle, sutures, lens_hold, orbit) + band_hold
                         + extra, n_extra_dofs=1)
+    if band is not None and band.closed:  # the band's loop tightened by its rest length
+        s = model.term("solid")
+        model = model.with_terms([ShortenedLoopSolid(s.name, mesh, s.coeffs, s.multiplier_offset,
+                                                     loop_nodes=band.nodes)]
+                                 + [t for t in model.terms if t is not s])
     fix = node_dofs(mesh.node_set("eye/nerve_end"))
     # the buckle's own radial motion (extra dof) is held, except a segmental buckle's
     # while its sutures are tightened: they pull it in against the sclera
@@ -366,22 +384,19 @@ def surgery(p, materials):
                   active=base + sponge_terms + ("sutures",), before=tie_sutures),
         ]
     elif deformable:
-        bd = band_dofs(parts)
         band_all = node_dofs(mesh.node_set("band"))
         held = (np.r_[held[0], band_all], np.zeros(len(held[0]) + len(band_all)))
-        half = 0.5 * p["tightening"]
-        pulled_ends = (np.r_[fix, parts.extra_dof, bd["mid_z"], bd["end0_x"], bd["end1_x"]],
-                       np.r_[np.zeros(len(fix) + 1 + len(bd["mid_z"])),
-                             np.full(len(bd["end0_x"]), half), np.full(len(bd["end1_x"]), -half)])
+        *tightened, shorten = tightened_band(parts, np.r_[fix, parts.extra_dof], p["tightening"])
         tight = three_bar_tightening(p)
         band_terms = ("cavity", "buckle", "band_springs")
         stages = [
             Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
                   active=base + ("iop",)),
-            Stage("tighten", p["steps_tighten"], pulled_ends,
-                  params={"cavity": {"dv": -p["drain_volume"]}}, active=base + band_terms,
-                  before=place_band),
-            Stage("suture", p["steps_suture"], pulled_ends, params={"sutures": {"tightening": tight}},
+            Stage("tighten", p["steps_tighten"], tuple(tightened),
+                  params={"cavity": {"dv": -p["drain_volume"]}, **shorten},
+                  active=base + band_terms, before=place_band),
+            Stage("suture", p["steps_suture"], tuple(tightened),
+                  params={"sutures": {"tightening": tight}},
                   active=base + band_terms + ("sutures",), before=tie_sutures),
         ]
     else:
