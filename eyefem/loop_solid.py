@@ -47,6 +47,8 @@ class ShortenedLoopSolid(SolidQ1P0):
 
     def __post_init__(self):
         super().__post_init__()
+        if self.loop_nodes is None:
+            raise ValueError(f"term '{self.name}': give loop_nodes, the node ids of the loop")
         m = self.mesh
         loop = np.zeros(m.n_nodes, bool)
         loop[np.asarray(self.loop_nodes, np.int64)] = True

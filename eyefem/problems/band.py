@@ -208,7 +208,8 @@ def band_outcomes(parts: SurgeryParts, model, q, theta) -> dict:
     """Band tension (N: the pull on end0; a closed loop's d(energy)/d(shortening)), loop
     shortening (2 pi x the drop of the mean cylindrical radius of its inner centre line
     since the snug fit, mm), its stretch (that line's length over its rest length: the
-    snug fit's, less a closed loop's shortening, mm) and the prescribed shortening (end overlap, or the loop's rest length taken up, mm)."""
+    snug fit's, less a closed loop's shortening, mm) and the prescribed shortening (end
+    overlap, or the loop's rest length taken up, mm)."""
     mesh, info = parts.eye.mesh, parts.band
     d = band_dofs(parts)
     X = mesh.nodes[info.line]

@@ -110,7 +110,7 @@ SURGERY_FIELDS = [
           "translation (orbital fat, Tenon's capsule), N/mm; 0: the nerve stub alone",
           lambda v: v >= 0, ">= 0"),
     Field("globe_axial", float, 0.0, "the orbit's hold on the globe's axial (z) translation, "
-          "N/mm; 0: the nerve stub alone",
+          "N/mm; 0: the nerve stub alone (the deformable band's and flat tire's case files set 1)",
           lambda v: v >= 0, ">= 0"),
     Field("steps_pressurise", int, 2, "load steps of stage 1", positive, ">= 1"),
     Field("steps_tighten", int, 8, "load steps of stage 2", positive, ">= 1"),
@@ -274,10 +274,11 @@ def surgery(p, materials):
     band = None
     sponge = deformable and not b.encircling
     if deformable and p["mesh"] != "coarse":
-        log.warning("deformable %s on the %s eye mesh: deformable buckles have been run to the "
-                    "end on the coarse mesh only; on the default mesh the band's, tires' and "
-                    "sponge's load steps were cut on residual plateaus until they stopped "
-                    "(docs/surgery.md)", b.kind, p["mesh"])
+        log.warning("deformable %s on the %s eye mesh: of the deformable buckles, the band "
+                    "and the flat tire have been run to the end on the default eye (with "
+                    "globe_axial = 1, as in their case files); the ridged tire's and the "
+                    "sponge's load steps were cut there until they stopped (docs/surgery.md)",
+                    b.kind, p["mesh"])
     if sponge:  # parked SPONGE_PARK mm off the sclera until stage 2 fits it snug
         mesh = with_band(mesh, sponge_mesh(b, g, p["mesh"], SPONGE_PARK), "sponge")
     elif deformable:  # parked BAND_PARK mm off the sclera until stage 2 fits it snug
