@@ -3,7 +3,8 @@
 An encircling buckle (kind "band", "tire_flat" or "tire_ridged") is its cross-section
 (:func:`ring_profile`) swept once around the optical axis and cut at the +y meridian, so
 that its two ends can be pulled past each other (the seed's displacement condition at
-the band ends, 6.1 stage 2). The tires are modelled with their band as one silicone
+the band ends, 6.1 stage 2), or closed (a loop tightened by shortening its rest length,
+:mod:`eyefem.loop_solid`). The tires are modelled with their band as one silicone
 body (the band runs in the tire's groove; both neo-Hookean c10 = 1.0 MPa in the seed).
 A radial sponge (:func:`deformable_sponge`) is a solid cylinder curved along the sclera.
 """
