@@ -18,9 +18,9 @@ import numpy as np
 from .bars import Bars, TiedBars, bilinear
 from .handcoded import (bar_residual_tangent, pressure_face_residual_tangent, q1p0_residual_tangent,
                         smoothed_bar_residual_tangent)
+from .loop_solid import ShortenedLoopSolid
 from .materials import MooneyRivlin
 from .mesh import HEX_CORNERS, HEX_FACES, Mesh
-from .loop_solid import ShortenedLoopSolid
 from .solid import SolidQ1P0
 from .surface import face_cone_volume
 from .terms import OrbitSpring
