@@ -95,7 +95,7 @@ def test_tire_mesh_dimensions_sets_and_volume(kind):
 def test_a_deformable_tire_off_the_coarse_mesh_is_flagged(caplog):
     surgery(_params(mesh="medium", buckle="tire_flat"), None)
     assert "deformable tire_flat on the medium eye mesh" in caplog.text
-    assert "run to the end on the default eye (with globe_axial = 1" in caplog.text
+    assert "run to the end on the coarse and default eyes only" in caplog.text
 
 
 def test_deformable_band_refuses_a_pulling_force():

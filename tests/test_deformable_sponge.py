@@ -74,7 +74,7 @@ def test_deformable_buckles_are_a_band_a_tire_or_a_radial_sponge():
 
 def test_a_deformable_sponge_off_the_coarse_mesh_is_flagged(caplog):
     surgery(_params(mesh="medium"), None)
-    assert "the sponge's load steps were cut there" in caplog.text and "medium" in caplog.text
+    assert "its suture steps were cut until they stopped" in caplog.text and "medium" in caplog.text
 
 
 def test_sponge_parked_then_fitted_snug():

@@ -273,12 +273,14 @@ def surgery(p, materials):
     b = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
     band = None
     sponge = deformable and not b.encircling
-    if deformable and p["mesh"] != "coarse":
-        log.warning("deformable %s on the %s eye mesh: of the deformable buckles, the band "
-                    "and the flat tire have been run to the end on the default eye (with "
-                    "globe_axial = 1, as in their case files); the ridged tire's and the "
-                    "sponge's load steps were cut there until they stopped (docs/surgery.md)",
-                    b.kind, p["mesh"])
+    if sponge and p["mesh"] != "coarse":
+        log.warning("deformable %s on the %s eye mesh: the deformable sponge has been run "
+                    "to the end on the coarse eye only; on the default eye its suture steps "
+                    "were cut until they stopped (docs/surgery.md)", b.kind, p["mesh"])
+    elif deformable and p["mesh"] not in ("coarse", "default"):
+        log.warning("deformable %s on the %s eye mesh: the deformable band and tires have "
+                    "been run to the end on the coarse and default eyes only, with their "
+                    "case files' settings (docs/surgery.md)", b.kind, p["mesh"])
     if sponge:  # parked SPONGE_PARK mm off the sclera until stage 2 fits it snug
         mesh = with_band(mesh, sponge_mesh(b, g, p["mesh"], SPONGE_PARK), "sponge")
     elif deformable:  # parked BAND_PARK mm off the sclera until stage 2 fits it snug
