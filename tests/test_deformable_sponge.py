@@ -2,6 +2,7 @@
 
 import csv
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +14,8 @@ from eyefem.mesh import hex_geometry
 from eyefem.problems.sponge import (SPONGE_CLEARANCE, SPONGE_SPRING, fit_sponge,
                                    sponge_contact_term, sponge_spring_term)
 from eyefem.problems.surgery import SURGERY_FIELDS, surgery
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _params(**kw):
@@ -75,6 +78,24 @@ def test_deformable_buckles_are_a_band_a_tire_or_a_radial_sponge():
 def test_a_deformable_sponge_off_the_coarse_mesh_is_flagged(caplog):
     surgery(_params(mesh="medium"), None)
     assert "its suture steps were cut until they stopped" in caplog.text and "medium" in caplog.text
+    assert "deformable_sponge_default.toml" in caplog.text
+
+
+def test_the_default_eye_sponge_case_is_the_coarse_one_off_the_symmetry_plane(caplog):
+    """deformable_sponge_default.toml: the coarse case with the default mesh and the three
+    settings its header gives, and none else; with them no warning."""
+    from eyefem.cli import _schemas
+    from eyefem.casefile import load_case
+
+    coarse = load_case(ROOT / "cases/surgery/deformable_sponge.toml", _schemas())
+    default = load_case(ROOT / "cases/surgery/deformable_sponge_default.toml", _schemas())
+    changed = {k: v for k, v in default.parameters.items() if coarse.parameters[k] != v}
+    assert changed == {"mesh": "default", "buckle_meridian_deg": 3.0,
+                       "contact_normals": "nodal", "globe_axial": 1.0}
+    assert default.raw["materials"] == coarse.raw["materials"] and default.solver == coarse.solver
+    with caplog.at_level("WARNING"):
+        surgery({**default.parameters, "mesh": "medium"}, None)
+    assert "deformable sponge" not in caplog.text and "sponge_radial on" not in caplog.text
 
 
 def test_sponge_parked_then_fitted_snug():

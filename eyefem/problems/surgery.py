@@ -273,11 +273,17 @@ def surgery(p, materials):
     b = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
     band = None
     sponge = deformable and not b.encircling
-    if sponge and p["mesh"] != "coarse":
-        log.warning("deformable %s on the %s eye mesh: the deformable sponge has been run "
-                    "to the end on the coarse eye only; on the default eye its suture steps "
-                    "were cut until they stopped (docs/surgery.md)", b.kind, p["mesh"])
-    elif deformable and p["mesh"] not in ("coarse", "default"):
+    if sponge and p["mesh"] != "coarse" and (p["buckle_meridian_deg"] % 90 == 0 or
+                                             p["contact_normals"] != "nodal" or
+                                             not p["globe_axial"]):
+        log.warning("deformable %s on the %s eye mesh at meridian %g deg, contact_normals = "
+                    "'%s', globe_axial = %g: off the coarse eye the deformable sponge has run "
+                    "to the end with the settings of cases/surgery/deformable_sponge_default"
+                    ".toml (a meridian off the eye mesh's symmetry planes, contact_normals = "
+                    "'nodal', globe_axial = 1); at meridian 0 its suture steps were cut until "
+                    "they stopped (docs/surgery.md)", b.kind, p["mesh"],
+                    p["buckle_meridian_deg"], p["contact_normals"], p["globe_axial"])
+    elif deformable and not sponge and p["mesh"] not in ("coarse", "default"):
         log.warning("deformable %s on the %s eye mesh: the deformable band and tires have "
                     "been run to the end on the coarse and default eyes only, with their "
                     "case files' settings (docs/surgery.md)", b.kind, p["mesh"])
