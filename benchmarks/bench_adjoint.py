@@ -5,7 +5,7 @@ is short), then times at the converged state (median of repeats):
   - one Newton iteration: residual + tangent assembly + factorisation + solve;
   - the gradient of one outcome (IOP) with respect to every design variable (surgical
     and material): three adjoint solves (stages 3, 2 and 1) with the reused
-    factorisations + the vector-Jacobian products (eyefem.design.SurgerySimulator.gradients);
+    factorisations + the vector-Jacobian products (eyefem.eye.design.SurgerySimulator.gradients);
 and reports their ratio.
 
     python benchmarks/bench_adjoint.py --mesh default --repeats 3
@@ -24,7 +24,8 @@ jax.config.update("jax_enable_x64", True)
 
 
 from bench_core import _median  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
-from eyefem.design import SurgerySimulator, default_parameters  # noqa: E402
+
+from eyefem.eye.design import SurgerySimulator, default_parameters  # noqa: E402
 
 
 def main(argv=None):

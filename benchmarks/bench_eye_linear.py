@@ -27,11 +27,13 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from eyefem import linsolve  # noqa: E402
-from eyefem.assembly import Assembler  # noqa: E402
-from eyefem.casefile import load_case  # noqa: E402
-from eyefem.cli import _schemas  # noqa: E402
-from eyefem.problems import PROBLEMS  # noqa: E402
-from eyefem.solver import NewtonOptions, _lerp, solve  # noqa: E402
+from eyefem.catalog import (
+    problems,  # noqa: E402
+    schemas,  # noqa: E402
+)
+from eyefem.io.casefile import load_case  # noqa: E402
+from eyefem.solve.assembly import Assembler  # noqa: E402
+from eyefem.solve.solver import NewtonOptions, _lerp, solve  # noqa: E402
 
 
 def _median_time(f, repeats):
@@ -54,10 +56,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     linsolve.REPRODUCIBLE = not args.not_reproducible
 
-    case = load_case(args.case, _schemas())
+    case = load_case(args.case, schemas())
     if args.mesh:
         case.parameters["mesh"] = args.mesh
-    setup = PROBLEMS[case.problem][1](case.parameters, case.materials)
+    setup = problems()[case.problem][1](case.parameters, case.materials)
     sol = solve(setup.model, setup.stages[:1], options=NewtonOptions())
     model, q, theta = sol.model, sol.q, sol.theta
     stage = setup.stages[1]

@@ -21,11 +21,11 @@ import numpy as np
 
 def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
-    from eyefem.design import default_parameters
-    from eyefem.output import plot_curves, write_csv, write_text
-    from eyefem.problems.surgery import surgery
-    from eyefem.solver import Stage, solve
-    from eyefem.units import MMHG
+    from eyefem.eye.design import default_parameters
+    from eyefem.eye.surgery import surgery
+    from eyefem.fem.units import MMHG
+    from eyefem.io.output import plot_curves, write_csv, write_text
+    from eyefem.solve.solver import Stage, solve
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--mesh", default="coarse")

@@ -1,6 +1,6 @@
 """Composable planning objectives: functions of the outcome values, differentiable.
 
-Each objective maps the outcomes (dict name -> JAX scalar, see eyefem.design.OUTCOMES)
+Each objective maps the outcomes (dict name -> JAX scalar, see eyefem.eye.design.OUTCOMES)
 to a non-negative JAX scalar; they are summed. The planner differentiates the sum with
 respect to the outcomes (jax.grad) and chains with the adjoint gradients of the
 outcomes with respect to the design. Scales make every term about 1 when the

@@ -24,7 +24,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from . import objectives as obj
+from optimize import objectives as obj
 
 log = logging.getLogger("optimize.plan")
 
@@ -69,7 +69,7 @@ def plan(sim, objective_terms, names, *, bounds=None, iterations=20, learning_ra
     """Projected Adam on the design variables ``names`` of a SurgerySimulator.
 
     Args:
-      sim: eyefem.design.SurgerySimulator (its case gives the starting design).
+      sim: eyefem.eye.design.SurgerySimulator (its case gives the starting design).
       objective_terms: list of optimize.objectives.Objective.
       names: design variables to optimise (others stay at the case's values).
       bounds: name -> (low, high); default BOUNDS.
@@ -81,7 +81,7 @@ def plan(sim, objective_terms, names, *, bounds=None, iterations=20, learning_ra
     """
     import optax
 
-    from eyefem.design import MATERIAL_VARIABLES, SURGICAL_VARIABLES
+    from eyefem.eye.design import MATERIAL_VARIABLES, SURGICAL_VARIABLES
 
     for n in names:
         if n in MATERIAL_VARIABLES:
@@ -135,7 +135,7 @@ def plot_history(path: Path, history: list[dict], objective_terms):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from eyefem.output import atomic_path
+    from eyefem.io.output import atomic_path
 
     it = [r["iteration"] for r in history]
     fig, ax = plt.subplots(1, 3, figsize=(12, 3.4))
@@ -173,12 +173,12 @@ def _objectives_from_args(a) -> list:
 
 def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
-    from eyefem.casefile import CaseError, load_case
-    from eyefem.cli import _schemas
-    from eyefem.design import SurgerySimulator
-    from eyefem.dialogue import write_case
-    from eyefem.output import write_csv, write_text
-    from eyefem.solver import ConvergenceError
+    from eyefem.catalog import schemas
+    from eyefem.cli.dialogue import write_case
+    from eyefem.eye.design import SurgerySimulator
+    from eyefem.io.casefile import CaseError, load_case
+    from eyefem.io.output import write_csv, write_text
+    from eyefem.solve.solver import ConvergenceError
 
     ap = argparse.ArgumentParser(prog="python -m optimize.plan", description=__doc__.split("\n")[0])
     ap.add_argument("case", help="surgery case file (TOML)")
@@ -199,7 +199,7 @@ def main(argv=None) -> int:
                         datefmt="%H:%M:%S")
     logging.getLogger("eyefem").setLevel(logging.WARNING)
     try:
-        case = load_case(a.case, _schemas())
+        case = load_case(a.case, schemas())
         if case.problem != "surgery":
             raise CaseError(f"{a.case}: problem '{case.problem}'; the planner needs a surgery case")
         params = dict(case.parameters)

@@ -4,12 +4,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from eyefem import generators
-from eyefem.adjoint import value_and_grad
-from eyefem.materials import mooney_rivlin
-from eyefem.model import node_dofs, solid_model
-from eyefem.solver import Stage, solve
-from eyefem.terms import NodalForce
+from eyefem.fem import generators
+from eyefem.fem.materials import mooney_rivlin
+from eyefem.fem.terms import NodalForce
+from eyefem.solve.adjoint import value_and_grad
+from eyefem.solve.model import node_dofs, solid_model
+from eyefem.solve.solver import Stage, solve
 
 
 @pytest.fixture(scope="module")

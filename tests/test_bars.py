@@ -4,9 +4,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from eyefem.bars import Bars, bilinear
-from eyefem.handcoded import bar_residual_tangent
-from eyefem.model import Model
+from eyefem.fem.bars import Bars, bilinear
+from eyefem.solve.model import Model
+from eyefem.verify.handcoded import bar_residual_tangent
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +93,7 @@ def test_tied_bar_closed_form_smoothing_and_rotation_invariance():
     0.1 mm: force EA / L0 x 0.1 (to exp(-0.1 / eps)), energy EA / (2 L0) 0.1^2; slack by
     10 eps: force below 1e-4 of that; a rigid rotation of the deformed state changes
     neither energy nor length."""
-    from eyefem.bars import TiedBars
+    from eyefem.fem.bars import TiedBars
 
     sq = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
     X = np.vstack([sq, sq + [0, 0, 2.0]])

@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from eyefem import generators
-from eyefem.bars import AnchoredBars
-from eyefem.buckle_contact import BuckleContact, ring_profile, smooth_penetration
+from eyefem.fem import generators
+from eyefem.fem.bars import AnchoredBars
+from eyefem.fem.buckle_contact import BuckleContact, ring_profile, smooth_penetration
 
 R = 10.0
 
@@ -132,7 +132,7 @@ def _sponge(shell, radius=R):
 def test_fit_and_turn_params_equal_a_buckle_built_there(shell):
     """Param dr equals a buckle fitted at R + dr; param rot equals the nodes turned back by
     rot about the z axis (so a design can move the buckle without rebuilding it)."""
-    from eyefem.bars import rotate_z
+    from eyefem.fem.bars import rotate_z
 
     t, t2 = _sponge(shell), _sponge(shell, R + 0.3)
     X = t.data["X"]
@@ -213,11 +213,11 @@ def inflated_against_a_ring():
     """Octant of a thin sphere (outer radius R) inflated in one step by 30 mmHg, which
     alone would grow it by about 0.4 mm, against a rigid ring 0.1 mm (50 eps) outside its
     equator: the first Newton step runs the equator's nodes deep into the ring."""
-    from eyefem.materials import neo_hookean
-    from eyefem.model import node_dofs, solid_model
-    from eyefem.solver import NewtonOptions, Stage, solve
-    from eyefem.surface import PressureLoad
-    from eyefem.units import MMHG
+    from eyefem.fem.materials import neo_hookean
+    from eyefem.fem.surface import PressureLoad
+    from eyefem.fem.units import MMHG
+    from eyefem.solve.model import node_dofs, solid_model
+    from eyefem.solve.solver import NewtonOptions, Stage, solve
 
     mesh = generators.spherical_shell(R - 0.5, 0.5, 8, 1, octant=True, material="sclera")
     ring = BuckleContact("ring", mesh, "outer", "ring", R + 0.1, theta_b=np.pi / 2, width=7.0,
@@ -252,8 +252,8 @@ def test_a_wrong_lookahead_step_falls_back_to_the_plain_newton_step(inflated_aga
     wrong), the plain Newton step is taken: a look-ahead that always returns the reversed
     step changes neither the converged state nor the iteration count of the run
     without look-ahead."""
-    from eyefem import solver as solver_mod
-    from eyefem.solver import NewtonOptions, solve
+    from eyefem.solve import solver as solver_mod
+    from eyefem.solve.solver import NewtonOptions, solve
 
     off = inflated_against_a_ring[False]
     calls = []

@@ -4,15 +4,15 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from eyefem import generators
-from eyefem.cavity import FluidCavity, closing_hook
-from eyefem.materials import neo_hookean
-from eyefem.mesh import Mesh, boundary_faces, merge
-from eyefem.model import node_dofs, solid_model
+from eyefem.fem import generators
+from eyefem.fem.cavity import FluidCavity, closing_hook
+from eyefem.fem.materials import neo_hookean
+from eyefem.fem.mesh import Mesh, boundary_faces, merge
+from eyefem.fem.surface import PressureLoad
+from eyefem.fem.units import MMHG
 from eyefem.problems.verification import shell_rigid_constraints
-from eyefem.solver import Stage, solve
-from eyefem.surface import PressureLoad
-from eyefem.units import MMHG
+from eyefem.solve.model import node_dofs, solid_model
+from eyefem.solve.solver import Stage, solve
 
 
 def hollow_box(origin=(0.0, 0.0, 0.0), h=1.0):
@@ -176,8 +176,8 @@ def test_ninety_cavities_in_one_model():
 def closed_shell():
     """A pressurised spherical shell whose cavity is then closed (stiff liquid); the state,
     theta and an assembler for the closed stage."""
-    from eyefem.assembly import Assembler
-    from eyefem.cavity import close_cavity
+    from eyefem.fem.cavity import close_cavity
+    from eyefem.solve.assembly import Assembler
 
     m = generators.spherical_shell(10.0, 1.0, 6, 1, material="wall")
     m = m.replace(face_sets={**m.face_sets, "cavity": m.face_set("inner")})
@@ -212,10 +212,10 @@ def test_low_rank_values_are_the_volumes_whose_gradients_are_the_low_rank_vector
 
 
 def test_restoration_brings_the_volume_to_its_linear_prediction_at_second_order(closed_shell):
-    """The solver's second-order restoration (eyefem.solver._Restoration): a trial point
+    """The solver's second-order restoration (eyefem.solve.solver._Restoration): a trial point
     q + a dq is moved back to V(q) + a dV/dq . dq to roundoff, and the move shrinks as
     |dq|^2 (it is a second-order correction, so Newton's quadratic convergence is kept)."""
-    from eyefem.solver import _Restoration
+    from eyefem.solve.solver import _Restoration
 
     model, q, theta, asm, m = closed_shell
     r, K, B, D, lr = asm.assemble(q, theta, None)

@@ -3,12 +3,13 @@
 import numpy as np
 import pytest
 
-from eyefem import checkpoint, generators
-from eyefem.materials import MooneyRivlin
-from eyefem.model import node_dofs, solid_model
-from eyefem.problems.base import Setup, run_setup
-from eyefem.solver import Stage
-from eyefem.terms import NodeSprings
+from eyefem.fem import generators
+from eyefem.fem.materials import MooneyRivlin
+from eyefem.fem.terms import NodeSprings
+from eyefem.io import checkpoint
+from eyefem.io.runner import Setup, run_setup
+from eyefem.solve.model import node_dofs, solid_model
+from eyefem.solve.solver import Stage
 
 
 class Interrupted(Exception):

@@ -4,13 +4,20 @@ sliding on a curved surface, sticking vs sliding, many pairs, bad input."""
 import numpy as np
 import pytest
 
-from eyefem import generators
-from eyefem.contact import RigidContact, SurfaceContact
-from eyefem.materials import invariant_derivatives, mooney_rivlin
-from eyefem.mesh import merge
-from eyefem.model import node_dofs, solid_model
-from eyefem.rigid import RigidBody, closest_point_triangle, cylinder, plane, ring_segment, sphere
-from eyefem.solver import Stage, solve
+from eyefem.fem import generators
+from eyefem.fem.contact import RigidContact, SurfaceContact
+from eyefem.fem.materials import invariant_derivatives, mooney_rivlin
+from eyefem.fem.mesh import merge
+from eyefem.fem.rigid import (
+    RigidBody,
+    closest_point_triangle,
+    cylinder,
+    plane,
+    ring_segment,
+    sphere,
+)
+from eyefem.solve.model import node_dofs, solid_model
+from eyefem.solve.solver import Stage, solve
 
 MAT = mooney_rivlin("r", 1.0, 0.2)
 
@@ -266,7 +273,7 @@ def test_smoothed_sliding_contact_closed_form():
     (eps ln 2)^2 at touching, and nothing left for g >> eps; unchanged by a rigid motion."""
     import jax.numpy as jnp
 
-    from eyefem.contact import SurfaceContact
+    from eyefem.fem.contact import SurfaceContact
 
     X = np.array([[0.3, 0.4, 0.0], [0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
     alpha, eps = 40.0, 0.01
@@ -388,7 +395,7 @@ def test_nagata_patch_stays_near_its_face_when_a_node_leaves_its_held_normals():
     """Nodal normals 0.02 rad apart (a fine mesh of a sphere) are held while a node moves
     0.1 mm along them (one Newton step indenting the sclera): the patch bends by the
     normals' angle times the edge, not by the step over the angle squared."""
-    from eyefem.contact import nagata_patch
+    from eyefem.fem.contact import nagata_patch
 
     h, ang = 0.5, 0.02
     xf = np.array([[0, 0, 0], [h, 0, 0], [h, h, 0], [0, h, 0]], float)[None]

@@ -5,12 +5,12 @@ import json
 import numpy as np
 import pytest
 
-from eyefem.buckle_meshes import deformable_band, ring_fit_groups
-from eyefem.buckles import Buckle
-from eyefem.eyemodel import EyeGeometry
-from eyefem.mesh import hex_geometry
-from eyefem.problems.band import BAND_CLEARANCE, band_contact_term, fit_band
-from eyefem.problems.surgery import SEED_MATERIALS, SURGERY_FIELDS, surgery
+from eyefem.eye.band import BAND_CLEARANCE, band_contact_term, fit_band
+from eyefem.eye.buckle_meshes import deformable_band, ring_fit_groups
+from eyefem.eye.buckles import Buckle
+from eyefem.eye.eyemodel import EyeGeometry
+from eyefem.eye.surgery import SEED_MATERIALS, SURGERY_FIELDS, surgery
+from eyefem.fem.mesh import hex_geometry
 
 
 def _params(**kw):
@@ -149,7 +149,7 @@ def test_ridged_tire_fitted_with_its_ridge_on_the_sclera():
 
 @pytest.mark.slow
 def test_deformable_band_case_coarse(tmp_path):
-    from eyefem.cli import main
+    from eyefem.cli.main import main
 
     main(["run", "cases/surgery/deformable_band.toml", "--mesh", "coarse", "--out",
           str(tmp_path)])
@@ -176,7 +176,7 @@ def test_deformable_band_case_coarse(tmp_path):
     ("flat", 8, 5.0, 0.4, 22.0, "shortened_loop"),  # case 1: weak
     ("flat", 8, 5.0, 0.4, 22.0, "pulled_ends")])  # the tire cut, its ends pulled
 def test_deformable_tire_cases_coarse(tmp_path, kind, hexes, tightening, indent, iop, how):
-    from eyefem.cli import main
+    from eyefem.cli.main import main
 
     text = open(f"cases/surgery/deformable_{kind}_tire.toml").read()
     assert 'deformable_tightening = "shortened_loop"' in text
@@ -197,14 +197,14 @@ def test_deformable_tire_cases_coarse(tmp_path, kind, hexes, tightening, indent,
 
 
 def test_design_gradients_refuse_the_deformable_band():
-    from eyefem.design import SurgerySimulator
+    from eyefem.eye.design import SurgerySimulator
 
     with pytest.raises(ValueError, match="buckle_body = 'deformable'.*set buckle_body = 'rigid'"):
         SurgerySimulator(_params())
 
 
 def test_a_shortened_loop_tire_is_closed_and_tightened_by_its_rest_length():
-    from eyefem.loop_solid import ShortenedLoopSolid
+    from eyefem.fem.loop_solid import ShortenedLoopSolid
 
     setup = surgery(_params(buckle="tire_ridged", tightening=10.0,
                             deformable_tightening="shortened_loop"), None)

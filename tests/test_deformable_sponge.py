@@ -7,13 +7,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eyefem.buckle_meshes import deformable_sponge
-from eyefem.buckles import SPONGE_LENGTH, Buckle
-from eyefem.eyemodel import EyeGeometry
-from eyefem.mesh import hex_geometry
-from eyefem.problems.sponge import (SPONGE_CLEARANCE, SPONGE_SPRING, fit_sponge,
-                                   sponge_contact_term, sponge_spring_term)
-from eyefem.problems.surgery import SURGERY_FIELDS, surgery
+from eyefem.eye.buckle_meshes import deformable_sponge
+from eyefem.eye.buckles import SPONGE_LENGTH, Buckle
+from eyefem.eye.eyemodel import EyeGeometry
+from eyefem.eye.sponge import (
+    SPONGE_CLEARANCE,
+    SPONGE_SPRING,
+    fit_sponge,
+    sponge_contact_term,
+    sponge_spring_term,
+)
+from eyefem.eye.surgery import SURGERY_FIELDS, surgery
+from eyefem.fem.mesh import hex_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -84,11 +89,11 @@ def test_a_deformable_sponge_off_the_coarse_mesh_is_flagged(caplog):
 def test_the_default_eye_sponge_case_is_the_coarse_one_off_the_symmetry_plane(caplog):
     """deformable_sponge_default.toml: the coarse case with the default mesh and the three
     settings its header gives, and none else; with them no warning."""
-    from eyefem.cli import _schemas
-    from eyefem.casefile import load_case
+    from eyefem.catalog import schemas
+    from eyefem.io.casefile import load_case
 
-    coarse = load_case(ROOT / "cases/surgery/deformable_sponge.toml", _schemas())
-    default = load_case(ROOT / "cases/surgery/deformable_sponge_default.toml", _schemas())
+    coarse = load_case(ROOT / "cases/surgery/deformable_sponge.toml", schemas())
+    default = load_case(ROOT / "cases/surgery/deformable_sponge_default.toml", schemas())
     changed = {k: v for k, v in default.parameters.items() if coarse.parameters[k] != v}
     assert changed == {"mesh": "default", "buckle_meridian_deg": 3.0,
                        "contact_normals": "nodal", "globe_axial": 1.0}
@@ -122,7 +127,7 @@ def test_sponge_parked_then_fitted_snug():
 
 @pytest.mark.slow
 def test_deformable_sponge_case_coarse(tmp_path):
-    from eyefem.cli import main
+    from eyefem.cli.main import main
 
     assert main(["run", "cases/surgery/deformable_sponge.toml", "--out", str(tmp_path)]) == 0
     s = json.loads((tmp_path / "summary.json").read_text())

@@ -8,8 +8,8 @@ started from the base design's converged states; the equilibria are path indepen
 import numpy as np
 import pytest
 
-from eyefem.design import DESIGN_VARIABLES, OUTCOMES, SurgerySimulator, default_parameters
-from eyefem.solver import NewtonOptions
+from eyefem.eye.design import DESIGN_VARIABLES, OUTCOMES, SurgerySimulator, default_parameters
+from eyefem.solve.solver import NewtonOptions
 
 H = {"tightening": 1e-3, "buckle_shift": 1e-3, "suture_width": 1e-3, "suture_tightening": 1e-3,
      "c10_sclera": 1e-4, "liquid_bulk": 100.0, "suture_EA": 1.0, "zonule_E": 1.0,
@@ -109,7 +109,7 @@ def test_band_pull_term_is_the_work_of_the_tension():
     """DofForce: energy -f gain q, gradient -f gain, zero tangent (hand-coded values)."""
     import jax.numpy as jnp
 
-    from eyefem.terms import DofForce
+    from eyefem.fem.terms import DofForce
 
     t = DofForce("pull", 4, gain=2.5)
     q = jnp.arange(6.0)
@@ -133,8 +133,8 @@ def test_orbit_spring_holds_rotations_and_shifts_with_the_given_stiffnesses():
     import jax
     import numpy as np
 
-    from eyefem.eyemodel import EyeGeometry, build_eye
-    from eyefem.problems.surgery import orbit_spring
+    from eyefem.eye.eyemodel import EyeGeometry, build_eye
+    from eyefem.eye.surgery import orbit_spring
 
     mesh = build_eye(EyeGeometry(), "coarse").mesh
     outer = np.unique(mesh.face_set("eye/sclera_outer"))
@@ -253,7 +253,7 @@ def test_band_tension_cannot_vary_in_a_displacement_controlled_case(base):
 @pytest.mark.parametrize("buckle, given, expected", [
     ("tire_ridged", 0.0, 0.01), ("sponge_radial", 0.0, 0.002), ("band", 0.005, 0.005)])
 def test_buckle_contact_smoothing_automatic_by_buckle_kind_or_as_given(buckle, given, expected):
-    from eyefem.problems.surgery import surgery
+    from eyefem.eye.surgery import surgery
 
     setup = surgery(default_parameters(mesh="coarse", buckle=buckle, contact_smoothing=given),
                     None)

@@ -2,10 +2,12 @@
 
 import pytest
 
-from eyefem.casefile import CaseError, load_case
-from eyefem.cli import main as cli_main
-from eyefem.dialogue import new_case, scripted
-from eyefem.problems import PROBLEMS
+from eyefem.catalog import problems
+from eyefem.cli.dialogue import new_case, scripted
+from eyefem.cli.main import main as cli_main
+from eyefem.io.casefile import CaseError, load_case
+
+PROBLEMS = problems()
 
 SCHEMAS = {k: v[0] for k, v in PROBLEMS.items()}
 

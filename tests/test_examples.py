@@ -6,12 +6,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eyefem import vessels
-from eyefem.cavity import FluidCavity
-from eyefem.casefile import load_case
-from eyefem.mesh import open_edges
-from eyefem.problems import PROBLEMS
-from eyefem.problems.base import run_setup
+from eyefem.catalog import problems
+from eyefem.fem import vessels
+from eyefem.fem.cavity import FluidCavity
+from eyefem.fem.mesh import open_edges
+from eyefem.io.casefile import load_case
+
+PROBLEMS = problems()
+from eyefem.io.runner import run_setup
 from eyefem.problems.examples import CONTAINER_FIELDS, banded_container, compressed_pipes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,7 +110,7 @@ def test_band_squeezes_the_container_and_raises_its_pressure(container):
 
 
 def test_bad_example_parameters_name_the_file_and_leave_no_output(tmp_path, capsys):
-    from eyefem.cli import main as cli_main
+    from eyefem.cli.main import main as cli_main
 
     text = (ROOT / "cases/examples/pipes.toml").read_text()
     bad = tmp_path / "bad.toml"

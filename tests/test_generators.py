@@ -5,8 +5,8 @@ import time
 import numpy as np
 import pytest
 
-from eyefem import generators
-from eyefem.mesh import boundary_faces, hex_geometry, open_edges, quad_gauss_points, quad_shape
+from eyefem.fem import generators
+from eyefem.fem.mesh import boundary_faces, hex_geometry, open_edges, quad_gauss_points, quad_shape
 
 
 def volume(m):

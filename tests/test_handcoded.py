@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from eyefem.handcoded import q1p0_residual_tangent, stress_and_tangent
-from eyefem.materials import MooneyRivlin, invariant_derivatives
-from eyefem.mesh import HEX_CORNERS
-from eyefem.verify import format_table, random_deformation, verify_tangents
+from eyefem.fem.materials import MooneyRivlin, invariant_derivatives
+from eyefem.fem.mesh import HEX_CORNERS
+from eyefem.verify.handcoded import q1p0_residual_tangent, stress_and_tangent
+from eyefem.verify.tangents import format_table, random_deformation, verify_tangents
 
 
 @pytest.fixture(scope="module")

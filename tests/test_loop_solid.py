@@ -1,16 +1,16 @@
-"""A closed encircling loop tightened by shortening its rest length (eyefem.loop_solid)."""
+"""A closed encircling loop tightened by shortening its rest length (eyefem.fem.loop_solid)."""
 
 import numpy as np
 import pytest
 
-from eyefem.buckle_meshes import deformable_band, ring_fit_groups
-from eyefem.buckles import Buckle
-from eyefem.eyemodel import EyeGeometry
-from eyefem.loop_solid import ShortenedLoopSolid
-from eyefem.materials import neo_hookean
-from eyefem.mesh import hex_geometry
-from eyefem.model import Model, node_dofs
-from eyefem.solver import Stage, solve
+from eyefem.eye.buckle_meshes import deformable_band, ring_fit_groups
+from eyefem.eye.buckles import Buckle
+from eyefem.eye.eyemodel import EyeGeometry
+from eyefem.fem.loop_solid import ShortenedLoopSolid
+from eyefem.fem.materials import neo_hookean
+from eyefem.fem.mesh import hex_geometry
+from eyefem.solve.model import Model, node_dofs
+from eyefem.solve.solver import Stage, solve
 
 SHORTENING = 6.0  # mm
 

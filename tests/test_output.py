@@ -5,7 +5,7 @@ import stat
 
 import pytest
 
-from eyefem.output import write_csv, write_text
+from eyefem.io.output import write_csv, write_text
 
 
 @pytest.mark.parametrize("umask", [0o022, 0o077])
@@ -27,7 +27,7 @@ def test_a_failed_write_leaves_neither_the_file_nor_a_temporary(tmp_path):
     class Boom(Exception):
         pass
 
-    from eyefem.output import atomic_path
+    from eyefem.io.output import atomic_path
 
     with pytest.raises(Boom):
         with atomic_path(tmp_path / "field.vtu") as tmp:

@@ -10,18 +10,25 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from eyefem import generators
-from eyefem.casefile import CaseError, load_case
-from eyefem.cli import main as cli_main
-from eyefem.linsolve import LinearSolveError, NegativeCurvature, SaddlePointSolver, available_backends
-from eyefem.materials import MooneyRivlin, neo_hookean
-from eyefem.mesh import Mesh
-from eyefem.model import node_dofs, solid_model
-from eyefem.problems import PROBLEMS
-from eyefem.problems.base import run_setup
-from eyefem.solver import ConvergenceError, NewtonOptions, Stage, solve
-from eyefem.surface import PressureLoad, enclosed_volume
-from eyefem.terms import Term
+from eyefem.catalog import problems
+from eyefem.cli.main import main as cli_main
+from eyefem.fem import generators
+from eyefem.fem.materials import MooneyRivlin, neo_hookean
+from eyefem.fem.mesh import Mesh
+from eyefem.io.casefile import CaseError, load_case
+from eyefem.solve.linsolve import (
+    LinearSolveError,
+    NegativeCurvature,
+    SaddlePointSolver,
+    available_backends,
+)
+from eyefem.solve.model import node_dofs, solid_model
+
+PROBLEMS = problems()
+from eyefem.fem.surface import PressureLoad, enclosed_volume
+from eyefem.fem.terms import Term
+from eyefem.io.runner import run_setup
+from eyefem.solve.solver import ConvergenceError, NewtonOptions, Stage, solve
 
 
 def _params(problem, **kw):
@@ -186,7 +193,7 @@ def test_saddle_point_solve_refines_an_inexact_factorisation():
     badly conditioned tangent) leaves a residual of 1e-4 relative: without refinement that
     is an error; three refinement steps against the exact system bring it to the exact
     solution. A sound factorisation is not refined at all (default refine_above 1e-7)."""
-    from eyefem.linsolve import factorize
+    from eyefem.solve.linsolve import factorize
 
     rng, K, B, f, g = _random_saddle_point(11)
     n, m = B.shape
@@ -246,7 +253,7 @@ def test_pressure_potential_gradient_is_follower_load():
     q[: model.n_u] = 0.05 * rng.standard_normal(model.n_u)
     g = model._kernel(t, "grad")(q, {"p": 0.3}, t.data, t.dofs)
     x = mesh.nodes + q[: model.n_u].reshape(-1, 3)
-    from eyefem.mesh import quad_gauss_points, quad_shape
+    from eyefem.fem.mesh import quad_gauss_points, quad_shape
     xg, wg = quad_gauss_points()
     N, dN = quad_shape(xg)
     ref = np.zeros_like(x)
@@ -399,7 +406,7 @@ def test_cli_keeps_compiled_kernels_in_the_cache_directory_it_is_given(tmp_path)
     runs = {"on": tmp_path / "jax", "off": "off"}
     for name, cache in runs.items():
         env = {**os.environ, "EYEFEM_JAX_CACHE": str(cache)}
-        proc = subprocess.run([sys.executable, "-m", "eyefem.cli", "-q", "run",
+        proc = subprocess.run([sys.executable, "-m", "eyefem.cli.main", "-q", "run",
                                "cases/verification/patch_test.toml", "--out",
                                str(tmp_path / name), "--no-vtu"], env=env, capture_output=True,
                               text=True, timeout=300)
@@ -412,7 +419,7 @@ def test_pardiso_factorisation_kept_for_an_adjoint_survives_pattern_eviction():
     """A planner makes more sparsity patterns than Pardiso instances are kept; an old
     factorisation (held for an adjoint solve) must still solve after its pattern's
     instance was evicted and freed."""
-    from eyefem.linsolve import factorize
+    from eyefem.solve.linsolve import factorize
 
     rng = np.random.default_rng(3)
 
@@ -432,7 +439,7 @@ def test_pardiso_factorisation_kept_for_an_adjoint_survives_pattern_eviction():
 def test_pardiso_runs_with_the_project_settings_and_solves_indefinite_systems():
     """PARDISO_IPARM is in effect (no automatic iterative refinement: Pardiso reports 0
     refinement steps) and an indefinite symmetric system is still solved accurately."""
-    from eyefem.linsolve import PARDISO_IPARM, factorize
+    from eyefem.solve.linsolve import PARDISO_IPARM, factorize
 
     rng = np.random.default_rng(5)
     n = 60
@@ -454,7 +461,7 @@ def test_pardiso_runs_on_mkls_reproducible_branch():
     factorisation differs in the last digits from run to run."""
     import os
 
-    from eyefem.linsolve import factorize, mkl_cnr_branch
+    from eyefem.solve.linsolve import factorize, mkl_cnr_branch
 
     f = factorize(sp.identity(4, format="csr") * 2.0, "pardiso")
     branch = mkl_cnr_branch(f.entry["solver"].libmkl)
@@ -623,7 +630,7 @@ def test_a_cycling_contact_pairing_is_accepted_where_the_state_is_in_equilibrium
         seen.append((rec, *forces))
 
     opts = NewtonOptions(max_iter=20, max_cuts=0)
-    with caplog.at_level("WARNING", logger="eyefem.solver"):
+    with caplog.at_level("WARNING", logger="eyefem.solve.solver"):
         sol = solve(model, [stage], options=opts, on_step=on_step)
     (rec, in_pairing, repaired), = seen
     assert sol.history[-1].t == 1.0 and rec.info == {"contact_cycle": True}
@@ -638,11 +645,11 @@ def test_a_pairing_that_never_settles_is_accepted_at_its_third_re_pairing(caplog
     first): no re-pairing leaves the same force twice, so it is no cycle, but the third
     state converged with frozen pairs that re-pairs below contact_cycle_rtol is
     accepted, flagged, with a warning that says so."""
-    from eyefem.solver import UNSETTLED_REPAIRS
+    from eyefem.solve.solver import UNSETTLED_REPAIRS
 
     model, stage, reaction, node = _cube_with_a_flipping_contact(2e-4, grow=0.2)
     opts = NewtonOptions(max_iter=30, max_cuts=0)
-    with caplog.at_level("WARNING", logger="eyefem.solver"):
+    with caplog.at_level("WARNING", logger="eyefem.solve.solver"):
         sol = solve(model, [stage], options=opts)
     rec = sol.history[-1]
     assert rec.t == 1.0 and rec.info == {"contact_cycle": True}
@@ -665,7 +672,7 @@ def test_a_pairing_that_flips_at_every_iterate_above_the_freeze_threshold_is_fro
     model, stage, reaction, node = _cube_with_a_flipping_contact(4e-3)
     opts = NewtonOptions(max_iter=40, max_cuts=0, contact_cycle_rtol=1e-2)
     assert opts.contact_freeze < 4e-3 < opts.modified_newton
-    with caplog.at_level("DEBUG", logger="eyefem.solver"):
+    with caplog.at_level("DEBUG", logger="eyefem.solve.solver"):
         sol = solve(model, [stage], options=opts)
     rec = sol.history[-1]
     assert rec.t == 1.0 and rec.info == {"contact_cycle": True}
@@ -708,7 +715,7 @@ def test_a_step_stalled_with_the_pairs_frozen_is_accepted_only_if_balanced_re_pa
     assert all(f <= opts.stall_repair_rtol * reaction for _, f in accepted), accepted
     # unbounded (the default): accepted, and the warning gives the force left re-paired
     accepted.clear()
-    with caplog.at_level("WARNING", logger="eyefem.solver"):
+    with caplog.at_level("WARNING", logger="eyefem.solve.solver"):
         try:  # the stage's last step, on the kink, is never accepted on a stall
             solve(model, [stage], on_step=on_step,
                   options=dataclasses.replace(opts, stall_repair_rtol=float("inf")))
@@ -776,7 +783,7 @@ def test_a_failing_long_step_is_damped_to_max_step():
     walks to the equilibrium; without it the step fails at every cut."""
     from scipy.optimize import brentq
 
-    from eyefem.model import Model
+    from eyefem.solve.model import Model
 
     mesh = generators.box(1.0, 1.0, 1.0, 1, 1, 1, material="m")
     spring = _SoftSpring("spring", 0)
@@ -798,7 +805,7 @@ def test_a_failing_long_step_is_damped_to_max_step():
 
 
 def test_the_predictor_backs_off_to_a_state_without_inverted_elements():
-    from eyefem.solver import _predicted
+    from eyefem.solve.solver import _predicted
 
     q0, corr = np.array([1.0, 0.0, 0.0]), np.array([0.0, 2.0, -4.0])
     # an element inverts once the second dof passes 0.6: the largest fraction short of it

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from eyefem.cli import main as cli_main
+from eyefem.cli.main import main as cli_main
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "results" / "compare-coarse"

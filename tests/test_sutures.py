@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from eyefem.bars import bilinear
-from eyefem.sutures import generate_sutures, ray_face_intersection, suture_bar_ends
+from eyefem.eye.sutures import generate_sutures, ray_face_intersection, suture_bar_ends
+from eyefem.fem.bars import bilinear
 
 
 def _sphere_patch(radius, n=24, half_angle=0.6):

@@ -1,8 +1,4 @@
-"""Problem builders referred to by name in case files."""
+"""Verification problems (seed sections 3-5) and the seed's liquid-container examples.
 
-from .examples import PROBLEMS as _EXAMPLES
-from .surgery import PROBLEMS as _SURGERY
-from .verification import PROBLEMS as _VERIFICATION
-
-PROBLEMS = {**_VERIFICATION, **_EXAMPLES, **_SURGERY}
-"""name -> (schema fields, builder(parameters, materials) -> Setup)."""
+The surgery problem is in :mod:`eyefem.eye`; :mod:`eyefem.catalog` lists them all by name.
+"""

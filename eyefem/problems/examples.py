@@ -15,18 +15,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import vessels
-from ..casefile import Field, positive
-from ..cavity import WATER_BULK, FluidCavity
-from ..contact import RigidContact, SurfaceContact
-from ..materials import mooney_rivlin
-from ..mesh import merge
-from ..model import node_dofs, solid_model
-from ..output import plot_curves
-from ..rigid import plane
-from ..solver import Stage
-from ..units import MMHG
-from .base import Setup
+from eyefem.fem import vessels
+from eyefem.fem.cavity import WATER_BULK, FluidCavity
+from eyefem.fem.contact import RigidContact, SurfaceContact
+from eyefem.fem.materials import mooney_rivlin
+from eyefem.fem.mesh import merge
+from eyefem.fem.rigid import plane
+from eyefem.fem.units import MMHG
+from eyefem.io.casefile import Field, positive
+from eyefem.io.output import plot_curves
+from eyefem.io.runner import Setup
+from eyefem.solve.model import node_dofs, solid_model
+from eyefem.solve.solver import Stage
 
 _KPA = 1e-3  # MPa
 
@@ -49,7 +49,7 @@ def _supports(mesh, spec):
 def _section(path, model, state, normal, axes, title, offset):
     """Section of the deformed mesh by the plane normal . x = offset (mm; off the node
     layers, which a cut through nodes would miss), coloured by von Mises stress (kPa), PNG."""
-    from ..pictures import plot_section
+    from eyefem.io.pictures import plot_section
 
     q, theta = state["q"], state["theta"]
     mesh = model.mesh

@@ -11,15 +11,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import generators
-from ..casefile import Field, positive
-from ..materials import MooneyRivlin, invariant_derivatives, mooney_rivlin
-from ..model import node_dofs, solid_model
-from ..output import plot_curves, write_csv
-from ..solver import Stage
-from ..surface import PressureLoad
-from ..units import MMHG
-from .base import Setup
+from eyefem.fem import generators
+from eyefem.fem.materials import MooneyRivlin, invariant_derivatives, mooney_rivlin
+from eyefem.fem.surface import PressureLoad
+from eyefem.fem.units import MMHG
+from eyefem.io.casefile import Field, positive
+from eyefem.io.output import plot_curves, write_csv
+from eyefem.io.runner import Setup
+from eyefem.solve.model import node_dofs, solid_model
+from eyefem.solve.solver import Stage
 
 
 def _material(materials, default):

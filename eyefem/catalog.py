@@ -1,0 +1,21 @@
+"""The problems a case file can name: ``problem = "surgery"`` and the rest.
+
+Each entry maps a problem name to its schema (the fields of the case file's
+``[parameters]`` table) and its builder ``(parameters, materials) -> Setup``.
+"""
+
+from __future__ import annotations
+
+
+def problems() -> dict:
+    """name -> (schema fields, builder(parameters, materials) -> Setup)."""
+    from eyefem.eye.surgery import PROBLEMS as surgery
+    from eyefem.problems.examples import PROBLEMS as examples
+    from eyefem.problems.verification import PROBLEMS as verification
+
+    return {**verification, **examples, **surgery}
+
+
+def schemas() -> dict:
+    """name -> the schema fields of its ``[parameters]`` table."""
+    return {k: v[0] for k, v in problems().items()}

@@ -1,0 +1,115 @@
+"""Interactive (or scripted) creation of a case file from a problem's schema.
+
+``eyefem new-case`` asks for each parameter of the chosen problem (showing its unit,
+default and valid range), validates every answer with the same checks as the case
+reader and asks again with the reason when an answer is invalid, then writes a case
+file that runs. The same is available without questions: ``--set name=value`` and
+``--yes`` (accept defaults).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Iterable
+
+import tomli_w
+
+from eyefem.io.casefile import REQUIRED, CaseError, Field, parse_section
+from eyefem.io.output import write_text
+
+
+def _convert(field: Field, text: str):
+    text = text.strip()
+    if field.type is bool:
+        low = text.lower()
+        if low in ("y", "yes", "true", "1"):
+            return True
+        if low in ("n", "no", "false", "0"):
+            return False
+        raise CaseError(f"'{text}' is not yes/no")
+    try:
+        return field.type(text)
+    except ValueError:
+        raise CaseError(f"'{text}' is not a {field.type.__name__}") from None
+
+
+def ask_parameters(fields: list[Field], ask: Callable[[str], str], say: Callable[[str], None],
+                   preset: dict | None = None, accept_defaults: bool = False,
+                   max_tries: int = 5) -> dict:
+    """Collect validated parameter values.
+
+    Args:
+      fields: the problem's schema.
+      ask: prompt -> answer (``input`` interactively, an iterator in tests).
+      say: prints a message.
+      preset: values given up front (``--set``), validated too.
+      accept_defaults: take the default of every field not preset without asking.
+    """
+    values = {}
+    preset = dict(preset or {})
+    for f in fields:
+        if f.name in preset:
+            raw = preset.pop(f.name)
+            val = _convert(f, raw) if isinstance(raw, str) else raw
+            parse_section({f.name: val}, [f], "parameter")
+            values[f.name] = val
+            continue
+        if accept_defaults and f.default is not REQUIRED:
+            continue
+        default = "" if f.default is REQUIRED else f" [{f.default}]"
+        rng = f" ({f.check_doc})" if f.check_doc else ""
+        for _ in range(max_tries):
+            ans = ask(f"{f.name}: {f.doc}{rng}{default}? ")
+            if not ans.strip() and f.default is not REQUIRED:
+                break
+            try:
+                val = _convert(f, ans)
+                parse_section({f.name: val}, [f], "answer")
+            except CaseError as exc:
+                say(f"  invalid: {exc}")
+                continue
+            if val != f.default:
+                values[f.name] = val
+            break
+        else:
+            raise CaseError(f"no valid answer for '{f.name}' after {max_tries} tries")
+    if preset:
+        raise CaseError(f"unknown parameters {sorted(preset)}; valid: {[f.name for f in fields]}")
+    return values
+
+
+def write_case(path: Path, problem: str, title: str, parameters: dict,
+               materials: dict | None = None, description: str = ""):
+    """Write a case file atomically (TOML)."""
+    doc = {"case": {"problem": problem, "title": title or problem}}
+    if description:
+        doc["case"]["description"] = description
+    doc["parameters"] = parameters
+    if materials:
+        doc["materials"] = materials
+    write_text(Path(path), tomli_w.dumps(doc))
+
+
+def new_case(problem: str, fields: list[Field], path: Path, *, ask=input, say=print,
+             preset=None, accept_defaults=False, title="", materials=None,
+             check=None) -> Path:
+    """Ask for the parameters of ``problem`` and write the case file; returns its path.
+
+    ``check(params)``: the problem's checks across fields (params with the defaults
+    filled in); its ValueError becomes a CaseError and nothing is written."""
+    say(f"New '{problem}' case -> {path}  (Enter keeps the default)")
+    params = ask_parameters(fields, ask, say, preset, accept_defaults)
+    if check is not None:
+        try:
+            check({**{f.name: f.default for f in fields}, **params})
+        except ValueError as exc:
+            raise CaseError(f"{problem}: {exc}; nothing written to {path}") from None
+    write_case(path, problem, title, params, materials)
+    say(f"wrote {path}; run it with: eyefem run {path}")
+    return Path(path)
+
+
+def scripted(answers: Iterable[str]) -> Callable[[str], str]:
+    """An ``ask`` function that replays answers (for tests and batch use)."""
+    it = iter(answers)
+    return lambda prompt: next(it)

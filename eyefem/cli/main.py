@@ -1,0 +1,212 @@
+"""Command line: ``eyefem run CASE``, ``eyefem compare CASES``, ``eyefem verify-tangents``,
+``eyefem cases``, ``eyefem describe PROBLEM``, ``eyefem new-case PROBLEM``.
+
+The entry point switches JAX to float64, keeps compiled kernels in a persistent cache
+(``EYEFEM_JAX_CACHE``, default ``~/.cache/eyefem/jax``; ``off`` disables it) and sets up
+logging (one line per load step); the library itself never prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+
+
+def _setup(verbose: int):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    _compilation_cache(jax)
+    level = logging.WARNING if verbose < 0 else logging.DEBUG if verbose > 1 else logging.INFO
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(message)s",
+                        datefmt="%H:%M:%S", stream=sys.stderr)
+    logging.getLogger("jax").setLevel(logging.WARNING)
+
+
+def _compilation_cache(jax):
+    """Keep XLA's compiled kernels on disk, so that a later run of a model of the same
+    sizes skips compilation (about 6 s of a default-mesh case). A directory the user gave
+    JAX (JAX_COMPILATION_CACHE_DIR) is kept."""
+    cache = os.environ.get("EYEFEM_JAX_CACHE", str(Path.home() / ".cache" / "eyefem" / "jax"))
+    if cache.lower() in ("", "0", "off", "none") or jax.config.jax_compilation_cache_dir:
+        return
+    jax.config.update("jax_compilation_cache_dir", cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+
+
+def cmd_run(args) -> int:
+    from eyefem.catalog import problems, schemas
+    from eyefem.io.casefile import CaseError, load_case
+
+    PROBLEMS = problems()  # noqa: N806
+    from eyefem.io.checkpoint import CheckpointError
+    from eyefem.io.runner import run_setup
+    from eyefem.solve.solver import ConvergenceError
+
+    try:
+        case = load_case(args.case, schemas())
+        out = Path(args.out or case.output["directory"])
+        if args.mesh:
+            if "mesh" not in case.parameters:
+                raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; drop --mesh")
+            case.parameters["mesh"] = args.mesh
+    except (CaseError, ValueError, KeyError) as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2
+    try:
+        setup = PROBLEMS[case.problem][1](case.parameters, case.materials)
+    except (ValueError, KeyError) as exc:  # the builder rejected a parameter or material
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"eyefem: {case.path} [parameters]/[materials]: {msg}", file=sys.stderr)
+        return 2
+    logging.getLogger(__name__).info("case %s (%s): %d elements, %d dofs -> %s", case.path,
+                                     case.problem, setup.model.mesh.n_elem, setup.model.n_dof, out)
+    try:
+        res = run_setup(setup, out, case.solver, vtu=case.output["vtu"] and not args.no_vtu,
+                        plots=case.output["plots"], resume=args.resume,
+                        key=repr((case.problem, case.parameters, case.materials)))
+    except ConvergenceError as exc:
+        print(f"eyefem: {exc}\nOutputs of the converged steps are in {out}; after fixing the "
+              "cause, --resume continues after the last completed stage", file=sys.stderr)
+        return 3
+    except CheckpointError as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2
+    summary = {"case": str(case.path), "title": case.title, **res.summary}
+    from eyefem.io.output import write_text
+
+    write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    print(f"\n{case.title}")
+    for k, v in summary.items():
+        if k not in ("case", "title"):
+            print(f"  {k:<32} {v:.6g}" if isinstance(v, float) else f"  {k:<32} {v}")
+    print(f"  results in {out}/")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from eyefem.cli.compare import compare
+    from eyefem.io.casefile import CaseError
+    from eyefem.solve.solver import ConvergenceError
+
+    try:
+        summaries = compare(args.cases, Path(args.out), mesh=args.mesh, reuse=args.reuse)
+    except (CaseError, ValueError, ConvergenceError) as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2 if not isinstance(exc, ConvergenceError) else 3
+    print(Path(args.out, "comparison.md").read_text())
+    print(f"results in {args.out}/")
+    return 0 if summaries else 2
+
+
+def cmd_verify(args) -> int:
+    from eyefem.verify.tangents import format_table, verify_tangents
+
+    checks = verify_tangents(seed=args.seed)
+    print(format_table(checks))
+    return 0 if all(c.passed for c in checks) else 1
+
+
+def cmd_cases(args) -> int:
+    from eyefem.catalog import problems
+
+    PROBLEMS = problems()  # noqa: N806
+
+    root = Path(args.dir)
+    for f in sorted(root.rglob("*.toml")):
+        print(f)
+    print("\nproblems:", ", ".join(sorted(PROBLEMS)))
+    return 0
+
+
+def cmd_describe(args) -> int:
+    from eyefem.catalog import problems
+    from eyefem.io.casefile import describe
+
+    PROBLEMS = problems()  # noqa: N806
+
+    if args.problem not in PROBLEMS:
+        print(f"eyefem: unknown problem '{args.problem}'; known: {', '.join(sorted(PROBLEMS))}",
+              file=sys.stderr)
+        return 2
+    fields, builder = PROBLEMS[args.problem]
+    print(f"{args.problem}: {(builder.__doc__ or '').strip().splitlines()[0]}\n[parameters]")
+    print(describe(fields))
+    return 0
+
+
+def cmd_new_case(args) -> int:
+    from eyefem.catalog import problems
+    from eyefem.cli.dialogue import new_case
+    from eyefem.io.casefile import CaseError
+
+    PROBLEMS = problems()  # noqa: N806
+
+    if args.problem not in PROBLEMS:
+        print(f"eyefem: unknown problem '{args.problem}'; known: {', '.join(sorted(PROBLEMS))}",
+              file=sys.stderr)
+        return 2
+    preset = {}
+    for item in args.set or []:
+        if "=" not in item:
+            print(f"eyefem: --set '{item}': expected name=value", file=sys.stderr)
+            return 2
+        k, v = item.split("=", 1)
+        preset[k.strip()] = v
+    try:
+        fields, build = PROBLEMS[args.problem]
+        new_case(args.problem, fields, Path(args.output), preset=preset,
+                 accept_defaults=args.yes, title=args.title or "",
+                 check=getattr(build, "check", None))
+    except (CaseError, EOFError) as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="eyefem", description=__doc__.splitlines()[0])
+    ap.add_argument("-v", "--verbose", action="count", default=1)
+    ap.add_argument("-q", "--quiet", action="store_const", const=-1, dest="verbose")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("run", help="run a case file")
+    p.add_argument("case")
+    p.add_argument("--out", help="output directory (default from the case file)")
+    p.add_argument("--no-vtu", action="store_true", help="skip the VTU series")
+    p.add_argument("--resume", action="store_true",
+                   help="continue after the last completed stage (checkpoint in the output dir)")
+    p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, default)")
+    p.set_defaults(fn=cmd_run)
+    p = sub.add_parser("compare", help="run several cases and tabulate/plot their outcomes")
+    p.add_argument("cases", nargs="+", help="case files")
+    p.add_argument("--mesh", help="override the mesh level of every case")
+    p.add_argument("--out", default="results/compare", help="output root (one folder per case)")
+    p.add_argument("--reuse", action="store_true", help="skip cases whose summary.json exists")
+    p.set_defaults(fn=cmd_compare)
+    p = sub.add_parser("verify-tangents", help="autodiff vs hand-coded vs finite-difference tangents")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(fn=cmd_verify)
+    p = sub.add_parser("cases", help="list case files and problems")
+    p.add_argument("dir", nargs="?", default="cases")
+    p.set_defaults(fn=cmd_cases)
+    p = sub.add_parser("describe", help="document a problem's parameters")
+    p.add_argument("problem")
+    p.set_defaults(fn=cmd_describe)
+    p = sub.add_parser("new-case", help="write a case file by answering questions (or --set)")
+    p.add_argument("problem", help="problem name (see 'eyefem cases')")
+    p.add_argument("-o", "--output", required=True, help="case file to write")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="answer without asking")
+    p.add_argument("--yes", action="store_true", help="accept the defaults of the rest")
+    p.add_argument("--title", help="case title")
+    p.set_defaults(fn=cmd_new_case)
+    args = ap.parse_args(argv)
+    _setup(args.verbose)
+    return args.fn(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,286 @@
+"""Parametric eye model: a structured hexahedral globe, lens and Zinn's zonule.
+
+Coordinates: mm, the optical axis is z (cornea at +z), the globe centre at the origin,
+the optic nerve leaves the posterior pole 15 degrees nasally (toward +x).
+
+The wall is a cubed sphere (no degenerate pole elements) with 4 element layers,
+mapped along each ray from the centre onto the eye's outer surface (the scleral
+sphere of radius R joined to the steeper corneal sphere at the limbus) and its
+thickness profile. Layers from inside: retina, choroid, sclera, sclera; in front of
+the ora serrata the two inner layers are ciliary body, in the cornea all four layers
+are cornea; the ring of elements that the limbus crosses is limbus. The optic nerve is
+a stub of hexahedra extruded from the posterior outer surface; the lens is a solid
+ellipsoid (a cube mapped onto a ball) held by zonule bars between its equator and the
+ciliary body. The vitreous/aqueous is one liquid cavity bounded by the wall's inner
+surface and the lens surface.
+
+Defaults (literature values; EyeGeometry's docstring names each):
+axial length 24 mm, scleral radius 11.5 mm, anterior corneal radius 7.8 mm, central
+corneal thickness 0.55 mm, sclera 0.5 mm at the limbus, 0.4 mm at the equator,
+1.0 mm at the posterior pole, retina and choroid 0.2 mm each (0.25 at the pole), lens
+4 mm thick and 9 mm across, optic nerve 3 mm across (disc 1.8 mm), ora serrata 6 mm
+behind the limbus.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from eyefem.eye.sutures import ray_face_intersection
+from eyefem.fem.generators import spherical_shell
+from eyefem.fem.mesh import Mesh, boundary_faces, merge
+
+log = logging.getLogger(__name__)
+
+TISSUES = ("cornea", "limbus", "sclera", "ciliary_body", "choroid", "retina", "optic_nerve", "lens")
+
+LEVELS = {"coarse": (10, 4), "medium": (14, 4), "default": (22, 6)}
+"""Mesh density levels: (cubed-sphere elements per patch edge, lens elements per edge)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class EyeGeometry:
+    """Dimensions of the eye, mm (defaults from the literature).
+
+    Attributes:
+      axial_length: corneal apex to the outer posterior pole (24).
+      scleral_radius: outer radius of the scleral sphere R (11.5).
+      cornea_radius: anterior corneal radius of curvature (7.8).
+      cornea_thickness: central corneal thickness (0.55).
+      limbus_thickness: wall at the limbus (0.6; sclera 0.5 + cornea periphery).
+      sclera_limbus, sclera_equator, sclera_pole: scleral thickness (0.5, 0.4, 1.0).
+      ciliary_thickness: ciliary body (0.5).
+      choroid_thickness, retina_thickness: at the equator (0.2, 0.2); x 1.25 at the pole.
+      ora_serrata: arc length from the limbus to the ora serrata (6).
+      lens_diameter, lens_thickness: (9, 4); lens_centre_depth: from the corneal apex (5.6).
+      nerve_diameter: optic nerve (3), nerve_length: stub (3), nerve_angle_deg: from the
+        posterior pole toward +x (15); disc_diameter: optic disc (1.8).
+      zonule_area: cross-section per zonule bar, mm^2 (0.01).
+    """
+
+    axial_length: float = 24.0
+    scleral_radius: float = 11.5
+    cornea_radius: float = 7.8
+    cornea_thickness: float = 0.55
+    limbus_thickness: float = 0.6
+    sclera_limbus: float = 0.5
+    sclera_equator: float = 0.4
+    sclera_pole: float = 1.0
+    ciliary_thickness: float = 0.5
+    choroid_thickness: float = 0.2
+    retina_thickness: float = 0.2
+    ora_serrata: float = 6.0
+    lens_diameter: float = 9.0
+    lens_thickness: float = 4.0
+    lens_centre_depth: float = 5.6
+    nerve_diameter: float = 3.0
+    nerve_length: float = 3.0
+    nerve_angle_deg: float = 15.0
+    disc_diameter: float = 1.8
+    zonule_area: float = 0.01
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"eye geometry: {f.name} = {v} mm; must be a positive number")
+        if not self.scleral_radius < self.axial_length - self.scleral_radius:
+            raise ValueError(f"eye geometry: axial_length {self.axial_length} must exceed twice "
+                             f"the scleral radius {self.scleral_radius} (the cornea protrudes)")
+
+    @property
+    def apex_z(self) -> float:
+        return self.axial_length - self.scleral_radius
+
+    @property
+    def cornea_centre_z(self) -> float:
+        return self.apex_z - self.cornea_radius
+
+    @property
+    def limbus_angle(self) -> float:
+        """Polar angle of the limbus (where the corneal and scleral spheres meet), rad."""
+        R, c, rc = self.scleral_radius, self.cornea_centre_z, self.cornea_radius
+        z = (R**2 - rc**2 + c**2) / (2 * c)
+        if not abs(z) < R:
+            raise ValueError("eye geometry: the corneal and scleral spheres do not intersect; "
+                             "check axial_length, scleral_radius and cornea_radius")
+        return float(np.arccos(z / R))
+
+    def outer_radius(self, d):
+        """Distance (n,) from the centre to the outer surface along unit directions d (n, 3)."""
+        R, c, rc = self.scleral_radius, self.cornea_centre_z, self.cornea_radius
+        dc = d[:, 2] * c
+        disc = dc**2 - c**2 + rc**2
+        s = np.where(disc > 0, dc + np.sqrt(np.maximum(disc, 0.0)), 0.0)
+        return np.maximum(R, s)
+
+    def profile(self, theta):
+        """Wall thickness T (n,) and inner-layer fraction f (n,) at polar angles theta (rad)."""
+        tl = self.limbus_angle
+        ora = tl + self.ora_serrata / self.scleral_radius
+        ret_c = self.retina_thickness + self.choroid_thickness
+        pts = np.array([
+            (0.0, self.cornea_thickness, 0.5),
+            (tl, self.limbus_thickness, 0.5),
+            (tl + 0.07, self.sclera_limbus + self.ciliary_thickness,
+             self.ciliary_thickness / (self.sclera_limbus + self.ciliary_thickness)),
+            (ora, self.sclera_limbus * 0.9 + 0.75 * ret_c, 0.75 * ret_c / (self.sclera_limbus * 0.9
+                                                                          + 0.75 * ret_c)),
+            (np.pi / 2, self.sclera_equator + ret_c, ret_c / (self.sclera_equator + ret_c)),
+            (np.pi, self.sclera_pole + 1.25 * ret_c, 1.25 * ret_c / (self.sclera_pole + 1.25 * ret_c)),
+        ])
+        return np.interp(theta, pts[:, 0], pts[:, 1]), np.interp(theta, pts[:, 0], pts[:, 2])
+
+
+def _ball(n):
+    """A solid unit ball: an n^3 cube of hexahedra mapped onto the sphere (nodes, hexes)."""
+    s = np.linspace(-1.0, 1.0, n + 1)
+    X, Y, Z = np.meshgrid(s, s, s, indexing="ij")
+    x, y, z = X.ravel(), Y.ravel(), Z.ravel()
+    nodes = np.stack([x * np.sqrt(1 - y**2 / 2 - z**2 / 2 + y**2 * z**2 / 3),
+                      y * np.sqrt(1 - z**2 / 2 - x**2 / 2 + z**2 * x**2 / 3),
+                      z * np.sqrt(1 - x**2 / 2 - y**2 / 2 + x**2 * y**2 / 3)], 1)
+    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
+    a = idx[:-1, :-1, :-1]
+    hexes = np.stack([a, idx[1:, :-1, :-1], idx[1:, 1:, :-1], idx[:-1, 1:, :-1],
+                      idx[:-1, :-1, 1:], idx[1:, :-1, 1:], idx[1:, 1:, 1:], idx[:-1, 1:, 1:]],
+                     -1).reshape(-1, 8)
+    return nodes, hexes
+
+
+@dataclasses.dataclass(frozen=True)
+class EyeModel:
+    """The eye mesh and what the surgery needs to know about it.
+
+    Attributes:
+      mesh: wall + nerve ("eye/...") and lens ("lens/...") in one mesh. Face sets:
+        "eye/inner" (wall inside, normals into the liquid), "eye/outer" (outer surface),
+        "eye/sclera_outer" (outer scleral faces, behind the limbus), "lens/surface".
+        Node sets: "eye/apex", "eye/pole" (outer posterior pole), "eye/nerve_end".
+      geometry: the EyeGeometry.
+      zonule: (lens node ids (k,), ciliary faces (k, 4), xi (k, 2)) bar ends.
+      level: mesh level name.
+    """
+
+    mesh: Mesh
+    geometry: EyeGeometry
+    zonule: tuple
+    level: str
+
+    def quality(self) -> dict:
+        """Element counts per tissue and the worst Jacobian ratio."""
+        jr = self.mesh.jacobian_ratio()
+        out = {"elements": int(self.mesh.n_elem), "nodes": int(self.mesh.n_nodes),
+               "worst_jacobian_ratio": float(jr.min())}
+        for i, m in enumerate(self.mesh.materials):
+            out[f"elements_{m}"] = int(np.sum(self.mesh.material_ids == i))
+        return out
+
+
+def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> EyeModel:
+    """Mesh the eye at a density level ("coarse", "medium", "default")."""
+    if level not in LEVELS:
+        raise ValueError(f"eye mesh level '{level}'; choose one of {sorted(LEVELS)}")
+    g = geometry
+    n, n_lens = LEVELS[level]
+    shell = spherical_shell(1.0, 1.0, n, 4)
+    X = shell.nodes
+    r = np.linalg.norm(X, axis=1)
+    d = X / r[:, None]
+    level_k = np.rint((r - 1.0) * 4).astype(int)  # 0 (inside) .. 4 (outside)
+    theta = np.arccos(np.clip(d[:, 2], -1, 1))
+    ro = g.outer_radius(d)
+    T, f = g.profile(theta)
+    frac = np.array([0.0, 0.5, 1.0, 1.0, 1.0])[level_k] * f + \
+        np.array([0.0, 0.0, 0.0, 0.5, 1.0])[level_k] * (1 - f)
+    nodes = d * (ro - T + frac * T)[:, None]
+    hexes = shell.hexes
+    # tissues: by element centroid angle and layer
+    th_e = theta[hexes]
+    layer = np.min(level_k[hexes], axis=1)  # 0 retina .. 3 outer sclera
+    tl = g.limbus_angle
+    ora = tl + g.ora_serrata / g.scleral_radius
+    nerve_dir = np.array([np.sin(np.radians(180 - g.nerve_angle_deg)), 0.0,
+                          np.cos(np.radians(180 - g.nerve_angle_deg))])
+    cen = nodes[hexes].mean(axis=1)
+    cdir = cen / np.linalg.norm(cen, axis=1, keepdims=True)
+    off_axis = g.scleral_radius * np.arccos(np.clip(cdir @ nerve_dir, -1, 1))
+    mat = np.where(layer >= 2, TISSUES.index("sclera"),
+                   np.where(layer == 1, TISSUES.index("choroid"), TISSUES.index("retina")))
+    mat = np.where((th_e.mean(1) < ora) & (layer < 2), TISSUES.index("ciliary_body"), mat)
+    mat = np.where((off_axis < g.disc_diameter / 2) & (layer < 2), TISSUES.index("optic_nerve"), mat)
+    mat = np.where(th_e.max(1) <= tl, TISSUES.index("cornea"), mat)
+    mat = np.where((th_e.min(1) < tl) & (th_e.max(1) > tl), TISSUES.index("limbus"), mat)
+    inner, outer = shell.face_set("inner"), shell.face_set("outer")
+    # optic nerve stub: extrude the outer faces within the nerve radius along nerve_dir
+    fc = nodes[outer].mean(axis=1)
+    fdir = fc / np.linalg.norm(fc, axis=1, keepdims=True)
+    near = g.scleral_radius * np.arccos(np.clip(fdir @ nerve_dir, -1, 1)) < g.nerve_diameter / 2
+    stub_faces = outer[near]
+    base = np.unique(stub_faces)
+    n_ext = 3
+    new_nodes, stub_hexes, prev = [], [], {int(b): int(b) for b in base}
+    next_id = len(nodes)
+    end_nodes = []
+    for k in range(1, n_ext + 1):
+        cur = {}
+        for b in base:
+            cur[int(b)] = next_id
+            new_nodes.append(nodes[b] + k * g.nerve_length / n_ext * nerve_dir)
+            next_id += 1
+        for fq in stub_faces:
+            lo = [prev[int(v)] for v in fq]
+            hi = [cur[int(v)] for v in fq]
+            stub_hexes.append(lo + hi)
+        prev = cur
+        end_nodes = list(cur.values())
+    nodes = np.concatenate([nodes, np.array(new_nodes)])
+    hexes = np.concatenate([hexes, np.array(stub_hexes, np.int64)])
+    mat = np.concatenate([mat, np.full(len(stub_hexes), TISSUES.index("optic_nerve"))])
+    outer_all = boundary_faces(hexes)
+    outer_all = outer_all[~np.all(np.isin(outer_all, np.unique(inner)), axis=1)]
+    sclera_outer = outer[~near & (theta[outer].min(axis=1) >= tl)]
+    apex = int(np.argmax(nodes[:, 2]))
+    n_wall = len(level_k)
+    pole = int(np.argmin(np.where(level_k == 4, nodes[:n_wall, 2], np.inf)))
+    eye = Mesh(nodes, hexes, mat, TISSUES,
+               {"apex": np.array([apex]), "pole": np.array([pole]),
+                "nerve_end": np.array(end_nodes), "outer": np.unique(outer_all)},
+               {"inner": inner, "outer": outer_all, "sclera_outer": sclera_outer})
+    # lens
+    ln, lh = _ball(n_lens)
+    a, c = g.lens_diameter / 2, g.lens_thickness / 2
+    lz = g.apex_z - g.lens_centre_depth
+    ln = ln * np.array([a, a, c]) + np.array([0.0, 0.0, lz])
+    lbf = boundary_faces(lh)
+    eq = np.nonzero(np.abs(ln[:, 2] - lz) < 1e-9 * a)[0]
+    eq = eq[np.hypot(ln[eq, 0], ln[eq, 1]) > a * (1 - 1e-9)]
+    lens = Mesh(ln, lh, np.zeros(len(lh), int), ("lens",), {"equator": eq}, {"surface": lbf})
+    mesh = merge(("eye", eye), ("lens", lens))
+    # zonule: from each lens equator node radially out to the wall's inner surface
+    lens_eq = mesh.node_set("lens/equator")
+    wall_in = mesh.face_set("eye/inner")
+    faces, xis = [], []
+    for v in lens_eq:
+        p = mesh.nodes[v]
+        hit = ray_face_intersection(mesh.nodes, wall_in, p, np.array([p[0], p[1], 0.0]))
+        if hit is None:
+            raise ValueError(f"eye model: the zonule ray from lens node {v} misses the wall")
+        faces.append(wall_in[hit[0]])
+        xis.append(hit[1])
+    eye_model = EyeModel(mesh, g, (lens_eq, np.array(faces), np.array(xis)), level)
+    q = eye_model.quality()
+    log.info("eye model (%s): %d elements, %d nodes, worst Jacobian ratio %.3f", level,
+             q["elements"], q["nodes"], q["worst_jacobian_ratio"])
+    return eye_model
+
+
+def axial_length(mesh: Mesh, x) -> float:
+    """Corneal apex to outer posterior pole distance (mm) for current positions x (n, 3)."""
+    return float(np.linalg.norm(x[mesh.node_set("eye/apex")[0]] - x[mesh.node_set("eye/pole")[0]]))
+
+
+

@@ -1,0 +1,227 @@
+"""Smooth analytic contact of the sclera with rigid buckles (no pairing, no facets).
+
+The surgery cases use the buckle's exact surface instead of its triangulation: the gap
+of an outer scleral node x is a smooth function of x and of the buckle's motion, so
+Newton converges quadratically (no facet-edge or pairing chatter) and the outcomes are
+differentiable with respect to the motion (tightening, position) by the adjoint.
+
+Encircling ring (band or tire) about the globe centre, in spherical coordinates
+(r = |x|, polar angle tau): across-coordinate a = R (tau - theta_b) - s (mm, s: shift of
+the buckle toward the posterior), inner surface radius
+
+    S(a) = R - k b(a) + lift(a) - d,      g = S(a) - r   (g < 0: penetration)
+
+with b the ridge shape (1 on the ridge, quintic smoothstep flanks 0.5 mm wide, 0 beyond:
+twice differentiable, so the response to a buckle shift is smooth) and k its
+current protrusion (param "ridge", ramped from 0 when the tire is seated on its flat
+base), lift the upturned edges (0.3 mm over the last 0.5 mm, growing cubically
+beyond, so contact fades out smoothly past the edge) and d the radial tightening (the
+ring's circumference shortens by 2 pi d sin theta_b).
+
+Sponge: a cylinder (radius r_s, length L, axis t) whose axis passes through
+C = (R + r_s - d) n0 + s m0: g = |x - C - ((x - C) . t) t| - r_s + 10 max(|.t| - L/2, 0)^2.
+
+A radial sponge lies along the meridian and follows the globe's curvature (``curved``):
+its centre line is the arc of radius rho0 = R + r_s - d about the globe centre in the
+plane of n0 and m0, g = sqrt((rho - rho0)^2 + w^2) - r_s + 10 max(|psi| rho0 - L/2, 0)^2
+with (rho, psi) the polar coordinates of x in that plane (psi from n0, shifted by
+s / rho0) and w its distance from the plane.
+
+With ``extra_dof`` the buckle's radial position is also an unknown: d = param d + q[extra]
+(a segmental sponge pulled in by its sutures finds its own depth).
+
+Two more params move the fitted buckle without rebuilding the term, so that the design
+gradients see them (eyefem.eye.design): "dr" adds to the fitted radius R (a snug fit on an
+eye inflated differently), "rot" turns the buckle about the eye axis z (rad; a
+segmental buckle's meridian): the gap of x is the gap of Rz(-rot) x.
+
+Energy per node 1/2 alpha p^2 with the smoothed penetration p = eps softplus(-g / eps)
+(eps = ``smoothing`` mm): C-infinity, so a node touching down or lifting off does not
+make Newton's method cycle; for -g >> eps it is the plain penalty 1/2 alpha <-g>^2, at
+g = 0 it leaves a stand-off force alpha eps ln 2 (about 1e-3 N per node by default).
+The default penalty alpha = BUCKLE_PENALTY_FACTOR E h: stiff enough that penetrations
+stay a few micrometres under the buckle loads, soft enough to keep the Newton
+system well conditioned against the thin, soft scleral shell.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from eyefem.fem.bars import rotate_z
+from eyefem.fem.contact import node_areas, penalty_gauss_newton
+from eyefem.fem.mesh import Mesh
+from eyefem.fem.terms import Term
+
+BUCKLE_PENALTY_FACTOR = 10.0
+"""Default buckle penalty alpha = factor * E * h per node (N/mm)."""
+
+
+def smooth_penetration(g, eps):
+    """eps softplus(-g / eps) (mm), overflow-safe: the smoothed <-g>."""
+    return eps * jnp.logaddexp(-g / eps, 0.0)
+
+
+def ring_profile(a, width, ridge, ridge_width):
+    """Inner-surface offset of a ring above R (mm) at across-coordinates a (jax or numpy):
+    -ridge on the ridge, 0 on the flat base, rising at the edges."""
+    aa = jnp.abs(a)
+    t = jnp.clip((aa - (ridge_width / 2 - 0.5)) / 0.5, 0.0, 1.0)
+    bump = jnp.where(ridge_width > 0, 1.0 - t**3 * (10.0 - 15.0 * t + 6.0 * t**2), 0.0)
+    lift = 0.3 * (jnp.maximum(aa - (width / 2 - 0.5), 0.0) / 0.5) ** 3
+    return -ridge * bump + lift
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class BuckleContact(Term):
+    """Frictionless penalty contact of scleral nodes with an analytic rigid buckle.
+
+    Args:
+      name: term name; params {"d": (1,) inward motion, mm; "s": (1,) posterior shift, mm;
+        "ridge": (1,) current ridge protrusion, mm (ramp it to ``ridge``); "dr": (1,)
+        change of the fitted radius R, mm; "rot": (1,) turn about the z axis, rad}.
+      mesh: the mesh; node_set: candidate (outer scleral) nodes.
+      shape: "ring" or "sponge".
+      radius: R, the scleral radius the buckle was fitted to, mm.
+      theta_b: polar angle of the buckle centre line, rad (ring) ; for a sponge its
+        centre direction n0 (3,), meridian tangent m0 (3,) and axis (3,).
+      width, ridge, ridge_width: ring profile, mm; sponge_radius, sponge_length: mm.
+      modulus: Young's modulus of the sclera (default penalty), MPa; penalty: N/mm.
+      smoothing: eps of the smoothed penetration, mm.
+      extra_dof: global dof of the buckle's free radial motion (mm, inward), or -1.
+      curved: sponge only: its axis is the arc along the meridian (a radial sponge).
+    """
+
+    name: str
+    mesh: Mesh
+    node_set: str
+    shape: str
+    radius: float
+    theta_b: float = np.pi / 2
+    n0: tuple = (1.0, 0.0, 0.0)
+    m0: tuple = (0.0, 0.0, -1.0)
+    axis: tuple = (0.0, 0.0, -1.0)
+    width: float = 2.5
+    ridge: float = 0.0
+    ridge_width: float = 0.0
+    sponge_radius: float = 2.5
+    sponge_length: float = 10.0
+    modulus: float = 0.5
+    penalty: float | None = None
+    smoothing: float = 2e-3
+    extra_dof: int = -1
+    curved: bool = False
+
+    def __post_init__(self):
+        if self.shape not in ("ring", "sponge"):
+            raise ValueError(f"buckle contact '{self.name}': shape '{self.shape}'; use 'ring' or "
+                             "'sponge'")
+        nodes = self.mesh.node_set(self.node_set)
+        area, h = node_areas(self.mesh, nodes)
+        alpha = (self.penalty if self.penalty is not None
+                 else BUCKLE_PENALTY_FACTOR * self.modulus * h)
+        if not alpha > 0:
+            raise ValueError(f"buckle contact '{self.name}': penalty {alpha} N/mm; must be > 0")
+        if not self.smoothing > 0:
+            raise ValueError(f"buckle contact '{self.name}': smoothing {self.smoothing} mm; "
+                             "must be > 0")
+        object.__setattr__(self, "nodes", nodes)
+        object.__setattr__(self, "alpha", float(alpha))
+        dofs = 3 * nodes[:, None] + np.arange(3)
+        if self.extra_dof >= 0:
+            dofs = np.concatenate([dofs, np.full((len(nodes), 1), self.extra_dof)], axis=1)
+        object.__setattr__(self, "dofs", dofs)
+        object.__setattr__(self, "params", {"d": np.zeros(1), "s": np.zeros(1),
+                                            "ridge": np.zeros(1), "dr": np.zeros(1),
+                                            "rot": np.zeros(1)})
+        geo = np.array([self.radius, self.theta_b, self.width, self.ridge, self.ridge_width,
+                        self.sponge_radius, self.sponge_length])
+        object.__setattr__(self, "data", {
+            "X": self.mesh.nodes[nodes], "alpha": np.full(len(nodes), alpha),
+            "area": np.maximum(area, 1e-12), "geo": geo,
+            "frame": np.array([self.n0, self.m0, self.axis], float)})
+
+    def static_key(self):
+        return (self.shape, self.extra_dof >= 0, self.curved)
+
+    def gaps(self, q_loc, params, data):
+        """Signed gaps (n,), mm (negative: penetration)."""
+        x = rotate_z(data["X"] + q_loc[:, :3], -params["rot"][0])
+        R, th, w, _, rw, rs, L = (data["geo"][i] for i in range(7))
+        R = R + params["dr"][0]
+        d, s = params["d"][0], params["s"][0]
+        if self.extra_dof >= 0:
+            d = d + q_loc[:, 3]
+        if self.shape == "ring":
+            r = jnp.sqrt(jnp.sum(x * x, axis=1))
+            rho = jnp.sqrt(x[:, 0] ** 2 + x[:, 1] ** 2 + 1e-30)  # finite gradient on the axis
+            tau = jnp.arctan2(rho, x[:, 2])
+            a = R * (tau - th) - s
+            prof = ring_profile(a, w, params["ridge"][0], rw)
+            return R + prof - d - r
+        n0, m0, t = data["frame"][0], data["frame"][1], data["frame"][2]
+        if self.curved:
+            rho0 = R + rs - d
+            u, v, w = x @ n0, x @ m0, x @ jnp.cross(n0, m0)
+            rho = jnp.sqrt(u * u + v * v)
+            psi = jnp.arctan2(v, u) - s / rho0
+            dist = jnp.sqrt((rho - rho0) ** 2 + w * w + 1e-30)
+            return dist - rs + 10.0 * jnp.maximum(jnp.abs(psi) * rho0 - L / 2, 0.0) ** 2
+        C = jnp.asarray(R + rs - d)[..., None] * n0 + s * m0
+        v = x - C
+        along = v @ t
+        rad = v - along[:, None] * t
+        dist = jnp.sqrt(jnp.sum(rad * rad, axis=1) + 1e-30)
+        return dist - rs + 10.0 * jnp.maximum(jnp.abs(along) - L / 2, 0.0) ** 2
+
+    def local_energy(self, q_loc, params, data):
+        p = smooth_penetration(self.gaps(q_loc, params, data), self.smoothing)
+        return 0.5 * data["alpha"] * p * p
+
+    def gap_gradients(self, q_loc, params, data):
+        """Gradients (n, k) of the gaps: row i is d g_i / d q_loc[i] (item i's gap depends
+        on its own row only)."""
+        return jax.grad(lambda x: jnp.sum(self.gaps(x, params, data)))(q_loc)
+
+    def grad_hess_gauss_newton(self, q, params, data, dofs):
+        """Local gradients (n, k) and Hessians (n, k, k) without the curvature term
+        alpha p p' grad^2 g: alpha (p'^2 + p p'') grad g grad g^T, positive semidefinite.
+        At the buckle's curved flanks and rounded edges the dropped term is a negative
+        tangential stiffness (a node pressed on a convex corner slides off it) that can
+        exceed the soft sclera's own and make the tangent near-singular."""
+        q_loc = q[dofs]
+        g = self.gaps(q_loc, params, data)
+        return penalty_gauss_newton(data["alpha"], g, self.gap_gradients(q_loc, params, data),
+                                    self.smoothing)
+
+    def gap_linearisation(self, q_loc, dq_loc, params, data):
+        g, dg = jax.jvp(lambda x: self.gaps(x, params, data), (q_loc,), (dq_loc,))
+        G = self.gap_gradients(q_loc, params, data)
+        return g, dg, G, self.gaps(q_loc + dq_loc, params, data)
+
+    def _gap_np(self, q, params):
+        return np.asarray(self.gaps(np.asarray(q)[self.dofs], params, self.data))
+
+    def report(self, q, params):
+        g = self._gap_np(q, params)
+        pen = np.maximum(-g, 0.0)
+        return {"active": int(np.sum(pen > 0)), "max_penetration_mm": float(pen.max(initial=0.0)),
+                "force_N": float(self.contact_forces(g).sum())}
+
+    def contact_forces(self, g):
+        """Normal contact force magnitudes (n,), N, at gaps g (n,) mm: alpha p dp/d(-g)."""
+        from scipy.special import expit
+
+        z = -np.asarray(g) / self.smoothing
+        return self.alpha * np.asarray(smooth_penetration(g, self.smoothing)) * expit(z)
+
+    def point_fields(self, q, params, n_nodes):
+        g = self._gap_np(q, params)
+        gap, pres = np.zeros(n_nodes), np.zeros(n_nodes)
+        gap[self.nodes] = g
+        pres[self.nodes] = self.contact_forces(g) / self.data["area"]
+        return {f"{self.name}_gap_mm": gap, f"{self.name}_pressure_MPa": pres}

@@ -1,0 +1,198 @@
+"""Assembly of local gradients and Hessians into the reduced sparse Newton system.
+
+The reduced system keeps the free primal dofs (displacements not prescribed) and the
+multipliers. A CSR pattern and a slot map (local entry -> CSR data position) are built
+once per set of prescribed dofs; each Newton iteration only runs ``np.bincount``.
+Multipliers local to one item (Q1P0 element pressures) are condensed element by
+element: the displacement block is assembled as K + d b b^T (see linsolve).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import scipy.sparse as sp
+
+from eyefem.fem.terms import Term
+from eyefem.solve.linsolve import SaddlePointSolver
+from eyefem.solve.model import Model
+
+SHIFT_BETA = 1e4
+"""Augmentation strength whose diagonal a Levenberg-Marquardt shift is relative to (the
+shift levels of the Newton solver were set with beta = 1e4)."""
+
+
+@dataclasses.dataclass
+class _TermPattern:
+    prim: np.ndarray  # (k_p,) local positions of primal dofs
+    mult: int | None  # local position of the multiplier
+    k_slots: np.ndarray  # (n * k_p * k_p,) CSR data slot (nnz: a dropped entry)
+    k_valid: np.ndarray  # indices into the flattened (n, k_p, k_p) block that are kept
+    b_slots: np.ndarray | None
+    b_valid: np.ndarray | None
+
+
+def _pattern(rows, cols, n):
+    """CSR pattern of the (rows, cols) pairs and the slot of each pair."""
+    key = rows.astype(np.int64) * n + cols
+    uniq, inv = np.unique(key, return_inverse=True)
+    r, c = np.divmod(uniq, n)
+    indptr = np.zeros(n + 1, np.int64)
+    np.add.at(indptr, r + 1, 1)
+    return np.cumsum(indptr), c, inv.ravel()
+
+
+class Assembler:
+    """Scatter of all static terms of a model into K (free primal) and B (free primal x mult).
+
+    Args:
+      model: the model.
+      prescribed: (n_dof,) bool, True for prescribed displacement dofs.
+      beta: augmentation strength of the element-wise condensation (about 1/beta
+        contraction per Uzawa iteration).
+    """
+
+    def __init__(self, model: Model, prescribed: np.ndarray, beta: float = 1e4):
+        self.model = model
+        self.beta = beta
+        n = model.n_dof
+        mult = np.zeros(n, bool)
+        mult[model.multiplier_dofs] = True
+        if np.any(prescribed & mult):
+            raise ValueError("a Lagrange multiplier dof cannot be prescribed")
+        self.prescribed = prescribed
+        self.free_primal = np.nonzero(~prescribed & ~mult)[0]
+        self.mult = np.nonzero(mult)[0]
+        self.red = np.full(n, -1, np.int64)
+        self.red[self.free_primal] = np.arange(len(self.free_primal))
+        self.mred = np.full(n, -1, np.int64)
+        self.mred[self.mult] = np.arange(len(self.mult))
+        self.n_p, self.n_m = len(self.free_primal), len(self.mult)
+        rows, cols, brow, bcol = [], [], [], []
+        pats, offs, boffs = {}, 0, 0
+        staged = []
+        t_rows = {}
+        for t in model.terms:
+            if getattr(t, "dynamic", False):
+                continue
+            k = t.dofs.shape[1]
+            ms = list(t.multiplier_slots)
+            if len(ms) > 1:
+                raise ValueError(f"term '{t.name}': at most one multiplier per item is supported")
+            prim = np.array([i for i in range(k) if i not in ms], np.int64)
+            rd = self.red[t.dofs[:, prim]]  # (n, kp)
+            r = np.repeat(rd, len(prim), axis=1).ravel()
+            c = np.tile(rd, (1, len(prim))).ravel()
+            valid = np.nonzero((r >= 0) & (c >= 0))[0]
+            rows.append(r[valid]); cols.append(c[valid])
+            t_rows[t.name] = r
+            staged.append((t.name, prim, ms[0] if ms else None, valid, offs))
+            offs += len(valid)
+            if ms:
+                bc = np.repeat(self.mred[t.dofs[:, ms[0]]], len(prim))
+                br = rd.ravel()
+                bvalid = np.nonzero(br >= 0)[0]
+                brow.append(br[bvalid]); bcol.append(bc[bvalid])
+                pats[t.name] = (bvalid, boffs)
+                boffs += len(bvalid)
+        if rows:
+            self.indptr, self.indices, inv = _pattern(np.concatenate(rows), np.concatenate(cols), self.n_p)
+        else:
+            self.indptr, self.indices, inv = np.zeros(self.n_p + 1, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        if brow:
+            br, bc = np.concatenate(brow), np.concatenate(bcol)
+            self.B_pattern = sp.csr_matrix((np.arange(len(br), dtype=np.float64) + 1, (br, bc)),
+                                           shape=(self.n_p, self.n_m))
+            order = np.asarray(self.B_pattern.data - 1, dtype=np.int64)  # data position -> entry
+            binv = np.empty_like(order)
+            binv[order] = np.arange(len(order))
+        self.patterns: dict[str, _TermPattern] = {}
+        for name, prim, m, valid, off in staged:
+            bs = bv = None
+            if name in pats:
+                bv, boff = pats[name]
+                bs = binv[boff: boff + len(bv)]
+            slots = np.full(len(t_rows[name]), len(self.indices), np.int64)
+            slots[valid] = inv[off: off + len(valid)]
+            self.patterns[name] = _TermPattern(prim, m, slots, valid, bs, bv)
+
+    def assemble(self, q, theta, active=None, pressure_stiffness=True, gauss_newton=False):
+        """Residual (n_dof,) and the factorisation-ready tangent pieces at q; with
+        ``pressure_stiffness`` False the tangent leaves out the Hessians of follower
+        pressures (terms marked ``pressure_stiffness``; their low-rank parts stay); with
+        ``gauss_newton`` the terms that have one use their Gauss-Newton Hessian
+        (``Term.grad_hess_gauss_newton``: penalty contact without the surface curvature).
+
+        Returns: (r, K (n_p, n_p) CSR including the condensation, B (n_p, n_m) or None,
+        D (n_m,) or None, low_rank list of (alpha, v (n_p,))).
+        """
+        model = self.model
+        r = np.zeros(model.n_dof)
+        kdata = np.zeros(len(self.indices))
+        bdata = np.zeros(self.B_pattern.nnz) if self.n_m else None
+        D = np.zeros(self.n_m) if self.n_m else None
+        extra = []
+        low_rank = []
+        for t in model._active(active):
+            if getattr(t, "dynamic", False):
+                if gauss_newton and t.grad_hess_gauss_newton is not None:
+                    g, H = model.local_grad_hess_gauss_newton(t, q, theta)
+                else:
+                    g, H = model.local_grad_hess(t, q, theta)
+                extra.append(self._coo(t, H))
+            else:
+                if gauss_newton and t.grad_hess_gauss_newton is not None:
+                    g, Hpp = model.local_grad_hess_gauss_newton(t, q, theta)
+                    b = d = None
+                else:
+                    g, Hpp, b, d = model.local_grad_hess_condensed(t, q, theta, self.beta)
+                p = self.patterns[t.name]
+                if p.mult is not None:
+                    D[self.mred[t.dofs[:, p.mult]]] = d
+                    bdata += np.bincount(p.b_slots, b.ravel()[p.b_valid], minlength=len(bdata))
+                if pressure_stiffness or not t.pressure_stiffness:
+                    kdata += np.bincount(p.k_slots, Hpp.ravel(), minlength=len(kdata) + 1)[:-1]
+            r += np.bincount(t.dofs.ravel(), g.ravel(), minlength=model.n_dof)
+            for al, v in t.low_rank(q, theta[t.name], t.data, t.dofs):
+                low_rank.append((al, np.asarray(v)[self.free_primal]))
+        K = sp.csr_matrix((kdata, self.indices, self.indptr), shape=(self.n_p, self.n_p))
+        for e in extra:
+            K = K + e
+        B = None
+        if self.n_m:
+            B = sp.csr_matrix((bdata, self.B_pattern.indices, self.B_pattern.indptr),
+                              shape=(self.n_p, self.n_m))
+        return r, K, B, D, low_rank
+
+    def _coo(self, t: Term, H):
+        """Sparse matrix of a dynamic (re-paired) term's local blocks on the free primal dofs."""
+        return self.coo(t.dofs, H)
+
+    def coo(self, dofs, H):
+        """Sparse (n_p, n_p) matrix of local blocks H (n, k, k) on the global dofs (n, k);
+        entries on prescribed dofs or multipliers are dropped."""
+        rd = self.red[dofs]
+        k = rd.shape[1]
+        r = np.repeat(rd, k, axis=1).ravel()
+        c = np.tile(rd, (1, k)).ravel()
+        ok = (r >= 0) & (c >= 0)
+        return sp.csr_matrix((H.ravel()[ok], (r[ok], c[ok])), shape=(self.n_p, self.n_p))
+
+    def solver(self, K, B, D, low_rank, backend=None, **kw) -> SaddlePointSolver:
+        """Factorise the assembled tangent (kw: SaddlePointSolver's shift, indefinite).
+        A shift is relative to the diagonal of the tangent augmented at SHIFT_BETA, so that
+        a damped step does not depend on ``beta``."""
+        return SaddlePointSolver(K, B, D, low_rank, augmented=True, backend=backend,
+                                 shift_aug=SHIFT_BETA / self.beta, **kw)
+
+    def reduce(self, v):
+        """Split a global vector (n_dof,) into (free primal (n_p,), multipliers (n_m,))."""
+        return v[self.free_primal], v[self.mult]
+
+    def expand(self, x, y):
+        """Global vector (n_dof,) from free primal and multiplier parts (prescribed = 0)."""
+        out = np.zeros(self.model.n_dof)
+        out[self.free_primal] = x
+        out[self.mult] = y
+        return out

@@ -1,0 +1,207 @@
+"""A model: a mesh, its energy terms and the dof layout, with compiled kernels.
+
+Global dof vector q (n_dof,): nodal displacements u (3 per node, node-major, mm),
+then one multiplier per solid element (MPa), then any extra unknowns terms declare.
+The design pytree ``theta`` maps each term name to its params.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from eyefem.fem.mesh import Mesh
+from eyefem.fem.terms import Term
+
+log = logging.getLogger(__name__)
+
+_KERNELS: dict = {}
+
+
+def check_x64():
+    """Raise unless JAX runs in float64 (entry points enable it)."""
+    if jnp.zeros(1).dtype != jnp.float64:
+        raise RuntimeError("eyefem needs float64: call jax.config.update('jax_enable_x64', True) "
+                           "before building a model (the eyefem CLI and tests do)")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Model:
+    """Mesh + energy terms + dof layout.
+
+    Attributes:
+      mesh: the mesh (all bodies).
+      terms: energy terms, unique names.
+      n_dof: size of q.
+      multiplier_dofs: (m,) dofs that are Lagrange multipliers.
+    """
+
+    mesh: Mesh
+    terms: tuple[Term, ...]
+    n_dof: int
+
+    def __post_init__(self):
+        names = [t.name for t in self.terms]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"model terms: duplicate names {sorted(dup)}; every term needs its own")
+        for t in self.terms:
+            if t.dofs.size and (t.dofs.min() < 0 or t.dofs.max() >= self.n_dof):
+                raise ValueError(f"term '{t.name}': dof indices outside [0, {self.n_dof})")
+        object.__setattr__(self, "terms", tuple(self.terms))
+
+    @property
+    def n_u(self) -> int:
+        return 3 * self.mesh.n_nodes
+
+    @property
+    def multiplier_dofs(self) -> np.ndarray:
+        out = [t.dofs[:, list(t.multiplier_slots)].ravel() for t in self.terms if t.multiplier_slots]
+        return np.unique(np.concatenate(out)) if out else np.zeros(0, np.int64)
+
+    def term(self, name: str) -> Term:
+        for t in self.terms:
+            if t.name == name:
+                return t
+        raise KeyError(f"no term '{name}'; the model has {[t.name for t in self.terms]}")
+
+    def theta0(self) -> dict:
+        """The default design pytree: term name -> params."""
+        return {t.name: t.params for t in self.terms}
+
+    def with_terms(self, terms: Sequence[Term]) -> "Model":
+        """A copy with other terms (kernels of unchanged term classes are recompiled lazily)."""
+        return Model(self.mesh, tuple(terms), self.n_dof)
+
+    # --- compiled kernels -------------------------------------------------------------
+    def _kernel(self, term: Term, kind: str):
+        """Compiled kernel shared by all terms of one class and static key.
+
+        Kernels read arrays only from their arguments (q, params, data, dofs), so the
+        first instance of a class serves as the prototype of every later one.
+        """
+        key = (type(term), kind, term.static_key())
+        ks = _KERNELS
+        if key not in ks:
+            if kind == "grad_hess":
+                ks[key] = jax.jit(term.grad_hess)
+            elif kind == "grad_hess_condensed":
+                ks[key] = jax.jit(term.grad_hess_condensed)
+            elif kind == "grad_hess_gauss_newton":
+                ks[key] = jax.jit(term.grad_hess_gauss_newton)
+            elif kind == "energy":
+                ks[key] = jax.jit(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
+            elif kind == "grad":
+                ks[key] = jax.jit(jax.grad(lambda q, p, d, dofs: term.energy(q, p, d, dofs)))
+            elif kind == "lookahead":
+                ks[key] = jax.jit(lambda q, dq, p, d, dofs: term.gap_linearisation(q[dofs], dq[dofs], p, d))
+            elif kind == "hvp":
+                g = jax.grad(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
+                ks[key] = jax.jit(lambda q, v, p, d, dofs: jax.jvp(lambda x: g(x, p, d, dofs),
+                                                                   (q,), (v,))[1])
+        return ks[key]
+
+    def energy(self, q, theta, active=None) -> float:
+        """Total potential energy (N mm) at q for the design theta."""
+        return float(sum(self._kernel(t, "energy")(q, theta[t.name], t.data, t.dofs)
+                         for t in self._active(active)))
+
+    def gradient(self, q, theta, active=None) -> np.ndarray:
+        """Residual dPi/dq (n_dof,) (internal minus external forces; constraint values)."""
+        r = np.zeros(self.n_dof)
+        for t in self._active(active):
+            r += np.asarray(self._kernel(t, "grad")(q, theta[t.name], t.data, t.dofs))
+        return r
+
+    def hvp(self, q, v, theta, active=None) -> np.ndarray:
+        """Tangent-vector product K v (n_dof,) by forward-over-reverse autodiff."""
+        r = np.zeros(self.n_dof)
+        for t in self._active(active):
+            r += np.asarray(self._kernel(t, "hvp")(q, v, theta[t.name], t.data, t.dofs))
+        return r
+
+    def gap_linearisations(self, q, dq, theta, active=None) -> list:
+        """(term, g (n,), dg (n,), dg/dq_loc (n, k), gap at q + dq (n,)) of every active
+        penalty-contact term (``Term.gap_linearisation``) at q along the step dq (numpy)."""
+        out = []
+        for t in self._active(active):
+            if type(t).gap_linearisation is Term.gap_linearisation:
+                continue
+            lin = self._kernel(t, "lookahead")(q, dq, theta[t.name], t.data, t.dofs)
+            out.append((t, *(np.asarray(a) for a in lin)))
+        return out
+
+    def local_grad_hess(self, term: Term, q, theta):
+        """Local gradients and Hessians of one term at q (numpy)."""
+        g, H = self._kernel(term, "grad_hess")(q, theta[term.name], term.data, term.dofs)
+        return np.asarray(g), np.asarray(H)
+
+    def local_grad_hess_gauss_newton(self, term: Term, q, theta):
+        """Local gradients and Gauss-Newton Hessians (``Term.grad_hess_gauss_newton``)."""
+        g, H = self._kernel(term, "grad_hess_gauss_newton")(q, theta[term.name], term.data,
+                                                             term.dofs)
+        return np.asarray(g), np.asarray(H)
+
+    def local_grad_hess_condensed(self, term: Term, q, theta, beta):
+        """Local gradients (n, k) and primal Hessians with the multiplier condensed.
+
+        Returns g (n, k), H_pp + d b b^T (n, k_p, k_p), b (n, k_p), d (n,) where b is the
+        multiplier column and d = beta |mean diag H_pp| / |b|^2 (see linsolve); b and d
+        are None for a term without multipliers.
+        """
+        out = self._kernel(term, "grad_hess_condensed")(q, theta[term.name], term.data,
+                                                        term.dofs, beta)
+        return tuple(None if a is None else np.asarray(a) for a in out)
+
+    def update(self, q, theta) -> "Model":
+        """The model with every term's host-side update applied at q (contact search)."""
+        new = tuple(t.update(q, theta[t.name]) for t in self.terms)
+        if all(a is b for a, b in zip(new, self.terms)):
+            return self
+        return Model(self.mesh, new, self.n_dof)
+
+    def report(self, q, theta, active=None) -> dict:
+        """Scalar outputs of every (active) term, keyed 'term/quantity'."""
+        out = {}
+        for t in self._active(active):
+            for k, v in t.report(q, theta[t.name]).items():
+                out[f"{t.name}/{k}"] = v
+        return out
+
+    def _active(self, active):
+        if active is None:
+            return self.terms
+        return [t for t in self.terms if t.name in active]
+
+
+def node_dofs(node_ids, components="xyz") -> np.ndarray:
+    """Displacement dof indices (n * len(components),) of nodes for components among 'xyz'."""
+    comp = ["xyz".index(c) for c in components]
+    return (3 * np.asarray(node_ids, np.int64)[:, None] + np.asarray(comp)).ravel()
+
+
+def solid_model(mesh: Mesh, materials: dict, extra_terms=(), n_extra_dofs: int = 0,
+                name: str = "solid") -> Model:
+    """A model of the mesh's Q1P0 solid plus further terms.
+
+    Args:
+      mesh: the mesh; every name in ``mesh.materials`` must be a key of ``materials``.
+      materials: name -> MooneyRivlin.
+      extra_terms: further Term objects (their dofs index the same q).
+      n_extra_dofs: unknowns beyond displacements and multipliers.
+    """
+    from eyefem.fem.solid import SolidQ1P0
+
+    missing = [m for m in mesh.materials if m not in materials]
+    if missing:
+        raise ValueError(f"materials {missing} are used by the mesh but not defined; "
+                         f"defined: {sorted(materials)}")
+    coeffs = np.stack([materials[m].coeffs for m in mesh.materials])
+    n_u = 3 * mesh.n_nodes
+    solid = SolidQ1P0(name, mesh, coeffs, multiplier_offset=n_u)
+    return Model(mesh, (solid, *extra_terms), n_u + mesh.n_elem + n_extra_dofs)

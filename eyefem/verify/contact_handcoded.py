@@ -1,0 +1,212 @@
+"""Hand-coded (numpy) contact forces and tangents, and their tangent-verification checks.
+
+Rigid (frictionless, frozen closest point c and normal n, body moved by d * dir):
+
+    g = (x - c - d dir) . n,   r = alpha g n,   K = alpha n n^T          (g < 0)
+
+Node to quadrilateral, with the seed's D vector of length 15 (hitting node, then the
+four face nodes) D = [n, -N_1 n, ..., -N_4 n]:
+
+    sliding:   g = (x_h - x_t) . n(x_1..x_4),   r = alpha g dg,   K = alpha (dg dg^T + g d2g)
+    sticking:  d = x_h - x_t(xi_0),             r = alpha Dm^T d,  K = alpha Dm^T Dm
+
+with dg = D + (the normal's variation), Dm = [I, -N_1 I, ..., -N_4 I] (3 x 15). The
+normal n = m / |m|, m = t_1 x t_2, t_k = sum_a N_a,k x_a is differentiated in full:
+dn = P dm / |m| (P = I - n n^T), d2m[u, v] = dt_1[u] x dt_2[v] + dt_1[v] x dt_2[u].
+On a Nagata patch (held nodal normals) the target point and tangents are still linear
+in the positions, x_t = sum_a M_a x_a and t_k = sum_a M_a,k x_a with 3 x 3 matrices
+(the edges' curvature vectors are linear in the edge vectors): the same formulas with
+N_a I -> M_a and N_a,k I -> M_a,k (the matrices from the patch formula, column by column).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_C = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
+
+
+def quad_shape(xi):
+    """Bilinear N (4,) and dN/dxi (4, 2) at xi (2,)."""
+    N = 0.25 * (1 + xi[0] * _C[:, 0]) * (1 + xi[1] * _C[:, 1])
+    dN = np.stack([0.25 * _C[:, 0] * (1 + xi[1] * _C[:, 1]),
+                   0.25 * _C[:, 1] * (1 + xi[0] * _C[:, 0])], -1)
+    return N, dN
+
+
+def rigid_residual_tangent(x, c, n, alpha):
+    """Residual (3,) N and tangent (3, 3) N/mm of one node x against a rigid point c, normal n."""
+    g = float((x - c) @ n)
+    if g >= 0:
+        return np.zeros(3), np.zeros((3, 3))
+    return alpha * g * n, alpha * np.outer(n, n)
+
+
+def _linear_maps(xi, n4):
+    """(Dm, T1, T2) (3, 15): x_h - x_t = Dm x, t_k = T_k x for the 15 positions x of a
+    hitting node and a face: bilinear (n4 None) or the Nagata patch of nodal normals n4
+    (4, 3), columns from the patch at unit positions (linear for fixed normals)."""
+    if n4 is None:
+        N, dN = quad_shape(xi)
+        Dm = np.hstack([np.eye(3)] + [-N[a] * np.eye(3) for a in range(4)])
+        T = [np.hstack([np.zeros((3, 3))] + [dN[a, k] * np.eye(3) for a in range(4)])
+             for k in range(2)]
+        return Dm, T[0], T[1]
+    from eyefem.fem.contact import nagata_patch
+
+    cols = []
+    for j in range(12):
+        xf = np.zeros(12)
+        xf[j] = 1.0
+        p, tan = nagata_patch(xi[None], xf.reshape(1, 4, 3), n4[None])
+        cols.append(np.concatenate([np.asarray(p)[0], np.asarray(tan)[0].ravel()]))
+    M = np.array(cols).T  # (9, 12): x_t, t_1, t_2 per unit face position
+    Dm = np.hstack([np.eye(3), -M[:3]])
+    zero = np.zeros((3, 3))
+    return Dm, np.hstack([zero, M[3:6]]), np.hstack([zero, M[6:9]])
+
+
+def node_quad_residual_tangent(x5, xi, alpha, mode="sliding", smoothing=None, n4=None):
+    """Residual (15,) and tangent (15, 15) of a hitting node x5[0] against face x5[1:5].
+
+    Args: x5 (5, 3) current positions, mm; xi (2,) parametric point; alpha N/mm;
+      smoothing: eps (mm) of the smoothed penetration p = eps softplus(-g / eps) (energy
+      1/2 alpha p^2: dE/dg = -alpha p s, d2E/dg2 = alpha (s^2 + p s (1 - s) / eps) with
+      s = sigmoid(-g / eps)); None: the plain penalty 1/2 alpha <-g>^2; n4: held nodal
+      unit normals (4, 3) (the Nagata patch), None: the flat face.
+    """
+    Dm, T1, T2 = _linear_maps(np.asarray(xi, float), n4)
+    x = x5.ravel()
+    r = Dm @ x
+    if mode == "sticking":
+        return alpha * Dm.T @ r, alpha * Dm.T @ Dm
+    t1, t2 = T1 @ x, T2 @ x
+    m = np.cross(t1, t2)
+    lm = np.linalg.norm(m)
+    n = m / lm
+    g = float(r @ n)
+    if smoothing is None and g >= 0:
+        return np.zeros(15), np.zeros((15, 15))
+    P = np.eye(3) - np.outer(n, n)
+    E = np.eye(15)
+
+    def parts(u):  # variations of r, t1, t2, m, n along a 15-vector u
+        dt1, dt2 = T1 @ u, T2 @ u
+        dm = np.cross(dt1, t2) + np.cross(t1, dt2)
+        return Dm @ u, dt1, dt2, dm, P @ dm / lm
+
+    V = [parts(E[i]) for i in range(15)]
+    dg = np.array([dr @ n + r @ dn for dr, _, _, _, dn in V])
+    d2g = np.zeros((15, 15))
+    for i, (dru, dt1u, dt2u, dmu, dnu) in enumerate(V):
+        for j, (drv, dt1v, dt2v, dmv, dnv) in enumerate(V):
+            d2m = np.cross(dt1u, dt2v) + np.cross(dt1v, dt2u)
+            d2n_r = (-(r @ dnv) * (n @ dmu) / lm - g * (dnv @ dmu) / lm
+                     - (n @ dmv) * (r @ P @ dmu) / lm**2 + r @ P @ d2m / lm)
+            d2g[i, j] = dru @ dnv + drv @ dnu + d2n_r
+    return _penalty(g, dg, d2g, alpha, smoothing)
+
+
+def _penalty(g, dg, d2g, alpha, smoothing):
+    """Residual and tangent of the penalty energy at gap g with its first and second
+    derivatives dg (15,), d2g (15, 15)."""
+    if smoothing is None:
+        if g >= 0:
+            return np.zeros(15), np.zeros((15, 15))
+        return alpha * g * dg, alpha * (np.outer(dg, dg) + g * d2g)
+    sg = 1.0 / (1.0 + np.exp(g / smoothing))  # sigmoid(-g / eps)
+    pen = smoothing * np.logaddexp(-g / smoothing, 0.0)
+    e1, e2 = -alpha * pen * sg, alpha * (sg * sg + pen * sg * (1 - sg) / smoothing)
+    return e1 * dg, e2 * np.outer(dg, dg) + e1 * d2g
+
+
+# --- tangent-verification checks ----------------------------------------------------------------
+
+def _rigid_check(rng):
+    import jax
+    import jax.numpy as jnp
+
+    from eyefem.fem.contact import RigidContact
+    from eyefem.verify.checks import CheckData
+
+    n = rng.standard_normal(3)
+    n /= np.linalg.norm(n)
+    c = rng.standard_normal(3)
+    dirv = rng.standard_normal(3)
+    dirv /= np.linalg.norm(dirv)
+    d = 0.3
+    X = c + d * dirv + 0.1 * rng.standard_normal(3)
+    x = X - (((X - c - d * dirv) @ n) + 0.05) * n + 0.02 * rng.standard_normal(3)  # g ~ -0.05
+    alpha = 50.0
+    data = {"X": X[None], "c": c[None], "n": n[None], "dir": dirv[None], "dir2": np.zeros((1, 3)),
+            "body": np.zeros(1, int),
+            "w": np.ones(1), "alpha": np.full(1, alpha), "area": np.ones(1)}
+    params = {"d": jnp.array([d]), "s": jnp.zeros(1)}
+
+    term = RigidContact.__new__(RigidContact)  # the kernel only: no mesh needed
+
+    def energy(u):
+        return jnp.sum(term.local_energy(u.reshape(1, 3), params, data))
+
+    grad = jax.jit(jax.grad(energy))
+    u = x - X
+    r_h, K_h = rigid_residual_tangent(x, c + d * dirv, n, alpha)
+    return CheckData(np.asarray(grad(jnp.asarray(u))), r_h,
+                     np.asarray(jax.hessian(energy)(jnp.asarray(u))), K_h,
+                     lambda y: np.asarray(grad(jnp.asarray(y))), u,
+                     f"gap {float((x - c - d * dirv) @ n):.3f} mm, moving body")
+
+
+def _surface_check(mode, smoothing=None, nodal=False):
+    def check(rng):
+        import jax
+        import jax.numpy as jnp
+
+        from eyefem.fem.contact import SurfaceContact
+        from eyefem.verify.checks import CheckData
+
+        X = np.array([[0.3, 0.4, 0.2], [0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+        x5 = X + 0.08 * rng.standard_normal((5, 3))
+        xi = rng.uniform(-0.6, 0.6, 2)
+        N, _ = quad_shape(xi)
+        # penetrating by ~0.05 mm; smoothed: a gap within a few eps of touching
+        depth = 0.05 if smoothing is None else 0.5 * smoothing
+        x5[0] = N @ x5[1:] + np.array([0.01, -0.02, -depth])
+        alpha = 40.0
+        data = {"X": X[None], "xi": xi[None], "w": np.ones(1), "alpha": np.full(1, alpha),
+                "area": np.ones(1), "eps": np.full(1, smoothing or 1.0)}
+        n4 = None
+        if nodal:  # nodal normals tilted off the face's, as on a curved surface
+            n4 = (np.array([[-0.2, -0.2, 1.0], [0.2, -0.2, 1.0], [0.2, 0.2, 1.0], [-0.2, 0.2, 1.0]])
+                  + 0.05 * rng.standard_normal((4, 3)))
+            n4 /= np.linalg.norm(n4, axis=1, keepdims=True)
+            data["n4"] = n4[None]
+        term = SurfaceContact.__new__(SurfaceContact)  # the kernel only: no mesh needed
+        object.__setattr__(term, "mode", mode)
+        object.__setattr__(term, "smoothing", smoothing)
+
+        def energy(u):
+            return jnp.sum(term.local_energy(u.reshape(1, 15), {"scale": 1.0}, data))
+
+        grad = jax.jit(jax.grad(energy))
+        u = (x5 - X).ravel()
+        r_h, K_h = node_quad_residual_tangent(x5, xi, alpha, mode, smoothing, n4)
+        return CheckData(np.asarray(grad(jnp.asarray(u))), r_h,
+                         np.asarray(jax.hessian(energy)(jnp.asarray(u))), K_h,
+                         lambda y: np.asarray(grad(jnp.asarray(y))), u,
+                         f"node on a warped quad, {mode}"
+                         + (f", smoothed (eps {smoothing} mm)" if smoothing else "")
+                         + (", Nagata patch of nodal normals" if nodal else ""))
+
+    return check
+
+
+def contact_checks() -> dict:
+    """The contact terms' tangent checks, by name (eyefem.verify.tangents.term_checks)."""
+    return {
+        "rigid_contact": _rigid_check,
+        "surface_contact_sliding": _surface_check("sliding"),
+        "surface_contact_sticking": _surface_check("sticking"),
+        "surface_contact_smoothed": _surface_check("sliding", smoothing=0.02),
+        "surface_contact_nodal_normals": _surface_check("sliding", smoothing=0.02, nodal=True),
+    }
