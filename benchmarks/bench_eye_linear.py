@@ -26,14 +26,14 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from eyefem import linsolve  # noqa: E402
+from eyefem.solve import linsolve  # noqa: E402
 from eyefem.catalog import (
     problems,  # noqa: E402
     schemas,  # noqa: E402
 )
 from eyefem.io.casefile import load_case  # noqa: E402
 from eyefem.solve.assembly import Assembler  # noqa: E402
-from eyefem.solve.solver import NewtonOptions, _lerp, solve  # noqa: E402
+from eyefem.solve.solver import NewtonOptions, interpolate, solve  # noqa: E402
 
 
 def _median_time(f, repeats):
@@ -68,7 +68,7 @@ def main(argv=None):
     prescribed = np.zeros(model.n_dof, bool)
     prescribed[stage.prescribed[0]] = True
     end = {**theta, **{k: {**theta[k], **v} for k, v in stage.params.items()}}
-    th = _lerp(theta, end, 1.0 / stage.n_steps)
+    th = interpolate(theta, end, 1.0 / stage.n_steps)
     model = model.update(q, th)
     out = {"case": args.case, "mesh": case.parameters.get("mesh"), "machine": platform.machine(),
            "elements": model.mesh.n_elem, "mkl_reproducible": linsolve.REPRODUCIBLE}

@@ -10,10 +10,11 @@ from __future__ import annotations
 def problems() -> dict:
     """name -> (schema fields, builder(parameters, materials) -> Setup)."""
     from eyefem.eye.surgery import PROBLEMS as surgery
+    from eyefem.eye.validation import PROBLEMS as validation
     from eyefem.problems.examples import PROBLEMS as examples
     from eyefem.problems.verification import PROBLEMS as verification
 
-    return {**verification, **examples, **surgery}
+    return {**verification, **examples, **surgery, **validation}
 
 
 def schemas() -> dict:

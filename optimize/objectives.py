@@ -1,11 +1,14 @@
-"""Composable planning objectives: functions of the outcome values, differentiable.
+"""Composable planning objectives and constraints: functions of the outcome values,
+differentiable.
 
-Each objective maps the outcomes (dict name -> JAX scalar, see eyefem.eye.design.OUTCOMES)
-to a non-negative JAX scalar; they are summed. The planner differentiates the sum with
-respect to the outcomes (jax.grad) and chains with the adjoint gradients of the
-outcomes with respect to the design. Scales make every term about 1 when the
-miss is about one tolerance: 0.05 mm of indentation, 1 mmHg, 0.1 mm of axial length,
-10% of a suture force limit.
+An objective maps the outcomes (dict name -> JAX scalar, see eyefem.eye.design.OUTCOMES)
+to a non-negative JAX scalar; they are summed. A constraint maps them to a value that
+is >= 0 when the limit holds. The planner differentiates each with respect to the
+outcomes (jax.grad) and chains with the adjoint gradient of that weighted sum of the
+outcomes with respect to the design (SurgerySimulator.weighted_gradient). Scales make
+every term about 1 when the miss is about one tolerance: 0.05 mm of indentation, 1 mmHg,
+0.1 mm of axial length, 10% of a suture force limit. The soft limits (iop_window, ...)
+are penalties, for objectives that want them; the planner treats limits as constraints.
 """
 
 from __future__ import annotations
@@ -72,3 +75,46 @@ def total(objectives) -> Callable:
     if not objectives:
         raise ValueError("no objective: give at least a target or a limit")
     return lambda o: sum(obj(o) for obj in objectives)
+
+
+@dataclasses.dataclass(frozen=True)
+class Constraint:
+    """A named limit ``fn(outcomes) >= 0`` (satisfied), in units of its tolerance (one unit:
+    1 mmHg, 0.1 mm of axial length, 10% of a suture force limit), and the outcomes it reads."""
+
+    name: str
+    fn: Callable
+    uses: tuple[str, ...]
+
+    def __call__(self, o):
+        return self.fn(o)
+
+
+def iop_at_most(max_mmhg: float, tol_mmhg: float = 1.0) -> Constraint:
+    """IOP <= max_mmhg (a safe post-operative pressure)."""
+    return Constraint(f"iop <= {max_mmhg:g} mmHg", lambda o: (max_mmhg - o["iop_mmhg"]) / tol_mmhg,
+                      ("iop_mmhg",))
+
+
+def iop_at_least(min_mmhg: float, tol_mmhg: float = 1.0) -> Constraint:
+    """IOP >= min_mmhg (no hypotony)."""
+    return Constraint(f"iop >= {min_mmhg:g} mmHg", lambda o: (o["iop_mmhg"] - min_mmhg) / tol_mmhg,
+                      ("iop_mmhg",))
+
+
+def axial_change_within(max_mm: float, tol_mm: float = 0.1) -> list[Constraint]:
+    """|axial length change| <= max_mm, as two smooth limits (the myopic shift limit)."""
+    if not max_mm > 0:
+        raise ValueError(f"axial length change limit {max_mm} mm; must be > 0")
+    key = "axial_length_change_mm"
+    return [Constraint(f"axial change <= {max_mm:g} mm", lambda o: (max_mm - o[key]) / tol_mm, (key,)),
+            Constraint(f"axial change >= -{max_mm:g} mm", lambda o: (max_mm + o[key]) / tol_mm, (key,))]
+
+
+def suture_force_at_most(max_n: float) -> Constraint:
+    """Largest suture force <= max_n (tissue cut-through)."""
+    if not max_n > 0:
+        raise ValueError(f"suture force limit {max_n} N; must be > 0")
+    return Constraint(f"suture force <= {max_n:g} N",
+                      lambda o: (max_n - o["max_suture_force_N"]) / (0.1 * max_n),
+                      ("max_suture_force_N",))

@@ -1,14 +1,19 @@
-"""Surgical planning: optimise the design of a surgery case with optax and adjoint gradients.
+"""Surgical planning: optimise the design of a surgery case with adjoint gradients.
 
     python -m optimize.plan cases/surgery/case1.toml --mesh coarse \\
         --target-indentation 1.0 --iop-max 21 --vars tightening,suture_width
 
-Each iteration solves the case at the current design (warm started from the previous
-converged states), computes the adjoint gradients of the outcomes the objective reads,
-and takes a projected Adam step (decaying step size) on the design variables scaled
-to [0, 1] by their bounds. Writes into --out: plan_history.csv (every iteration), plan.png (objective,
-IOP and indentation against iteration), planned_case.toml (the case with the best
-design) and plan_summary.json.
+Sequential quadratic programming (scipy's SLSQP) on the design variables scaled to
+[0, 1] by their bounds: the objective (an indentation target) is minimised subject to
+the limits as constraints (IOP, axial length change, suture force), with exact
+gradients of both: each evaluation solves the case at the design (warm started from the
+last converged states) and runs one adjoint (three solves) for the objective and one per
+constraint (SurgerySimulator.weighted_gradient). The plan stops when the objective is
+below --tol with every constraint met (to half a tolerance unit), when the projected
+gradient of a feasible design vanishes, or after --iterations simulations. Writes into
+--out: plan_history.csv (every simulation: design, outcomes, objective, constraint
+values, gradient), plan.png, planned_case.toml (the case with the best design) and
+plan_summary.json (with the active or violated constraints).
 """
 
 from __future__ import annotations
@@ -39,13 +44,28 @@ BOUNDS = {  # default bounds of the design variables
 }
 
 
+FEASIBLE = 0.5
+"""A constraint counts as met above -FEASIBLE (half a tolerance unit: 0.5 mmHg, ...)."""
+GRADIENT_TOL = 1e-3
+"""A feasible design whose projected objective gradient (per unit of the scaled
+variables) is below this is stationary: the plan stops there."""
+
+
 @dataclasses.dataclass
 class PlanResult:
-    """History rows, the best design and its outcomes."""
+    """History rows (one per simulation), the best design, whether it converged, why it
+    stopped and the constraints active (within FEASIBLE of their limit) or violated."""
 
     history: list[dict]
     best: dict
     converged: bool
+    message: str = ""
+    active: tuple[str, ...] = ()
+    violated: tuple[str, ...] = ()
+
+
+class _Stop(Exception):
+    """Raised inside the optimiser's callbacks to end the plan (reached, or out of budget)."""
 
 
 def bounds_for(sim, names, overrides=None) -> dict:
@@ -64,22 +84,23 @@ def bounds_for(sim, names, overrides=None) -> dict:
     return out
 
 
-def plan(sim, objective_terms, names, *, bounds=None, iterations=20, learning_rate=0.08,
+def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations=20,
          tol=1e-2, on_iteration=None) -> PlanResult:
-    """Projected Adam on the design variables ``names`` of a SurgerySimulator.
+    """SLSQP on the design variables ``names`` of a SurgerySimulator.
 
     Args:
       sim: eyefem.eye.design.SurgerySimulator (its case gives the starting design).
-      objective_terms: list of optimize.objectives.Objective.
+      objective_terms: optimize.objectives.Objective terms, summed (may be empty: then
+        the plan looks for a design that meets the constraints).
       names: design variables to optimise (others stay at the case's values).
+      constraints: optimize.objectives.Constraint limits (>= 0 when met).
       bounds: name -> (low, high); default BOUNDS.
-      iterations: maximum number of simulations.
-      learning_rate: first Adam step in the [0, 1]-scaled variables (decays by 0.8 per
-        iteration to 5% of it).
-      tol: stop when the objective falls below tol.
-      on_iteration: callback(row) after every iteration (progress, files).
+      iterations: the most simulations (each one forward solve and its adjoints).
+      tol: the plan has reached its goal when the objective is below tol and every
+        constraint is met (FEASIBLE).
+      on_iteration: callback(row) after every simulation (progress, files).
     """
-    import optax
+    from scipy.optimize import minimize
 
     from eyefem.eye.design import MATERIAL_VARIABLES, SURGICAL_VARIABLES
 
@@ -89,43 +110,79 @@ def plan(sim, objective_terms, names, *, bounds=None, iterations=20, learning_ra
                              "is for sensitivity studies (SurgerySimulator.gradients)")
         if n not in SURGICAL_VARIABLES:
             raise ValueError(f"unknown design variable '{n}'; choose from {sorted(SURGICAL_VARIABLES)}")
+    if not objective_terms and not constraints:
+        raise ValueError("no objective: give at least a target or a limit")
     bnd = bounds_for(sim, names, bounds)
     lo = np.array([bnd[n][0] for n in names])
     hi = np.array([bnd[n][1] for n in names])
     d0 = sim.design0()
-    z = np.clip((np.array([d0[n] for n in names]) - lo) / (hi - lo), 0.0, 1.0)
-    f_total = obj.total(objective_terms)
-    uses = sorted({u for t in objective_terms for u in t.uses})
-    df_do = jax.grad(lambda o: f_total(o))
-    # the step decays (x 0.8 per iteration) so that Adam's momentum settles on the target
-    # instead of circling it
-    opt = optax.adam(optax.exponential_decay(learning_rate, transition_steps=1, decay_rate=0.8,
-                                             end_value=0.05 * learning_rate))
-    state = opt.init(z)
-    history, best = [], None
-    for it in range(iterations):
+    z0 = (np.array([d0[n] for n in names]) - lo) / (hi - lo)
+    if np.any((z0 < 0) | (z0 > 1)):
+        raise ValueError(f"the start {dict(zip(names, (d0[n] for n in names)))} is outside the "
+                         f"bounds {bnd}")
+    f_total = obj.total(objective_terms) if objective_terms else (lambda o: 0.0 * o["iop_mmhg"])
+    history, cache, best = [], {}, {}
+
+    def weights(fn, out):
+        g = jax.grad(lambda o: fn(o))({k: jax.numpy.asarray(v) for k, v in out.items()})
+        return {k: float(v) for k, v in g.items()}
+
+    def evaluate(z):
+        key = tuple(np.round(z, 14))
+        if key in cache:
+            return cache[key]
+        if len(history) >= iterations:
+            raise _Stop("stopped after the iteration limit")
         design = {**d0, **{n: float(lo[i] + z[i] * (hi[i] - lo[i])) for i, n in enumerate(names)}}
         tic = time.perf_counter()
         res = sim.run(design)
         out = res.outcomes
-        f = float(f_total(out))
-        grads = sim.gradients(res, uses)
-        w = df_do({k: out[k] for k in out})
-        g_design = np.array([sum(float(w[o]) * grads[o][n] for o in uses) for n in names])
-        g_z = g_design * (hi - lo)
-        row = {"iteration": it, "objective": f, **{n: design[n] for n in names}, **out,
-               **{f"d_objective/d_{n}": g_design[i] for i, n in enumerate(names)},
+
+        def gradient(fn):  # d fn / d z: one adjoint of the outcomes' weighted sum
+            g = sim.weighted_gradient(res, weights(fn, out))
+            return np.array([g[n] for n in names]) * (hi - lo)
+
+        f, gf = float(f_total(out)), gradient(f_total)
+        cv = np.array([float(c(out)) for c in constraints])
+        cg = np.array([gradient(c) for c in constraints]).reshape(len(constraints), len(names))
+        feasible = bool(np.all(cv >= -FEASIBLE))
+        pg = np.where(((z <= 0) & (gf > 0)) | ((z >= 1) & (gf < 0)), 0.0, gf)
+        row = {"iteration": len(history), "objective": f,
+               "constraint_violation": float(max(0.0, -cv.min(initial=0.0))),
+               **{n: design[n] for n in names}, **out,
+               **{f"constraint: {c.name}": v for c, v in zip(constraints, cv)},
+               **{f"d_objective/d_{n}": gf[i] / (hi[i] - lo[i]) for i, n in enumerate(names)},
+               "projected_gradient": float(np.linalg.norm(pg)),
                "newton_iterations": res.newton_iterations, "wall_s": time.perf_counter() - tic}
         history.append(row)
-        if best is None or f < best["objective"]:
-            best = {"objective": f, "design": design, "outcomes": out}
+        merit = (0 if feasible else 1, f if feasible else -cv.min())
+        if not best or merit < best["merit"]:
+            best.update(merit=merit, objective=f, design=design, outcomes=out,
+                        constraints=dict(zip((c.name for c in constraints), cv.tolist())))
         if on_iteration is not None:
             on_iteration(row)
-        if f < tol:
-            return PlanResult(history, best, True)
-        updates, state = opt.update(g_z, state, z)
-        z = np.clip(np.asarray(optax.apply_updates(z, updates)), 0.0, 1.0)
-    return PlanResult(history, best, False)
+        cache[key] = (f, gf, cv, cg)
+        if feasible and f < tol:
+            raise _Stop("reached the target")
+        if feasible and np.linalg.norm(pg) < GRADIENT_TOL:
+            raise _Stop("stationary: the objective's projected gradient vanishes")
+        return cache[key]
+
+    cons = [{"type": "ineq", "fun": lambda z, i=i: evaluate(z)[2][i],
+             "jac": lambda z, i=i: evaluate(z)[3][i]} for i in range(len(constraints))]
+    try:
+        r = minimize(lambda z: evaluate(z)[0], z0, jac=lambda z: evaluate(z)[1], method="SLSQP",
+                     bounds=[(0.0, 1.0)] * len(names), constraints=cons,
+                     options={"maxiter": iterations, "ftol": 1e-3 * max(tol, 1e-12)})
+        message = f"optimiser: {r.message}"
+    except _Stop as stop:
+        message = str(stop)
+    values = best["constraints"]
+    active = tuple(k for k, v in values.items() if -FEASIBLE <= v < FEASIBLE)
+    violated = tuple(k for k, v in values.items() if v < -FEASIBLE)
+    converged = best["merit"][0] == 0 and (best["objective"] < tol or message.startswith("stationary"))
+    return PlanResult(history, {k: v for k, v in best.items() if k != "merit"}, converged,
+                      message, active, violated)
 
 
 def plot_history(path: Path, history: list[dict], objective_terms):
@@ -157,18 +214,58 @@ def plot_history(path: Path, history: list[dict], objective_terms):
     plt.close(fig)
 
 
-def _objectives_from_args(a) -> list:
-    terms = []
+def _objectives_from_args(a) -> tuple[list, list]:
+    """(objective terms, constraints) from the command line."""
+    terms, cons = [], []
     if a.target_indentation is not None:
         terms.append(obj.target_indentation(a.target_indentation))
-    if a.iop_max is not None or a.iop_min is not None:
-        terms.append(obj.iop_window(a.iop_min if a.iop_min is not None else 0.0,
-                                    a.iop_max if a.iop_max is not None else 1e9))
+    if a.iop_max is not None:
+        cons.append(obj.iop_at_most(a.iop_max))
+    if a.iop_min is not None:
+        cons.append(obj.iop_at_least(a.iop_min))
+    if a.iop_max is not None and a.iop_min is not None and not a.iop_min < a.iop_max:
+        raise ValueError(f"--iop-min {a.iop_min} and --iop-max {a.iop_max}: the IOP window is empty")
     if a.axial_max is not None:
-        terms.append(obj.axial_length_limit(a.axial_max))
+        cons += obj.axial_change_within(a.axial_max)
     if a.suture_force_max is not None:
-        terms.append(obj.suture_force_limit(a.suture_force_max))
-    return terms
+        cons.append(obj.suture_force_at_most(a.suture_force_max))
+    return terms, cons
+
+
+def _check_args(a) -> dict:
+    """Validate the numeric options; returns the --bounds overrides name -> (low, high).
+    Raises ValueError naming the option, the value and the fix."""
+    import math
+
+    if a.iterations < 1:
+        raise ValueError(f"--iterations {a.iterations}: need at least 1 (one simulation per "
+                         "iteration)")
+    if not math.isfinite(a.tol) or a.tol < 0:
+        raise ValueError(f"--tol {a.tol}: need a finite value >= 0")
+    overrides = {}
+    for item in a.bounds:
+        name, sep, rng = item.partition("=")
+        lo, colon, hi = rng.partition(":")
+        try:
+            low, high = float(lo), float(hi)
+        except ValueError:
+            low = high = math.nan
+        if not sep or not colon or not (math.isfinite(low) and math.isfinite(high)):
+            raise ValueError(f"--bounds '{item}': expected NAME=LOW:HIGH with finite numbers, "
+                             "e.g. tightening=2:12")
+        if not low < high:
+            raise ValueError(f"--bounds '{item}': LOW must be below HIGH")
+        overrides[name.strip()] = (low, high)
+    return overrides
+
+
+def _check_start(case, start: dict, bounds: dict):
+    """ValueError when a start value (from the case) is outside its bounds: the optimiser
+    would clip it silently."""
+    for n, (lo, hi) in bounds.items():
+        if not lo <= start[n] <= hi:
+            raise ValueError(f"the start {n} = {start[n]:g} (from {case}) is outside its bounds "
+                             f"[{lo:g}, {hi:g}]; change the case or give --bounds {n}=LOW:HIGH")
 
 
 def main(argv=None) -> int:
@@ -190,28 +287,41 @@ def main(argv=None) -> int:
     ap.add_argument("--iop-min", type=float, help="lower IOP limit, mmHg")
     ap.add_argument("--axial-max", type=float, help="limit on |axial length change|, mm")
     ap.add_argument("--suture-force-max", type=float, help="limit on the largest suture force, N")
-    ap.add_argument("--iterations", type=int, default=20)
-    ap.add_argument("--lr", type=float, default=0.08, help="Adam step in bound-scaled variables")
-    ap.add_argument("--tol", type=float, default=1e-2, help="stop when the objective is below")
+    ap.add_argument("--iterations", type=int, default=20, help="the most simulations")
+    ap.add_argument("--tol", type=float, default=1e-2,
+                    help="stop when the objective is below this with every limit met")
     ap.add_argument("--out", default="results/plan", help="output directory")
+    ap.add_argument("--bounds", action="append", metavar="NAME=LOW:HIGH", default=[],
+                    help="bounds of a design variable (repeatable), e.g. tightening=2:12")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)-7s %(message)s",
                         datefmt="%H:%M:%S")
     logging.getLogger("eyefem").setLevel(logging.WARNING)
     try:
+        overrides = _check_args(a)
         case = load_case(a.case, schemas())
         if case.problem != "surgery":
             raise CaseError(f"{a.case}: problem '{case.problem}'; the planner needs a surgery case")
         params = dict(case.parameters)
         if a.mesh:
             params["mesh"] = a.mesh
-        terms = _objectives_from_args(a)
-        if not terms:
+        terms, cons = _objectives_from_args(a)
+        if not terms and not cons:
             raise CaseError("give an objective: --target-indentation and/or limits (--iop-max ...)")
         names = [v.strip() for v in a.vars.split(",") if v.strip()]
-        log.info("planning %s on the %s mesh: %s over %s", case.path, params["mesh"],
-                 " + ".join(t.name for t in terms), ", ".join(names))
+        log.info("planning %s on the %s mesh: %s subject to %s over %s", case.path,
+                 params["mesh"], " + ".join(t.name for t in terms) or "no objective",
+                 ", ".join(c.name for c in cons) or "no limit", ", ".join(names))
+        unknown = [n for n in [*names, *overrides] if n not in BOUNDS]
+        if unknown:
+            raise CaseError(f"unknown design variable(s) {unknown}; choose from {sorted(BOUNDS)}")
+        known = {n: overrides.get(n, BOUNDS[n]) for n in names}  # checked before building
+        _check_start(a.case, {n: params[n] for n in names}, {
+            n: (-np.inf if lo is None else lo, np.inf if hi is None else hi)
+            for n, (lo, hi) in known.items()})
         sim = SurgerySimulator(params, case.materials, case.solver)
+        bounds = bounds_for(sim, names, overrides)
+        _check_start(a.case, sim.design0(), bounds)
     except (CaseError, ValueError) as exc:
         print(f"plan: {exc}", file=sys.stderr)
         return 2
@@ -221,14 +331,14 @@ def main(argv=None) -> int:
     def progress(row):
         rows.append(row)
         write_csv(out / "plan_history.csv", rows)
-        log.info("iter %2d  objective %.4g  %s  IOP %.2f mmHg  indentation %.3f mm  (%d Newton its, "
-                 "%.1f s)", row["iteration"], row["objective"],
-                 "  ".join(f"{n} {row[n]:.3f}" for n in names), row["iop_mmhg"],
-                 row["indentation_mm"], row["newton_iterations"], row["wall_s"])
+        log.info("sim %2d  objective %.4g  violation %.3g  %s  IOP %.2f mmHg  indentation %.3f "
+                 "mm  (%d Newton its, %.1f s)", row["iteration"], row["objective"],
+                 row["constraint_violation"], "  ".join(f"{n} {row[n]:.3f}" for n in names),
+                 row["iop_mmhg"], row["indentation_mm"], row["newton_iterations"], row["wall_s"])
 
     try:
-        res = plan(sim, terms, names, iterations=a.iterations, learning_rate=a.lr, tol=a.tol,
-                   on_iteration=progress)
+        res = plan(sim, terms, names, constraints=cons, bounds=bounds, iterations=a.iterations,
+                   tol=a.tol, on_iteration=progress)
     except (ConvergenceError, ValueError) as exc:
         print(f"plan: {exc}\nthe history so far is in {out / 'plan_history.csv'}", file=sys.stderr)
         return 3
@@ -240,12 +350,19 @@ def main(argv=None) -> int:
     write_case(out / "planned_case.toml", "surgery", f"Planned: {case.title}", planned,
                case.raw.get("materials"), "Design found by optimize.plan: "
                + "; ".join(t.name for t in terms))
-    summary = {"case": str(case.path), "converged": res.converged, "objective": best["objective"],
-               "design": best["design"], "outcomes": best["outcomes"],
-               "iterations": len(res.history)}
+    summary = {"case": str(case.path), "converged": res.converged, "message": res.message,
+               "objective": best["objective"], "constraints": best["constraints"],
+               "active_constraints": list(res.active),
+               "violated_constraints": list(res.violated), "design": best["design"],
+               "outcomes": best["outcomes"], "simulations": len(res.history)}
     write_text(out / "plan_summary.json", json.dumps(summary, indent=2) + "\n")
-    print(f"\n{'reached the target' if res.converged else 'stopped after the iteration limit'}: "
-          f"objective {best['objective']:.4g}")
+    print(f"\n{res.message}: objective {best['objective']:.4g}")
+    for k, v in best["constraints"].items():
+        state = ("VIOLATED" if k in res.violated else "active" if k in res.active else "met")
+        print(f"  constraint {k:<26} {state} ({v:+.3g} tolerance units)")
+    if res.violated:
+        print(f"  no design within the bounds meets {', '.join(res.violated)} with this target: "
+              "relax the limit or the target, or widen the bounds (--bounds)")
     for n in names:
         print(f"  {n:<20} {best['design'][n]:.4f}")
     for k, v in best["outcomes"].items():

@@ -252,7 +252,7 @@ def test_a_wrong_lookahead_step_falls_back_to_the_plain_newton_step(inflated_aga
     wrong), the plain Newton step is taken: a look-ahead that always returns the reversed
     step changes neither the converged state nor the iteration count of the run
     without look-ahead."""
-    from eyefem.solve import solver as solver_mod
+    from eyefem.solve import globalisation
     from eyefem.solve.solver import NewtonOptions, solve
 
     off = inflated_against_a_ring[False]
@@ -262,7 +262,7 @@ def test_a_wrong_lookahead_step_falls_back_to_the_plain_newton_step(inflated_aga
         calls.append(1)
         return -x, -y, solver, 1
 
-    monkeypatch.setattr(solver_mod, "_lookahead", reversed_step)
+    monkeypatch.setattr(globalisation, "lookahead", reversed_step)
     model, stage = inflated_against_a_ring["problem"]
     fresh = solve(model, [stage], options=NewtonOptions(contact_lookahead=True))
     assert calls

@@ -212,10 +212,10 @@ def test_low_rank_values_are_the_volumes_whose_gradients_are_the_low_rank_vector
 
 
 def test_restoration_brings_the_volume_to_its_linear_prediction_at_second_order(closed_shell):
-    """The solver's second-order restoration (eyefem.solve.solver._Restoration): a trial point
+    """The solver's second-order restoration (eyefem.solve.globalisation.Restoration): a trial point
     q + a dq is moved back to V(q) + a dV/dq . dq to roundoff, and the move shrinks as
     |dq|^2 (it is a second-order correction, so Newton's quadratic convergence is kept)."""
-    from eyefem.solve.solver import _Restoration
+    from eyefem.solve.globalisation import Restoration as _Restoration
 
     model, q, theta, asm, m = closed_shell
     r, K, B, D, lr = asm.assemble(q, theta, None)

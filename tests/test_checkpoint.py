@@ -55,7 +55,10 @@ def test_resume_after_interruption_matches_an_uninterrupted_run(tmp_path):
     np.testing.assert_allclose(res.solution.q, full.solution.q, rtol=1e-9, atol=1e-12)
     n_all = len(res.solution.model.mesh.node_set("all"))
     assert len(res.solution.model.term("springs").nodes) == n_all  # the hook was replayed
-    assert len(list((tmp_path / "cut" / "vtu").glob("*.vtu"))) == 6
+    assert len(list((tmp_path / "cut" / "vtu").glob("*.vtu"))) == 7  # undeformed + 6 steps
+    files = sorted(p.name for p in (tmp_path / "cut").glob("checkpoint*"))
+    assert len(files) == 2 and "checkpoint.json" in files  # and one checkpoint-<hash>.npz
+    assert not list((tmp_path / "cut").glob("*.pkl"))
 
 
 def test_resume_refuses_a_checkpoint_of_another_case(tmp_path):

@@ -1,7 +1,5 @@
 """Structured mesh generators: counts, volumes, quality, sets and face orientation."""
 
-import time
-
 import numpy as np
 import pytest
 
@@ -190,10 +188,10 @@ def test_shell_surfaces_closed_oriented_and_enclosing():
     assert flux_x_dot_n(X, outer) / 3 == pytest.approx(4 / 3 * np.pi * (ri + t) ** 3, rel=0.01)
 
 
-def test_shell_benchmark_sizes_fast():
-    t0 = time.perf_counter()
+def test_shell_benchmark_sizes():
+    """The benchmark shells (benchmarks/bench_core.py; their generation time is measured
+    there, not here)."""
     m = generators.spherical_shell(11.0, 1.0, 32, 2)
-    assert time.perf_counter() - t0 < 2.0
     assert m.n_elem == 12288
     assert len(open_edges(m.face_set("inner"))) == 0
     assert generators.spherical_shell(11.0, 1.0, 25, 3).n_elem == 11250

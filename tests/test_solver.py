@@ -309,7 +309,8 @@ def test_seed1_equibiaxial_sheet_case(tmp_path):
     rows = (tmp_path / "sheet_curve.csv").read_text().splitlines()
     assert len(rows) == 41
     assert (tmp_path / "sheet.png").stat().st_size > 1000
-    assert (tmp_path / "sheet.pvd").exists() and len(list((tmp_path / "vtu").glob("*.vtu"))) == 40
+    # 40 steps and the undeformed frame
+    assert (tmp_path / "sheet.pvd").exists() and len(list((tmp_path / "vtu").glob("*.vtu"))) == 41
     import meshio
     m = meshio.read(tmp_path / "vtu" / "sheet_0039.vtu")
     for k in ("cauchy", "von_mises", "lambda", "J", "pressure"):
@@ -531,7 +532,8 @@ def test_stalled_steps_are_accepted_inside_a_stage_and_refused_at_its_end():
     hist = exc.value.history
     assert len(seen) == len(hist)
     np.testing.assert_allclose([a for a, _ in seen], [b for _, b in seen], rtol=1e-12)
-    assert len(hist) >= 3 and all(r.info.get("stalled") for r in hist)
+    assert len(hist) >= 3
+    assert all(r.info.get("stalled") and r.info["unbalanced_N"] > 0 for r in hist)
     assert all(1e-8 * reaction < r.residual < 1e-6 * reaction for r in hist)
     assert all(r.iterations <= 2 + NewtonOptions().stall_iterations + 4 for r in hist)
     assert 0.9 < hist[-1].t < 1.0
@@ -630,10 +632,10 @@ def test_a_cycling_contact_pairing_is_accepted_where_the_state_is_in_equilibrium
         seen.append((rec, *forces))
 
     opts = NewtonOptions(max_iter=20, max_cuts=0)
-    with caplog.at_level("WARNING", logger="eyefem.solve.solver"):
+    with caplog.at_level("WARNING", logger="eyefem.solve"):
         sol = solve(model, [stage], options=opts, on_step=on_step)
     (rec, in_pairing, repaired), = seen
-    assert sol.history[-1].t == 1.0 and rec.info == {"contact_cycle": True}
+    assert sol.history[-1].t == 1.0 and rec.info["contact_cycle"] and 0 < rec.info["unbalanced_N"]
     assert in_pairing <= opts.rtol * reaction
     assert opts.contact_rtol * reaction < repaired < opts.contact_cycle_rtol * reaction
     assert f"nodes {node} flip between facets" in caplog.text
@@ -645,14 +647,14 @@ def test_a_pairing_that_never_settles_is_accepted_at_its_third_re_pairing(caplog
     first): no re-pairing leaves the same force twice, so it is no cycle, but the third
     state converged with frozen pairs that re-pairs below contact_cycle_rtol is
     accepted, flagged, with a warning that says so."""
-    from eyefem.solve.solver import UNSETTLED_REPAIRS
+    from eyefem.solve.contact_strategy import UNSETTLED_REPAIRS
 
     model, stage, reaction, node = _cube_with_a_flipping_contact(2e-4, grow=0.2)
     opts = NewtonOptions(max_iter=30, max_cuts=0)
-    with caplog.at_level("WARNING", logger="eyefem.solve.solver"):
+    with caplog.at_level("WARNING", logger="eyefem.solve"):
         sol = solve(model, [stage], options=opts)
     rec = sol.history[-1]
-    assert rec.t == 1.0 and rec.info == {"contact_cycle": True}
+    assert rec.t == 1.0 and rec.info["contact_cycle"] and 0 < rec.info["unbalanced_N"]
     assert f"has not settled after {UNSETTLED_REPAIRS} re-pairings" in caplog.text
     assert f"nodes {node} flip between facets" in caplog.text
 
@@ -672,10 +674,10 @@ def test_a_pairing_that_flips_at_every_iterate_above_the_freeze_threshold_is_fro
     model, stage, reaction, node = _cube_with_a_flipping_contact(4e-3)
     opts = NewtonOptions(max_iter=40, max_cuts=0, contact_cycle_rtol=1e-2)
     assert opts.contact_freeze < 4e-3 < opts.modified_newton
-    with caplog.at_level("DEBUG", logger="eyefem.solve.solver"):
+    with caplog.at_level("DEBUG", logger="eyefem.solve"):
         sol = solve(model, [stage], options=opts)
     rec = sol.history[-1]
-    assert rec.t == 1.0 and rec.info == {"contact_cycle": True}
+    assert rec.t == 1.0 and rec.info["contact_cycle"] and 0 < rec.info["unbalanced_N"]
     assert "re-paired at every iterate: pairs frozen" in caplog.text
     assert f"nodes {node} flip between facets" in caplog.text
     assert rec.iterations < 3 * opts.stall_iterations
@@ -715,7 +717,7 @@ def test_a_step_stalled_with_the_pairs_frozen_is_accepted_only_if_balanced_re_pa
     assert all(f <= opts.stall_repair_rtol * reaction for _, f in accepted), accepted
     # unbounded (the default): accepted, and the warning gives the force left re-paired
     accepted.clear()
-    with caplog.at_level("WARNING", logger="eyefem.solve.solver"):
+    with caplog.at_level("WARNING", logger="eyefem.solve"):
         try:  # the stage's last step, on the kink, is never accepted on a stall
             solve(model, [stage], on_step=on_step,
                   options=dataclasses.replace(opts, stall_repair_rtol=float("inf")))
@@ -805,7 +807,7 @@ def test_a_failing_long_step_is_damped_to_max_step():
 
 
 def test_the_predictor_backs_off_to_a_state_without_inverted_elements():
-    from eyefem.solve.solver import _predicted
+    from eyefem.solve.newton import predicted as _predicted
 
     q0, corr = np.array([1.0, 0.0, 0.0]), np.array([0.0, 2.0, -4.0])
     # an element inverts once the second dof passes 0.6: the largest fraction short of it
@@ -814,3 +816,20 @@ def test_the_predictor_backs_off_to_a_state_without_inverted_elements():
     np.testing.assert_array_equal(_predicted(q0, corr, lambda q: q), q0 + corr)
     # inverted even without the correction: the full one, for Newton to report
     np.testing.assert_array_equal(_predicted(q0, corr, lambda q: np.full(3, np.inf)), q0 + corr)
+
+
+def test_a_run_summary_counts_the_steps_accepted_out_of_balance():
+    """summary.json's unbalanced_steps: how many steps were accepted without converging,
+    the largest force they left and where (rows as run_setup records them)."""
+    from eyefem.io.runner import unbalanced_steps
+
+    rows = [{"stage": "tighten", "step": 1, "t": 0.25, "stalled": 0, "contact_cycle": 0,
+             "unbalanced_N": 0.0},
+            {"stage": "tighten", "step": 2, "t": 0.5, "stalled": 1, "contact_cycle": 0,
+             "unbalanced_N": 3e-6},
+            {"stage": "suture", "step": 3, "t": 1.0, "stalled": 0, "contact_cycle": 1,
+             "unbalanced_N": 5e-4}]
+    assert unbalanced_steps(rows) == {"count": 2, "largest_unbalanced_N": 5e-4,
+                                      "steps": ["tighten step 2 (t = 0.5)",
+                                                "suture step 3 (t = 1)"]}
+    assert unbalanced_steps(rows[:1]) == {"count": 0, "largest_unbalanced_N": 0.0, "steps": []}

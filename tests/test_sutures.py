@@ -73,3 +73,46 @@ def test_bad_suture_input():
         generate_sutures(xyz, faces, [[0, 0, 12.8]], [[1.0, 0, 0]], [[0, 0, 1.0]], width=20.0)
     with pytest.raises(ValueError, match="width = -1"):
         generate_sutures(xyz, faces, [[0, 0, 12.8]], [[1.0, 0, 0]], [[0, 0, 1.0]], width=-1.0)
+
+
+def _bites(xyz, faces, width, turn=0.0):
+    """Bites of four sutures across a band along y at the top of the sphere patch, the
+    frame turned by ``turn`` radians about z: (layout, projected points (8, 3))."""
+    c, s = np.cos(turn), np.sin(turn)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    y = np.linspace(-1.5, 1.5, 4)
+    cen = np.stack([0.3 * np.ones(4), y, 10.0 * np.ones(4)], -1) @ rot.T
+    acr = np.tile([1.0, 0.0, 0.0], (4, 1)) @ rot.T
+    nrm = cen / np.linalg.norm(cen, axis=1, keepdims=True)
+    acr = acr - (acr * nrm).sum(1, keepdims=True) * nrm
+    acr /= np.linalg.norm(acr, axis=1, keepdims=True)
+    lay = generate_sutures(xyz, faces, cen, acr, nrm, width=width, angle_deg=7.0)
+    a_rot = np.cos(np.radians(7.0)) * acr + np.sin(np.radians(7.0)) * np.cross(nrm, acr)
+    return lay, np.concatenate([cen - 0.5 * width * a_rot, cen + 0.5 * width * a_rot]), a_rot
+
+
+def test_bite_sensitivity_matches_central_differences_of_the_layout():
+    """radial_bite_sensitivity (d xi / d width and d xi / d turn, exact within a face)
+    against central differences of generate_sutures, bite by bite, where the bite stays in
+    its face over +-h: to 1e-7 (the differences' truncation, h = 1e-4)."""
+    from eyefem.eye.sutures import radial_bite_sensitivity
+
+    xyz, faces = _sphere_patch(10.0)
+    w, h = 3.0, 1e-4
+    lay, p, a_rot = _bites(xyz, faces, w)
+    bites = [lay.bite_a, lay.bite_b]
+    emb = type(lay.bite_a)(np.concatenate([b.nodes for b in bites]),
+                           np.concatenate([b.xi for b in bites]))
+    sgn = np.repeat([-1.0, 1.0], 4)[:, None]
+    analytic = {"width": radial_bite_sensitivity(xyz, emb, p, 0.5 * sgn * np.tile(a_rot, (2, 1))),
+                "turn": radial_bite_sensitivity(xyz, emb, p, np.cross([0.0, 0.0, 1.0], p))}
+    for var, dxi in analytic.items():
+        pm = [_bites(xyz, faces, w + e)[0] if var == "width" else _bites(xyz, faces, w, e)[0]
+              for e in (h, -h)]
+        xi = [np.concatenate([q.bite_a.xi, q.bite_b.xi]) for q in pm]
+        same = [np.all(np.concatenate([q.bite_a.nodes, q.bite_b.nodes]) == emb.nodes, axis=1)
+                for q in pm]
+        ok = same[0] & same[1]
+        assert ok.sum() >= 6, var
+        np.testing.assert_allclose(dxi[ok], ((xi[0] - xi[1]) / (2 * h))[ok], atol=1e-7)
+        assert np.abs(dxi).max() > 1e-2  # the bites do move

@@ -2,8 +2,9 @@
 
 ``eyefem compare cases/surgery/case*.toml --mesh coarse --out results/compare`` runs each
 case into ``out/<case stem>/`` and writes ``comparison.csv``, ``comparison.md`` and
-``comparison.png``. With ``reuse`` a case whose ``summary.json`` already exists for the
-same case file and mesh is not run again (the notebooks use this).
+``comparison.png``. With ``reuse`` a case whose folder holds a complete run of the same
+parsed case (``run.json``: case hash, code version) is not run again (the notebooks use
+this); an edited case is computed again.
 """
 
 from __future__ import annotations
@@ -27,9 +28,14 @@ COLUMNS = {  # summary key -> label
 
 
 def run_case(path, out_dir, *, mesh=None, reuse=False, vtu=False) -> dict:
-    """Run one case file (mesh level override for surgery cases); returns its summary."""
+    """Run one case file (mesh level override for surgery cases); returns its summary.
+
+    With ``reuse`` the summary in ``out_dir`` is taken only from a complete run of the
+    same parsed case (hash of problem, parameters, mesh, materials, solver) by this
+    eyefem version (``run.json``); otherwise the case is computed again."""
     from eyefem.catalog import problems, schemas
-    from eyefem.io.casefile import load_case
+    from eyefem.io import manifest
+    from eyefem.io.casefile import check_material_names, load_case
     from eyefem.io.runner import run_setup
 
     case = load_case(path, schemas())
@@ -37,19 +43,19 @@ def run_case(path, out_dir, *, mesh=None, reuse=False, vtu=False) -> dict:
     if mesh is not None:
         params["mesh"] = mesh
     out_dir = Path(out_dir)
-    done = out_dir / "summary.json"
-    if reuse and done.exists():
-        s = json.loads(done.read_text())
-        same_case = Path(s.get("case", "")).resolve() == Path(case.path).resolve()
-        if same_case and s.get("mesh") == params.get("mesh"):
-            log.info("%s: reusing %s", case.path, done)
+    key = manifest.case_key(case.problem, params, case.materials, case.solver)
+    if reuse:
+        s = manifest.reusable_summary(out_dir, key)
+        if s is not None:
+            log.info("%s: reusing %s", case.path, out_dir / "summary.json")
             return s
+    manifest.check_writable(out_dir)
     setup = problems()[case.problem][1](params, case.materials)
-    res = run_setup(setup, out_dir, case.solver, vtu=vtu, plots=case.output["plots"],
-                    key=repr((case.problem, params, case.materials)))
+    check_material_names(case, setup.model.mesh.materials)
+    res = run_setup(setup, out_dir, case.solver, vtu=vtu, plots=case.output["plots"], key=key)
     summary = {"case": str(case.path), "title": case.title, "mesh": params.get("mesh"),
                **res.summary}
-    write_text(done, json.dumps(summary, indent=2) + "\n")
+    write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
 
 

@@ -90,13 +90,30 @@ def write_case(path: Path, problem: str, title: str, parameters: dict,
     write_text(Path(path), tomli_w.dumps(doc))
 
 
+def check_target(path: Path, force: bool = False) -> Path:
+    """CaseError unless ``path`` can take a new case file: not a folder, its folder
+    exists, and not an existing file unless ``force``."""
+    path = Path(path)
+    if path.is_dir():
+        raise CaseError(f"-o {path}: is a folder; give the case file to write, e.g. "
+                        f"-o {path / 'my_case.toml'}")
+    if path.exists() and not force:
+        raise CaseError(f"-o {path}: the file exists; nothing written (--force overwrites it)")
+    if not path.parent.is_dir():
+        raise CaseError(f"-o {path}: its folder '{path.parent}' does not exist; create it "
+                        "first")
+    return path
+
+
 def new_case(problem: str, fields: list[Field], path: Path, *, ask=input, say=print,
              preset=None, accept_defaults=False, title="", materials=None,
-             check=None) -> Path:
+             check=None, force=False) -> Path:
     """Ask for the parameters of ``problem`` and write the case file; returns its path.
 
     ``check(params)``: the problem's checks across fields (params with the defaults
-    filled in); its ValueError becomes a CaseError and nothing is written."""
+    filled in); its ValueError becomes a CaseError and nothing is written. An existing
+    file at ``path`` is refused (CaseError) unless ``force``; a folder always."""
+    check_target(path, force)
     say(f"New '{problem}' case -> {path}  (Enter keeps the default)")
     params = ask_parameters(fields, ask, say, preset, accept_defaults)
     if check is not None:

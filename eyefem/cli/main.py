@@ -1,5 +1,6 @@
 """Command line: ``eyefem run CASE``, ``eyefem compare CASES``, ``eyefem verify-tangents``,
-``eyefem cases``, ``eyefem describe PROBLEM``, ``eyefem new-case PROBLEM``.
+``eyefem cases``, ``eyefem describe PROBLEM``, ``eyefem new-case PROBLEM``,
+``eyefem export-feb CASE -o model.feb``, ``eyefem import-feb model.feb``.
 
 The entry point switches JAX to float64, keeps compiled kernels in a persistent cache
 (``EYEFEM_JAX_CACHE``, default ``~/.cache/eyefem/jax``; ``off`` disables it) and sets up
@@ -54,11 +55,25 @@ def cmd_run(args) -> int:
             if "mesh" not in case.parameters:
                 raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; drop --mesh")
             case.parameters["mesh"] = args.mesh
+        if args.materials:  # a material preset (eyefem.eye.presets) instead of the case's
+            case.parameters["materials_preset"] = args.materials
     except (CaseError, ValueError, KeyError) as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
+    from eyefem.io import manifest
+    from eyefem.io.casefile import check_material_names
+
     try:
+        manifest.check_writable(out)  # before building and solving
+        _say_where(case.path, out)
         setup = PROBLEMS[case.problem][1](case.parameters, case.materials)
+        check_material_names(case, setup.model.mesh.materials)
+    except manifest.OutputError as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 4
+    except CaseError as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2
     except (ValueError, KeyError) as exc:  # the builder rejected a parameter or material
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"eyefem: {case.path} [parameters]/[materials]: {msg}", file=sys.stderr)
@@ -68,7 +83,8 @@ def cmd_run(args) -> int:
     try:
         res = run_setup(setup, out, case.solver, vtu=case.output["vtu"] and not args.no_vtu,
                         plots=case.output["plots"], resume=args.resume,
-                        key=repr((case.problem, case.parameters, case.materials)))
+                        key=manifest.case_key(case.problem, case.parameters, case.materials,
+                                              case.solver))
     except ConvergenceError as exc:
         print(f"eyefem: {exc}\nOutputs of the converged steps are in {out}; after fixing the "
               "cause, --resume continues after the last completed stage", file=sys.stderr)
@@ -76,10 +92,27 @@ def cmd_run(args) -> int:
     except CheckpointError as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
+    except manifest.OutputError as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 4
+    except KeyboardInterrupt:
+        print(f"eyefem: interrupted; {out} holds the converged steps (run.json says "
+              "'interrupted'); --resume continues after the last completed stage",
+              file=sys.stderr)
+        return 130
+    except OSError as exc:
+        print(f"eyefem: cannot write the results in {out}: {exc}; the run stopped (run.json "
+              "says 'failed'); free space or fix the folder, then run again (or --resume)",
+              file=sys.stderr)
+        return 4
     summary = {"case": str(case.path), "title": case.title, **res.summary}
     from eyefem.io.output import write_text
 
-    write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    try:
+        write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    except OSError as exc:
+        print(f"eyefem: cannot write {out / 'summary.json'}: {exc}", file=sys.stderr)
+        return 4
     print(f"\n{case.title}")
     for k, v in summary.items():
         if k not in ("case", "title"):
@@ -88,14 +121,25 @@ def cmd_run(args) -> int:
     return 0
 
 
+def _say_where(case_path: Path, out: Path):
+    """Log the output folder, with a warning when it lies outside the current folder and
+    the case's folder (an --out with '..')."""
+    where = out.resolve()
+    homes = (Path.cwd().resolve(), Path(case_path).resolve().parent)
+    if not any(where.is_relative_to(h) for h in homes):
+        logging.getLogger(__name__).warning("writing results outside the current and the "
+                                            "case's folder: %s", where)
+
+
 def cmd_compare(args) -> int:
     from eyefem.cli.compare import compare
     from eyefem.io.casefile import CaseError
+    from eyefem.io.checkpoint import CheckpointError
     from eyefem.solve.solver import ConvergenceError
 
     try:
         summaries = compare(args.cases, Path(args.out), mesh=args.mesh, reuse=args.reuse)
-    except (CaseError, ValueError, ConvergenceError) as exc:
+    except (CaseError, ValueError, CheckpointError, ConvergenceError) as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2 if not isinstance(exc, ConvergenceError) else 3
     print(Path(args.out, "comparison.md").read_text())
@@ -161,10 +205,83 @@ def cmd_new_case(args) -> int:
         fields, build = PROBLEMS[args.problem]
         new_case(args.problem, fields, Path(args.output), preset=preset,
                  accept_defaults=args.yes, title=args.title or "",
-                 check=getattr(build, "check", None))
-    except (CaseError, EOFError) as exc:
+                 check=getattr(build, "check", None), force=args.force)
+    except CaseError as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
+    except EOFError:
+        print(f"eyefem new-case: no answer (end of input); nothing written to {args.output}; "
+              "give the values with --set NAME=VALUE and --yes", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"eyefem new-case: interrupted; nothing written to {args.output}",
+              file=sys.stderr)
+        return 130
+    return 0
+
+
+def cmd_export_feb(args) -> int:
+    from eyefem.catalog import problems, schemas
+    from eyefem.io.casefile import CaseError, check_material_names, load_case
+    from eyefem.io.febio import write_feb
+
+    try:
+        case = load_case(args.case, schemas())
+        if args.mesh:
+            if "mesh" not in case.parameters:
+                raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; "
+                                "drop --mesh")
+            case.parameters["mesh"] = args.mesh
+        setup = problems()[case.problem][1](case.parameters, case.materials)
+        check_material_names(case, setup.model.mesh.materials)
+        skipped = write_feb(setup, Path(args.output))
+    except OSError as exc:
+        print(f"eyefem export-feb: cannot write {args.output}: {exc}", file=sys.stderr)
+        return 4
+    except (CaseError, ValueError, KeyError) as exc:
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"eyefem export-feb: {msg}", file=sys.stderr)
+        return 2
+    mesh = setup.model.mesh
+    print(f"wrote {args.output}: FEBio 4 deck of '{setup.name}', stage "
+          f"'{setup.stages[0].name}' ({mesh.n_nodes} nodes, {mesh.n_elem} elements)")
+    for w in skipped:
+        print(f"  not exported: {w}")
+    return 0
+
+
+def cmd_import_feb(args) -> int:
+    from eyefem.io import manifest
+    from eyefem.io.febio import feb_setup
+    from eyefem.io.output import write_text
+    from eyefem.io.runner import run_setup
+    from eyefem.solve.solver import ConvergenceError
+
+    try:
+        setup = feb_setup(args.deck)
+    except OSError as exc:
+        print(f"eyefem import-feb: cannot read {args.deck}: {exc}", file=sys.stderr)
+        return 4
+    except ValueError as exc:
+        print(f"eyefem import-feb: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.output or Path("results") / Path(args.deck).stem)
+    try:
+        res = run_setup(setup, out, vtu=not args.no_vtu, plots=False)
+        summary = {"deck": str(args.deck), **res.summary}
+        write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    except ConvergenceError as exc:
+        print(f"eyefem import-feb: {exc}\nOutputs of the converged steps are in {out}",
+              file=sys.stderr)
+        return 3
+    except (manifest.OutputError, OSError) as exc:
+        print(f"eyefem import-feb: cannot write the results in {out}: {exc}", file=sys.stderr)
+        return 4
+    print(f"\n{args.deck} (FEBio 4 deck, solved by eyefem)")
+    for k, v in summary.items():
+        if k != "deck":
+            print(f"  {k:<32} {v:.6g}" if isinstance(v, float) else f"  {k:<32} {v}")
+    print(f"  results in {out}/")
     return 0
 
 
@@ -180,12 +297,16 @@ def main(argv=None) -> int:
     p.add_argument("--resume", action="store_true",
                    help="continue after the last completed stage (checkpoint in the output dir)")
     p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, default)")
+    p.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
+                   help="tissue constants preset (eyefem.eye.presets): override the case's "
+                   "materials_preset; [materials] tables still override single tissues")
     p.set_defaults(fn=cmd_run)
     p = sub.add_parser("compare", help="run several cases and tabulate/plot their outcomes")
     p.add_argument("cases", nargs="+", help="case files")
     p.add_argument("--mesh", help="override the mesh level of every case")
     p.add_argument("--out", default="results/compare", help="output root (one folder per case)")
-    p.add_argument("--reuse", action="store_true", help="skip cases whose summary.json exists")
+    p.add_argument("--reuse", action="store_true",
+                   help="skip cases whose folder holds a complete run of the same case (run.json)")
     p.set_defaults(fn=cmd_compare)
     p = sub.add_parser("verify-tangents", help="autodiff vs hand-coded vs finite-difference tangents")
     p.add_argument("--seed", type=int, default=0)
@@ -202,10 +323,30 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", metavar="NAME=VALUE", help="answer without asking")
     p.add_argument("--yes", action="store_true", help="accept the defaults of the rest")
     p.add_argument("--title", help="case title")
+    p.add_argument("--force", action="store_true", help="overwrite an existing case file")
     p.set_defaults(fn=cmd_new_case)
+    p = sub.add_parser("export-feb", help="write a case's first stage as an FEBio 4 deck")
+    p.add_argument("case", help="case file")
+    p.add_argument("-o", "--output", required=True, help="the .feb file to write")
+    p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, "
+                   "default)")
+    p.set_defaults(fn=cmd_export_feb)
+    p = sub.add_parser("import-feb", help="solve an FEBio 4 deck (hex8 Mooney-Rivlin, "
+                       "displacements and pressures) with eyefem")
+    p.add_argument("deck", help="the .feb file")
+    p.add_argument("-o", "--output", help="output directory (default results/<deck name>)")
+    p.add_argument("--no-vtu", action="store_true", help="skip the VTU series")
+    p.set_defaults(fn=cmd_import_feb)
     args = ap.parse_args(argv)
     _setup(args.verbose)
-    return args.fn(args)
+    try:
+        return args.fn(args)
+    except KeyboardInterrupt:
+        print(f"eyefem {args.cmd}: interrupted", file=sys.stderr)
+        return 130
+    except OSError as exc:
+        print(f"eyefem {args.cmd}: {exc}", file=sys.stderr)
+        return 4
 
 
 if __name__ == "__main__":

@@ -119,16 +119,9 @@ def fit_band(parts: SurgeryParts, scale: float, q):
     return mesh.replace(nodes=nodes)
 
 
-def rereference(parts: SurgeryParts, new_mesh, scale: float):
-    """Take ``new_mesh`` (a deformable buckle's reference moved snug) as the eye's mesh."""
-    parts.eye = dataclasses.replace(parts.eye, mesh=new_mesh)
-    parts.scale = scale
-    return new_mesh
-
-
-def with_refitted_terms(model, parts: SurgeryParts, terms: dict) -> Model:
-    """The model on the parts' (re-referenced) mesh with the solid and these terms new."""
-    mesh = parts.eye.mesh
+def with_refitted_terms(model, mesh, terms: dict) -> Model:
+    """The model on ``mesh`` (a buckle's reference refitted) with the solid and these terms
+    new (name -> term)."""
     new = {"solid": dataclasses.replace(model.term("solid"), mesh=mesh), **terms}
     return Model(mesh, tuple(new.get(t.name, t) for t in model.terms), model.n_dof)
 
@@ -199,7 +192,6 @@ def band_suture_term(parts: SurgeryParts) -> TiedBars:
                               width=p["suture_width"], angle_deg=p["suture_angle_deg"], n_bars=3,
                               buckle_faces=mesh.face_set("band/outer"),
                               buckle_half_width=0.45 * b.width)
-    parts.layout = layout
     na, xa, nb, xb, _ = suture_bar_ends(layout)
     return TiedBars("sutures", na, nb, xa, xb, mesh.nodes, EA=p["suture_EA"])
 
@@ -210,7 +202,7 @@ def band_outcomes(parts: SurgeryParts, model, q, theta) -> dict:
     since the snug fit, mm), its stretch (that line's length over its rest length: the
     snug fit's, less a closed loop's shortening, mm) and the prescribed shortening (end
     overlap, or the loop's rest length taken up, mm)."""
-    mesh, info = parts.eye.mesh, parts.band
+    mesh, info = model.mesh, parts.band  # the band's reference as refitted in stage 2
     d = band_dofs(parts)
     X = mesh.nodes[info.line]
     x = X + q[: 3 * mesh.n_nodes].reshape(-1, 3)[info.line]

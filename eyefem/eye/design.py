@@ -1,4 +1,5 @@
-"""Surgical design variables: warm-started simulation and adjoint gradients of outcomes.
+"""Surgical design variables: warm-started simulation of designs; their adjoint gradients
+(eyefem.eye.sensitivity).
 
 The design of a surgery case is a dict of continuous variables (DESIGN_VARIABLES): the
 surgical ones (band tightening or tension, buckle shift and meridian, suture width and
@@ -21,9 +22,12 @@ solves, each reusing the last Newton factorisation of its stage (eyefem.solve.ad
     g_2 = d/dtheta_2 [ g_3,L0 . lengths(q_2(theta_2), theta_2) ] (adjoint on stage 2),
     g_1 = d/dtheta_1 [ G_V V(q_1) + G_s s(q_1) + G_a a(q_1) ] (adjoint on stage 1),
 
-with G_V, G_s the totals of g_2 + g_3 over v_ini and dr, G_a = -1 for the axial length
-change (a: pre-operative axial length); then chained through the (linear, or for the
-suture bites geometric) maps T_k. So the history of the load path (sutures tied on
+with G_V, G_s the totals of g_2 + g_3 over v_ini and dr and G_a the outcome's own
+dependence on the pre-operative eye (the changes measured from it: axial length,
+refraction, ...; eyefem.eye.sensitivity); then chained through the maps T_k, written
+once as a JAX function of the design (SurgerySimulator.design_map) and differentiated
+by jax.vjp, the suture bites by their exact derivative within their faces
+(eyefem.eye.sutures.radial_bite_sensitivity). So the history of the load path (sutures tied on
 the tightened eye, buckle fitted on the inflated eye) is differentiated, not frozen.
 The contact state (which nodes touch) is smooth (buckle_contact), so the response is
 smooth in the design except where a suture bite crosses a face boundary of the sclera
@@ -50,57 +54,28 @@ from typing import Callable
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.eye.surgery import (
-    SEED_MATERIALS,
-    SURGERY_FIELDS,
-    snug_node,
-    snug_scale,
-    surgery,
-    suture_layout,
-    suture_term,
+from eyefem.eye.outcomes import changes, eye_optics, indentation, outcome_nodes
+from eyefem.eye.parts import snug_node, snug_scale
+from eyefem.eye.presets import SEED_MATERIALS
+from eyefem.eye.rigid_buckle import suture_term
+from eyefem.eye.sensitivity import DesignGradients
+from eyefem.eye.surgery import surgery
+from eyefem.eye.variables import (  # noqa: F401 - the design's names, re-exported
+    DESIGN_VARIABLES,
+    MATERIAL_PARAMS,
+    MATERIAL_VARIABLES,
+    OPTICAL_CHANGES,
+    OUTCOMES,
+    STAGE1_VARIABLES,
+    STAGE_PARAMS,
+    SURGICAL_VARIABLES,
+    default_parameters,
 )
-from eyefem.fem.cavity import cavity_pressures, cavity_state, close_cavity
+from eyefem.fem.cavity import cavity_state, close_cavity
 from eyefem.fem.units import MMHG
-from eyefem.solve.adjoint import value_and_grad
 from eyefem.solve.solver import ConvergenceError, NewtonOptions, Solution, Stage, solve
 
 log = logging.getLogger(__name__)
-
-SURGICAL_VARIABLES = {
-    "tightening": "band circumference shortening (segmental: radial push x 2 pi), mm",
-    "buckle_shift": "posterior shift of the fitted buckle along the meridian, mm",
-    "buckle_meridian_deg": "meridian of a segmental buckle, degrees",
-    "suture_width": "bite span across the buckle, mm",
-    "suture_tightening": "shortening of each suture loop when tied, mm",
-    "drain_volume": "fluid drained during stage 2, mm^3",
-    "band_tension": "tension of a pulled encircling band (cases with band_tension > 0), N",
-}
-MATERIAL_VARIABLES = {
-    **{f"c10_{m}": f"neo-Hookean c10 of the {m.replace('_', ' ')}, MPa" for m in SEED_MATERIALS},
-    "zonule_E": "Young's modulus of the zonule, MPa",
-    "liquid_bulk": "bulk modulus of the cavity liquid, MPa",
-    "suture_EA": "axial stiffness of the sutures, N",
-}
-DESIGN_VARIABLES = {**SURGICAL_VARIABLES, **MATERIAL_VARIABLES}
-STAGE1_VARIABLES = tuple(f"c10_{m}" for m in SEED_MATERIALS) + ("zonule_E",)
-"""The design variables that change the pre-operative (pressurised) eye."""
-OUTCOMES = {
-    "iop_mmhg": "post-operative IOP (cavity pressure), mmHg",
-    "indentation_mm": "buckle indentation height, mm",
-    "axial_length_change_mm": "axial length change since the pre-operative state, mm",
-    "max_suture_force_N": "force in the most loaded suture bar, N",
-}
-
-
-def default_parameters(**overrides) -> dict:
-    """Surgery case parameters with defaults (see eyefem.eye.surgery)."""
-    p = {f.name: f.default for f in SURGERY_FIELDS}
-    unknown = set(overrides) - set(p)
-    if unknown:
-        raise ValueError(f"unknown surgery parameters {sorted(unknown)}; known: {sorted(p)}")
-    p.update(overrides)
-    return p
-
 
 @dataclasses.dataclass
 class Preop:
@@ -108,14 +83,20 @@ class Preop:
 
     Attributes: sol1 (stage-1 solution), theta2 (params with the cavity closed at its
     volume), scale (snug radial scale of the buckle) and node (the node it touches),
-    axial (axial length, mm), materials (the values of STAGE1_VARIABLES)."""
+    optics (eyefem.eye.outcomes.eye_optics: axial length, corneal power, ...),
+    materials (the values of STAGE1_VARIABLES)."""
 
     sol1: Solution
     theta2: dict
     scale: float
     node: int
-    axial: float
+    optics: dict
     materials: tuple
+
+    @property
+    def axial(self) -> float:
+        """Pre-operative axial length, mm."""
+        return self.optics["axial_length_mm"]
 
 
 @dataclasses.dataclass
@@ -131,7 +112,7 @@ class Result:
     preop: Preop | None = None
 
 
-class SurgerySimulator:
+class SurgerySimulator(DesignGradients):
     """Simulate one surgery case for many designs, with warm starts and adjoints.
 
     Args:
@@ -155,13 +136,13 @@ class SurgerySimulator:
         self.model1 = setup.model
         mesh = self.parts.eye.mesh
         self._mat_row = {m: mesh.materials.index(m) for m in SEED_MATERIALS if m in mesh.materials}
-        self._apex, self._pole = mesh.node_set("eye/apex")[0], mesh.node_set("eye/pole")[0]
+        self._nodes = outcome_nodes(self.parts)
         sol1 = solve(self.model1, [self.stage1], options=options)
         self.stage1_iterations = sum(r.iterations for r in sol1.history)
         # the buckle and sutures are fitted once, at this eye's snug scale; other designs
         # move them by params
         self.model, _, _ = self.stage2.before(self.model1, sol1.q, sol1.theta)
-        self.scale0 = self.parts.scale
+        self.scale0 = float(snug_scale(self.parts, sol1.q))
         self.meridian0 = float(self.params["buckle_meridian_deg"])
         theta0 = self.model1.theta0()
         self._c10 = {m: float(theta0["solid"]["coeffs"][i, 1, 0]) for m, i in self._mat_row.items()}
@@ -177,28 +158,67 @@ class SurgerySimulator:
         d.update({k: float(self.params[k]) for k in ("zonule_E", "liquid_bulk", "suture_EA")})
         return d
 
+    def design_map(self, design: dict, like: dict, bites=None) -> dict:
+        """The stage params the design variables set: term -> param -> array, shaped like
+        the params of the theta ``like``; a JAX function of ``design`` (name -> scalar), the
+        one map from the design to the model that the forward run evaluates and the
+        adjoint differentiates (jax.vjp, eyefem.eye.sensitivity).
+
+        buckle and sutures: d = tightening x d_per_mm (radial motion), s = buckle_shift,
+        rot = meridian - the case's meridian (radians); sutures: EA, tightening =
+        suture_tightening / 2 per bar (stage 3), and with ``bites`` = (xi (n, 2), dxi/dw,
+        dxi/dmeridian, w, meridian) the bites xi linearised about that design (the exact
+        derivative of the layout there); cavity: dv = -drain_volume, bulk; zonule: EA =
+        zonule_E x its area; solid: c10 of each tissue; band_pull: f = band_tension.
+        Not here: the buckle's radial fit dr, set by the pre-operative eye (stage 1)."""
+        def full(term, key, v):
+            return jnp.broadcast_to(jnp.asarray(v, dtype=jnp.float64), np.shape(like[term][key]))
+
+        rot = (design["buckle_meridian_deg"] - self.meridian0) * (np.pi / 180)
+        motion = {"d": design["tightening"] * self.parts.d_per_mm, "s": design["buckle_shift"],
+                  "rot": rot}
+        rows = np.array(list(self._mat_row.values()))
+        c10 = jnp.stack([jnp.asarray(design[f"c10_{m}"], jnp.float64) for m in self._mat_row])
+        out = {"buckle": {k: full("buckle", k, v) for k, v in motion.items()},
+               "sutures": {**{k: full("sutures", k, v) for k, v in motion.items()},
+                           "EA": full("sutures", "EA", design["suture_EA"]),
+                           "tightening": full("sutures", "tightening",
+                                              design["suture_tightening"] / 2)},
+               "cavity": {"dv": full("cavity", "dv", -design["drain_volume"]),
+                          "bulk": full("cavity", "bulk", design["liquid_bulk"])},
+               "zonule": {"EA": full("zonule", "EA",
+                                     design["zonule_E"] * self.parts.eye.geometry.zonule_area)},
+               "solid": {"coeffs": jnp.asarray(like["solid"]["coeffs"]).at[rows, 1, 0].set(c10)}}
+        if self.pulled:
+            out["band_pull"] = {"f": full("band_pull", "f", design["band_tension"])}
+        if bites is not None:
+            xi, dxi_w, dxi_m, w, m = bites
+            out["sutures"]["xi"] = (xi + dxi_w * (design["suture_width"] - w)
+                                    + dxi_m * (design["buckle_meridian_deg"] - m))
+        return out
+
+    def _with_design(self, theta, design, keys) -> dict:
+        """theta with the design's values (design_map) of ``keys`` ((term, param) pairs)."""
+        values = self.design_map(design, theta)
+        out = dict(theta)
+        for term, key in keys:
+            out[term] = {**out[term], key: np.asarray(values[term][key])}
+        return out
+
     def _materials_theta(self, theta, design):
         """theta with the design's material constants (solid c10, zonule EA, liquid bulk)."""
-        coeffs = np.array(theta["solid"]["coeffs"])
-        for m, i in self._mat_row.items():
-            coeffs[i, 1, 0] = design[f"c10_{m}"]
-        ea = np.full_like(np.asarray(theta["zonule"]["EA"]),
-                          design["zonule_E"] * self.parts.eye.geometry.zonule_area)
-        cav = theta["cavity"]
-        return {**theta, "solid": {**theta["solid"], "coeffs": coeffs},
-                "zonule": {**theta["zonule"], "EA": ea},
-                "cavity": {**cav, "bulk": np.full_like(np.asarray(cav["bulk"], float),
-                                                       design["liquid_bulk"])}}
+        return self._with_design(theta, design, MATERIAL_PARAMS + (("cavity", "bulk"),))
 
     def _stage1_key(self, design) -> tuple:
         return tuple(float(design[f"c10_{m}"]) for m in self._mat_row) + (float(design["zonule_E"]),)
 
     def _preop(self, sol1: Solution, materials: tuple) -> Preop:
         _, _, theta2 = close_cavity(self.model, sol1.q, sol1.theta, "cavity", "iop")
-        x = self.parts.eye.mesh.nodes + sol1.q[: 3 * self.parts.eye.mesh.n_nodes].reshape(-1, 3)
         node = snug_node(self.parts, sol1.q)
-        return Preop(sol1, theta2, float(snug_scale(self.parts, sol1.q, node)), node,
-                     float(np.linalg.norm(x[self._apex] - x[self._pole])), materials)
+        optics = {k: float(v) for k, v in eye_optics(self.parts.eye.mesh.nodes, sol1.q,
+                                                     self._nodes).items()}
+        return Preop(sol1, theta2, float(snug_scale(self.parts, sol1.q, node)), node, optics,
+                     materials)
 
     def _stage1(self, design) -> Preop:
         """The pre-operative eye for the design's material constants (re-solved from the
@@ -222,25 +242,21 @@ class SurgerySimulator:
         return self.preop
 
     def _theta2(self, design, sut, pre: Preop):
-        rot = np.full(1, np.radians(design["buckle_meridian_deg"] - self.meridian0))
+        """Stage 2's params: the design's (design_map) on the closed pre-operative eye, the
+        buckle and sutures fitted at its snug scale (dr)."""
         dr = np.full(1, self.parts.eye.geometry.scleral_radius * (pre.scale - self.scale0))
-        motion = {"d": np.full(1, design["tightening"] * self.parts.d_per_mm),
-                  "s": np.full(1, design["buckle_shift"]), "dr": dr, "rot": rot}
-        th = self._materials_theta(pre.theta2, design)
-        th["buckle"] = {**th["buckle"], **motion, "ridge": self.stage2.params["buckle"]["ridge"]}
-        th["sutures"] = {**sut.params, **motion,
-                         "EA": np.full_like(sut.params["EA"], design["suture_EA"])}
-        th["cavity"] = {**th["cavity"], "dv": -design["drain_volume"]}
-        if self.pulled:
-            th["band_pull"] = {"f": design["band_tension"]}
-        return th
+        th = {**pre.theta2, "sutures": sut.params,
+              "buckle": {**pre.theta2["buckle"], "dr": dr,
+                         "ridge": self.stage2.params["buckle"]["ridge"]}}
+        th["sutures"] = {**th["sutures"], "dr": dr}
+        keys = [k for k in STAGE_PARAMS[2] if k[0] in th and k != ("sutures", "xi")]
+        return self._with_design(th, design, keys)
 
     def _tied(self, sut, q2, theta2, design):
+        """Stage 3's params: the sutures tied at their stage-2 lengths and tightened."""
         L = np.asarray(sut.lengths(np.asarray(q2)[sut.dofs], theta2["sutures"], sut.data))
-        th = dict(theta2)
-        th["sutures"] = {**theta2["sutures"], "L0": L,
-                         "tightening": np.full(len(L), design["suture_tightening"] / 2)}
-        return th
+        th = {**theta2, "sutures": {**theta2["sutures"], "L0": L}}
+        return self._with_design(th, design, [("sutures", "tightening")])
 
     def _model(self, sut):
         return self.model.with_terms([sut if t.name == "sutures" else t for t in self.model.terms])
@@ -324,117 +340,27 @@ class SurgerySimulator:
     # --- outcomes as JAX functions ---------------------------------------------------
     def outcome_fns(self, res: Result) -> dict[str, Callable]:
         """Outcome name -> J(q, theta), JAX-traceable, at the converged design ``res``
-        (the axial length change from ``res``'s own pre-operative axial length)."""
-        from eyefem.eye.surgery import _buckle_coords
-
-        parts, mesh = self.parts, self.parts.eye.mesh
+        (the changes measured from ``res``'s own pre-operative eye; eyefem.eye.outcomes)."""
+        X, nodes = self.parts.eye.mesh.nodes, self._nodes
         cav = res.sol3.model.term("cavity")
-        nodes = parts.sclera_nodes
-        a, ok = _buckle_coords(parts)
-        w = parts.buckle.width
-        under = nodes[ok & (np.abs(a) < w / 4)]
-        beside = nodes[ok & (np.abs(a) > w / 2 + 1.5) & (np.abs(a) < w / 2 + 3.0)]
-        X = mesh.nodes
         sut = res.sutures
         f = np.asarray(sut.forces(res.sol3.q, res.sol3.theta["sutures"]))
         i_max = int(np.argmax(f))
-        axial_preop = (res.preop or self.preop).axial
-
-        def x_of(q, ids):
-            return X[ids] + q[: 3 * mesh.n_nodes].reshape(-1, 3)[ids]
+        preop = (res.preop or self.preop).optics
 
         def iop(q, theta):
             P, _, _, _ = cavity_state(q, theta["cavity"], cav.data, cav.dofs)
             return P[0] / MMHG
 
-        def indentation(q, theta):
-            r = lambda ids: jnp.mean(jnp.linalg.norm(x_of(q, ids), axis=1))  # noqa: E731
-            return r(beside) - r(under)
-
-        def axial(q, theta):
-            x = x_of(q, np.array([self._apex, self._pole]))
-            return jnp.linalg.norm(x[0] - x[1]) - axial_preop
-
         def suture_force(q, theta):
             return sut.axial_forces(q[sut.dofs], theta["sutures"], sut.data)[i_max]
 
-        return {"iop_mmhg": iop, "indentation_mm": indentation, "axial_length_change_mm": axial,
-                "max_suture_force_N": suture_force}
+        def change(name):
+            return lambda q, theta: changes(eye_optics(X, q, nodes), preop)[name]
 
-    # --- adjoint ------------------------------------------------------------------
-    def gradients(self, res: Result, outcomes=None) -> dict[str, dict[str, float]]:
-        """d outcome / d design variable for the named outcomes (default: all OUTCOMES)."""
-        fns = self.outcome_fns(res)
-        names = list(OUTCOMES) if outcomes is None else list(outcomes)
-        dxi_w = self._dxi(res, "suture_width")
-        dxi_m = self._dxi(res, "buckle_meridian_deg") if not self.parts.buckle.encircling else None
-        sut, pre = res.sutures, res.preop or self.preop
-        rs = self.parts.eye.geometry.scleral_radius
-        area = self.parts.eye.geometry.zonule_area
-        out = {}
-        for name in names:
-            _, g3 = value_and_grad(fns[name], res.sol3)
-            gL0 = jnp.asarray(g3["sutures"]["L0"])
-
-            def tied_length(q, theta):
-                return jnp.dot(gL0, sut.lengths(q[sut.dofs], theta["sutures"], sut.data))
-
-            _, g2 = value_and_grad(tied_length, res.sol2)
-            g1 = self._preop_adjoint(pre, sum(float(np.sum(g["cavity"]["v_ini"])) for g in (g2, g3)),
-                                     rs * sum(float(np.sum(g[t]["dr"])) for g in (g2, g3)
-                                              for t in ("buckle", "sutures")),
-                                     -1.0 if name == "axial_length_change_mm" else 0.0)
-
-            def total(term, key, gs=(g2, g3)):
-                return sum(np.sum(g[term][key]) for g in gs)
-
-            def bites(dxi):
-                return float(sum(np.sum(np.asarray(g["sutures"]["xi"]) * dxi) for g in (g2, g3)))
-
-            d = {
-                "tightening": self.parts.d_per_mm * (total("buckle", "d") + total("sutures", "d")),
-                "buckle_shift": total("buckle", "s") + total("sutures", "s"),
-                "buckle_meridian_deg": 0.0 if dxi_m is None else
-                np.pi / 180 * (total("buckle", "rot") + total("sutures", "rot")) + bites(dxi_m),
-                "suture_width": bites(dxi_w),
-                "suture_tightening": 0.5 * float(np.sum(g3["sutures"]["tightening"])),
-                "drain_volume": -total("cavity", "dv"),
-                "band_tension": total("band_pull", "f") if self.pulled else 0.0,
-                "zonule_E": area * total("zonule", "EA", (g1, g2, g3)),
-                "liquid_bulk": total("cavity", "bulk"),
-                "suture_EA": total("sutures", "EA"),
-            }
-            for m, i in self._mat_row.items():
-                d[f"c10_{m}"] = sum(float(np.asarray(g["solid"]["coeffs"])[i, 1, 0]) for g in (g1, g2, g3))
-            out[name] = {k: float(d.get(k, 0.0)) for k in DESIGN_VARIABLES}
-        return out
-
-    def _preop_adjoint(self, pre: Preop, g_volume, g_scale, g_axial):
-        """Stage-1 adjoint: d/dtheta_1 of g_volume V(q1) + g_scale s(q1) + g_axial a(q1),
-        the routes by which the pre-operative eye enters the later stages and outcomes."""
-        cav, mesh = self.model.term("cavity"), self.parts.eye.mesh
-        ends = np.array([self._apex, self._pole])
-
-        def preop(q, theta):
-            V = cavity_pressures(q, theta["cavity"], cav.data, cav.dofs)[1][0]
-            x = mesh.nodes[ends] + q[: 3 * mesh.n_nodes].reshape(-1, 3)[ends]
-            return (g_volume * V + g_scale * snug_scale(self.parts, q, pre.node)
-                    + g_axial * jnp.linalg.norm(x[0] - x[1]))
-
-        return value_and_grad(preop, pre.sol1)[1]
-
-    def _dxi(self, res: Result, var: str, h: float = 1e-4):
-        """d xi / d var (n_bars, 2) of the bites (var: suture_width or buckle_meridian_deg),
-        by central differences of the suture geometry (no simulation; one-sided where a
-        bite changes face within +-h)."""
-        w, m = res.design["suture_width"], res.design["buckle_meridian_deg"]
-        lay = [suture_layout(self.parts, w + e, m) if var == "suture_width"
-               else suture_layout(self.parts, w, m + e) for e in (-h, 0.0, h)]
-        xi = [np.concatenate([x.bite_a.xi, x.bite_b.xi]) for x in lay]
-        nd = [np.concatenate([x.bite_a.nodes, x.bite_b.nodes]) for x in lay]
-        out = (xi[2] - xi[0]) / (2 * h)
-        for i in range(len(out)):
-            same_m, same_p = np.array_equal(nd[0][i], nd[1][i]), np.array_equal(nd[2][i], nd[1][i])
-            if not (same_m and same_p):
-                out[i] = (xi[2][i] - xi[1][i]) / h if same_p else (xi[1][i] - xi[0][i]) / h
-        return out
+        return {"iop_mmhg": iop,
+                "indentation_mm": lambda q, theta: indentation(X, q, nodes),
+                "max_suture_force_N": suture_force,
+                "corneal_astigmatism_D":
+                    lambda q, theta: eye_optics(X, q, nodes)["corneal_astigmatism_D"],
+                **{name: change(name) for name in OPTICAL_CHANGES}}

@@ -37,8 +37,12 @@ log = logging.getLogger(__name__)
 
 TISSUES = ("cornea", "limbus", "sclera", "ciliary_body", "choroid", "retina", "optic_nerve", "lens")
 
-LEVELS = {"coarse": (10, 4), "medium": (14, 4), "default": (22, 6)}
-"""Mesh density levels: (cubed-sphere elements per patch edge, lens elements per edge)."""
+LEVELS = {"coarse": (10, 4), "medium": (14, 4), "default": (22, 6), "fine": (32, 8),
+          "finer": (44, 10)}
+"""Mesh density levels: (cubed-sphere elements per patch edge, lens elements per edge).
+
+Refinement is in-plane only: every level keeps 4 element layers through the wall; "fine"
+and "finer" serve the mesh convergence study (docs/convergence.md)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -181,7 +185,7 @@ class EyeModel:
 
 
 def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> EyeModel:
-    """Mesh the eye at a density level ("coarse", "medium", "default")."""
+    """Mesh the eye at a density level (a key of LEVELS: "coarse" .. "finer")."""
     if level not in LEVELS:
         raise ValueError(f"eye mesh level '{level}'; choose one of {sorted(LEVELS)}")
     g = geometry

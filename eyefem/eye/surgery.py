@@ -10,9 +10,11 @@ Stages:
   3. ``suture``: the sutures (bite -> buckle edge, tension-only bars) are tied at their
      current length, then each bar is shortened by ``suture_tightening / 2`` mm.
 
-The design (tightening, suture width, buckle shift along the meridian, suture
-tightening) maps onto term params (``design_theta``), so the adjoint gives gradients of
-the outcomes with respect to it.
+:func:`surgery` assembles the eye (eyefem.eye.eyemodel), a buckle body
+(eyefem.eye.bodies: what each kind of buckle adds, its stages and outcomes) and the
+common outcomes (eyefem.eye.outcomes). The design variables (tightening, suture width,
+buckle shift, ...) map onto term params (eyefem.eye.design), so the adjoint gives
+gradients of the outcomes with respect to them.
 """
 
 from __future__ import annotations
@@ -21,63 +23,30 @@ import dataclasses
 import logging
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
-from eyefem.eye.band import (
-    BAND_OUTPUTS,
-    BAND_PARK,
-    BandInfo,
-    band_contact_term,
-    band_outcomes,
-    band_spring_term,
-    band_suture_term,
-    fit_band,
-    rereference,
-    three_bar_tightening,
-    tightened_band,
-    with_band,
-    with_refitted_terms,
-)
-from eyefem.eye.buckle_meshes import (
-    BAND_C10,
-    RING_KINDS,
-    SPONGE_C10,
-    TIRE_C10,
-    band_n_circ,
-    deformable_band,
-)
-from eyefem.eye.buckles import KINDS, SPONGE_LENGTH, Buckle, suture_anchor_frame
-from eyefem.eye.eyemodel import LEVELS, EyeGeometry, axial_length, build_eye
+from eyefem.eye.bodies import BASE_TERMS, LoadPath, buckle_body
+from eyefem.eye.buckle_meshes import BAND_C10, RING_KINDS, SPONGE_C10, TIRE_C10
+from eyefem.eye.buckles import KINDS, Buckle, suture_anchor_frame
+from eyefem.eye.eyemodel import LEVELS, EyeGeometry, build_eye
+from eyefem.eye.outcomes import outcomes, stage_summary
 from eyefem.eye.parts import SurgeryParts
-from eyefem.eye.sponge import (
-    SPONGE_PARK,
-    fit_sponge,
-    sponge_contact_term,
-    sponge_mesh,
-    sponge_spring_term,
-    sponge_suture_term,
-)
-from eyefem.eye.sutures import generate_sutures
-from eyefem.fem.bars import AnchoredBars, Bars
-from eyefem.fem.buckle_contact import BuckleContact
-from eyefem.fem.cavity import WATER_BULK, FluidCavity, close_cavity
-from eyefem.fem.loop_solid import ShortenedLoopSolid
+from eyefem.eye.presets import PRESETS, SEED_MATERIALS, preset_materials
+from eyefem.fem.bars import Bars
+from eyefem.fem.cavity import WATER_BULK, FluidCavity
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.surface import PressureLoad
-from eyefem.fem.terms import DofForce, NodeSprings, OrbitSpring
+from eyefem.fem.terms import NodeSprings, OrbitSpring
 from eyefem.fem.units import MMHG
 from eyefem.io.casefile import Field, positive
 from eyefem.io.output import write_csv
 from eyefem.io.runner import Setup
 from eyefem.solve.model import node_dofs, solid_model
-from eyefem.solve.solver import Stage
 
 log = logging.getLogger(__name__)
 
-SEED_MATERIALS = {  # neo-Hookean c (MPa), seed 6.1; limbus: mean of cornea and sclera
-    "cornea": 0.0333, "limbus": 0.0583, "sclera": 0.0833, "ciliary_body": 0.01,
-    "choroid": 0.0083, "retina": 0.0008, "optic_nerve": 0.05, "lens": 10.0}
+__all__ = ["SEED_MATERIALS", "SURGERY_FIELDS", "surgery", "check_parameters", "orbit_spring",
+           "pictures", "PROBLEMS", "BASE_TERMS"]
 
 BODIES = ("rigid", "deformable")
 """Buckle bodies: the rigid analytic surface, or a deformable hexahedral band, tire (with
@@ -120,8 +89,14 @@ SURGERY_FIELDS = [
           "('the same suture tension' in every case)", lambda v: v >= 0, ">= 0"),
     Field("suture_EA", float, 40.0, "suture axial stiffness E*A, N (5-0 polyester ~ 40)",
           positive, "> 0"),
-    Field("iop_mmhg", float, 15.0, "pre-operative IOP, mmHg", positive, "> 0"),
-    Field("liquid_bulk", float, WATER_BULK, "liquid bulk modulus, MPa", positive, "> 0"),
+    Field("iop_mmhg", float, 15.0, "pre-operative IOP, mmHg", positive, "> 0",
+          warn=(5.0, 60.0), refuse=(0.1, 200.0), unit="mmHg",
+          slips=(("MPa", 1 / MMHG), ("kPa", 1e-3 / MMHG), ("Pa", 1e-6 / MMHG))),
+    Field("materials_preset", str, "seed", f"tissue constants: {', '.join(PRESETS)} "
+          "(eyefem.eye.presets; [materials] tables override single tissues)",
+          lambda v: v in PRESETS, f"one of {list(PRESETS)}"),
+    Field("liquid_bulk", float, WATER_BULK, "liquid bulk modulus, MPa", positive, "> 0",
+          warn=(200.0, 5000.0), unit="MPa", slips=(("GPa", 1e3),)),
     Field("drain_volume", float, 0.0, "fluid drained during stage 2, mm^3 (= uL)",
           lambda v: v >= 0, ">= 0"),
     Field("zonule_E", float, 100.0, "zonule Young's modulus, MPa", positive, "> 0"),
@@ -155,8 +130,8 @@ SURGERY_FIELDS = [
 ]
 
 
-def _materials(materials):
-    out = {k: MooneyRivlin.from_terms(k, {"c10": c}) for k, c in SEED_MATERIALS.items()}
+def _materials(materials, preset: str = "seed"):
+    out = preset_materials(preset)
     out["band"] = MooneyRivlin.from_terms("band", {"c10": BAND_C10})  # a deformable band,
     out["tire"] = MooneyRivlin.from_terms("tire", {"c10": TIRE_C10})  # tire,
     out["sponge"] = MooneyRivlin.from_terms("sponge", {"c10": SPONGE_C10})  # ... or sponge
@@ -164,304 +139,76 @@ def _materials(materials):
     return out
 
 
-def suture_layout(parts: SurgeryParts, width: float, meridian_deg: float | None = None):
-    """Bites of the sutures for a suture width (mm), on the reference outer sclera; a
-    segmental buckle turned to ``meridian_deg`` (default: its own meridian)."""
-    b, p, mesh = parts.buckle, parts.p, parts.eye.mesh
-    cen, acr, nrm, _ = parts.frame
-    if meridian_deg is not None and meridian_deg != b.meridian_deg:
-        turned = dataclasses.replace(b, meridian_deg=meridian_deg)
-        cen, acr, nrm, _ = suture_anchor_frame(turned, parts.eye.geometry, p["n_sutures"])
-    return generate_sutures(mesh.nodes, mesh.face_set("eye/sclera_outer"), cen, acr, nrm,
-                            width=width, angle_deg=p["suture_angle_deg"], n_bars=3,
-                            buckle_half_width=b.width / 2)
-
-
-def suture_term(parts: SurgeryParts, scale: float, width: float | None = None,
-                meridian_deg: float | None = None):
-    """Suture bars (AnchoredBars, tension-only) for the buckle fitted at radial scale
-    ``scale``: from each bite to the buckle's edge on its side; the anchors move with the
-    buckle (d inward, s posterior, dr: fitted radius; rot: turn about the eye axis).
-    ``width``: suture width, mm (default: the case's); ``meridian_deg``: bites of the
-    segmental buckle turned to that meridian (its anchors are turned by the param rot)."""
-    eye, b, p = parts.eye, parts.buckle, parts.p
-    g = eye.geometry
-    cen, acr, nrm, _ = parts.frame
-    mesh = eye.mesh
-    layout = suture_layout(parts, p["suture_width"] if width is None else width, meridian_deg)
-    parts.layout = layout
-    R = g.scleral_radius * scale
-    anchors, nodes_a, xi_a, d1, d2, d3 = [], [], [], [], [], []
-    for side, sgn in ((layout.bite_a, -1.0), (layout.bite_b, 1.0)):
-        if b.encircling:  # the tire is seated on its flat base; its ridge protrudes inward
-            top = (R + b.thickness) * nrm + sgn * 0.5 * b.width * acr
-            d1.append(-top / np.linalg.norm(top, axis=1, keepdims=True))
-            d2.append(np.stack([_meridian(t) for t in top]))
-        else:
-            n0, m0, _ = _sponge_frame(parts)
-            top = (R + b.width / 2) * nrm + sgn * 0.5 * b.width * acr
-            d1.append(np.tile(-n0, (len(top), 1)))
-            d2.append(np.tile(m0, (len(top), 1)))
-        anchors.append(top)
-        d3.append(nrm)  # d top / d R
-        nodes_a.append(side.nodes)
-        xi_a.append(side.xi)
-    anchors, nodes_a, xi_a, d1, d2, d3 = (np.concatenate(v) for v in
-                                          (anchors, nodes_a, xi_a, d1, d2, d3))
-    L0 = np.linalg.norm(anchors - np.einsum("na,nai->ni", _N(xi_a), mesh.nodes[nodes_a]), axis=1)
-    return AnchoredBars("sutures", nodes_a, xi_a, anchors, np.zeros(len(anchors), int), d1, d2,
-                        1, mesh.nodes, L0, EA=p["suture_EA"], tension_only=True,
-                        extra_dof=parts.extra_dof, dirs3=d3)
-
-
-def _meridian(x):
-    """Unit meridian tangent (toward the posterior) at x (3,)."""
-    r = np.linalg.norm(x)
-    th, ph = np.arccos(x[2] / r), np.arctan2(x[1], x[0])
-    return np.array([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), -np.sin(th)])
-
-
-def _sponge_frame(parts: SurgeryParts):
-    """Sponge centre direction n0, meridian tangent m0 and axis (3,) each."""
-    b, g = parts.buckle, parts.eye.geometry
-    th, ph = b.centre_angle(g), np.radians(b.meridian_deg)
-    n0 = np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
-    m0 = np.array([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), -np.sin(th)])
-    e0 = np.array([-np.sin(ph), np.cos(ph), 0.0])
-    return n0, m0, (m0 if b.kind == "sponge_radial" else e0)
-
-
-RING_SMOOTHING, SPONGE_SMOOTHING = 0.01, 0.002
-"""Automatic buckle contact smoothing lengths, mm (case field contact_smoothing = 0)."""
-
-
-def contact_smoothing(parts: SurgeryParts) -> float:
-    """The buckle contact's smoothing length eps, mm (docs/surgery.md)."""
-    eps = parts.p["contact_smoothing"]
-    if eps:
-        return eps
-    return RING_SMOOTHING if parts.buckle.encircling else SPONGE_SMOOTHING
-
-
-def buckle_term(parts: SurgeryParts, scale: float) -> BuckleContact:
-    """The analytic buckle contact fitted at radial scale ``scale``."""
-    b, g = parts.buckle, parts.eye.geometry
-    R = g.scleral_radius * scale
-    w, _, ridge, rw = KINDS[b.kind]
-    if b.encircling:
-        return BuckleContact("buckle", parts.eye.mesh, "eye/sclera_outer", "ring", R,
-                             theta_b=b.centre_angle(g), width=w, ridge=ridge, ridge_width=rw,
-                             modulus=6 * SEED_MATERIALS["sclera"], extra_dof=parts.extra_dof,
-                             smoothing=contact_smoothing(parts))
-    n0, m0, ax = _sponge_frame(parts)
-    return BuckleContact("buckle", parts.eye.mesh, "eye/sclera_outer", "sponge", R,
-                         n0=tuple(n0), m0=tuple(m0), axis=tuple(ax), sponge_radius=w / 2,
-                         sponge_length=SPONGE_LENGTH, modulus=6 * SEED_MATERIALS["sclera"],
-                         extra_dof=parts.extra_dof, curved=b.kind == "sponge_radial",
-                         smoothing=contact_smoothing(parts))
-
-
-def _N(xi):
-    from eyefem.fem.bars import bilinear
-
-    return bilinear(xi)
-
-
 def surgery(p, materials):
-    """Build the surgery Setup from case parameters (see SURGERY_FIELDS)."""
+    """Build the surgery Setup from case parameters (see SURGERY_FIELDS) and material
+    overrides (name -> MooneyRivlin): the eye, the buckle body, the staged procedure."""
     check_parameters(p)
-    deformable = p.get("buckle_body", "rigid") == "deformable"
+    buckle = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
+    body = buckle_body(p, buckle)
+    body.warn(p, buckle)
     eye = build_eye(EyeGeometry(), p["mesh"])
-    mesh = eye.mesh
-    faces = np.concatenate([mesh.face_set("eye/inner"), mesh.face_set("lens/surface")])
-    mesh = mesh.replace(face_sets={**mesh.face_sets, "wetted": faces},
-                        node_sets={**mesh.node_sets, "eye/sclera_outer":
-                                   np.unique(mesh.face_set("eye/sclera_outer"))})
     g = eye.geometry
-    b = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
-    band = None
-    sponge = deformable and not b.encircling
-    if sponge and p["mesh"] != "coarse" and (p["buckle_meridian_deg"] % 90 == 0 or
-                                             p["contact_normals"] != "nodal" or
-                                             not p["globe_axial"]):
-        log.warning("deformable %s on the %s eye mesh at meridian %g deg, contact_normals = "
-                    "'%s', globe_axial = %g: off the coarse eye the deformable sponge has run "
-                    "to the end with the settings of cases/surgery/deformable_sponge_default"
-                    ".toml (a meridian off the eye mesh's symmetry planes, contact_normals = "
-                    "'nodal', globe_axial = 1); at meridian 0 its suture steps were cut until "
-                    "they stopped (docs/surgery.md)", b.kind, p["mesh"],
-                    p["buckle_meridian_deg"], p["contact_normals"], p["globe_axial"])
-    elif deformable and not sponge and p["mesh"] not in ("coarse", "default"):
-        log.warning("deformable %s on the %s eye mesh: the deformable band and tires have "
-                    "been run to the end on the coarse and default eyes only, with their "
-                    "case files' settings (docs/surgery.md)", b.kind, p["mesh"])
-    if sponge:  # parked SPONGE_PARK mm off the sclera until stage 2 fits it snug
-        mesh = with_band(mesh, sponge_mesh(b, g, p["mesh"], SPONGE_PARK), "sponge")
-    elif deformable:  # parked BAND_PARK mm off the sclera until stage 2 fits it snug
-        n_circ = band_n_circ(mesh, mesh.node_set("eye/sclera_outer"), b, g)
-        closed = p["deformable_tightening"] == "shortened_loop"
-        mesh = with_band(mesh, deformable_band(b, g, g.scleral_radius + BAND_PARK, n_circ,
-                                               closed=closed))
-        band = BandInfo(mesh, n_circ, closed)
-    eye = dataclasses.replace(eye, mesh=mesh)
-    frame = suture_anchor_frame(b, g, p["n_sutures"])
-    parts = SurgeryParts(eye, b, p, mesh.node_set("eye/sclera_outer"), frame,
-                         extra_dof=3 * mesh.n_nodes + mesh.n_elem, band=band, sponge=sponge)
-    mats = _materials(materials)
-    lens_eq, zf, zxi = eye.zonule
-    zonule = Bars("zonule", np.repeat(lens_eq[:, None], 4, 1), zf, np.zeros((len(lens_eq), 2)),
-                  zxi, mesh.nodes, EA=p["zonule_E"] * g.zonule_area)
-    iop = PressureLoad("iop", mesh, "wetted", 0.0)
-    cavity = FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"])
-    if sponge:
-        sutures, parts.layout = sponge_suture_term(mesh, b, frame, p)
-        buckle = sponge_contact_term(mesh, SEED_MATERIALS["sclera"], p["contact_normals"])
-        band_hold = (sponge_spring_term(mesh, b, g),)
-    elif deformable:
-        sutures = band_suture_term(parts)
-        buckle = band_contact_term(parts, SEED_MATERIALS["sclera"])
-        band_hold = (band_spring_term(parts),)
-    else:
-        sutures = suture_term(parts, 1.0)
-        buckle = buckle_term(parts, 1.0)
-        band_hold = ()
-    lens_hold = NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3)
-    orbit = orbit_spring(mesh, parts.sclera_nodes, p)
+    mesh, band = body.with_mesh(_with_wetted_surface(eye.mesh), buckle, g, p)
     # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`
-    parts.d_per_mm = 1.0 / (2 * np.pi * (np.sin(b.centre_angle(g)) if b.encircling else 1.0))
-    pulled = p["band_tension"] > 0
-    extra = (DofForce("band_pull", parts.extra_dof, gain=1.0 / parts.d_per_mm),) if pulled else ()
+    d_per_mm = 1.0 / (2 * np.pi * (np.sin(buckle.centre_angle(g)) if buckle.encircling else 1.0))
+    parts = SurgeryParts(dataclasses.replace(eye, mesh=mesh), buckle, p,
+                         mesh.node_set("eye/sclera_outer"),
+                         suture_anchor_frame(buckle, g, p["n_sutures"]), d_per_mm=d_per_mm,
+                         extra_dof=3 * mesh.n_nodes + mesh.n_elem, band=band,
+                         sponge=body.body_set == "sponge")
+    mats = _materials(materials, p.get("materials_preset", "seed"))
+    contact, sutures, holds = body.terms(parts)
+    wall = _eye_terms(parts)
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
-                        (zonule, iop, cavity, buckle, sutures, lens_hold, orbit) + band_hold
-                        + extra, n_extra_dofs=1)
-    if band is not None and band.closed:  # the band's loop tightened by its rest length
-        s = model.term("solid")
-        model = model.with_terms([ShortenedLoopSolid(s.name, mesh, s.coeffs, s.multiplier_offset,
-                                                     loop_nodes=band.nodes)]
-                                 + [t for t in model.terms if t is not s])
-    fix = node_dofs(mesh.node_set("eye/nerve_end"))
-    # the buckle's own radial motion (extra dof) is held, except a segmental buckle's
-    # while its sutures are tightened: they pull it in against the sclera
-    held = (np.r_[fix, parts.extra_dof], np.zeros(len(fix) + 1))
-    held_eye = (fix, np.zeros(len(fix)))
-    p_iop = p["iop_mmhg"] * MMHG
-
-    def place_buckle(model, q, theta):
-        model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
-        scale = float(snug_scale(parts, q))
-        sut, new_buckle = suture_term(parts, scale), buckle_term(parts, scale)
-        model = model.with_terms([new_buckle if t.name == "buckle" else sut if t.name == "sutures"
-                                  else t for t in model.terms])
-        parts.scale = scale
-        return model, q, theta
-
-    def place_band(model, q, theta):
-        """Close the cavity; re-reference the (held, undeformed) band snug on the
-        pressurised eye: its stress-free state is the snug fit."""
-        model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
-        scale = float(snug_scale(parts, q))
-        rereference(parts, fit_band(parts, scale, q), scale)
-        contact = band_contact_term(parts, SEED_MATERIALS["sclera"]).update(q, None)
-        model = with_refitted_terms(model, parts, {"buckle": contact,
-                                                   "sutures": band_suture_term(parts),
-                                                   "band_springs": band_spring_term(parts)})
-        return model, q, theta
-
-    def place_sponge(model, q, theta):
-        """Close the cavity; re-reference the (held, undeformed) sponge snug on the
-        pressurised eye."""
-        model, q, theta = close_cavity(model, q, theta, "cavity", "iop")
-        scale = float(snug_scale(parts, q))
-        new_mesh = rereference(parts, fit_sponge(parts.eye.mesh, b, g, p["mesh"], scale, q,
-                                                 p["contact_normals"]), scale)
-        sut, parts.layout = sponge_suture_term(new_mesh, b, frame, p)
-        model = with_refitted_terms(model, parts, {
-            "buckle": sponge_contact_term(new_mesh, SEED_MATERIALS["sclera"],
-                                          p["contact_normals"]).update(q, None),
-            "sutures": sut, "sponge_springs": sponge_spring_term(new_mesh, b, g)})
-        return model, q, theta
-
-    def tie_sutures(model, q, theta):
-        t = model.term("sutures")
-        L = np.asarray(t.lengths(np.asarray(q)[t.dofs], theta["sutures"], t.data))
-        return model, q, {**theta, "sutures": {**theta["sutures"], "L0": L}}
-
-    base = ("solid", "zonule", "lens_springs", "orbit")
-    if sponge:
-        sponge_all = node_dofs(mesh.node_set("sponge"))
-        parked = (np.r_[held[0], sponge_all], np.zeros(len(held[0]) + len(sponge_all)))
-        tight = three_bar_tightening(p)
-        sponge_terms = ("cavity", "buckle", "sponge_springs")
-        stages = [
-            Stage("pressurise", p["steps_pressurise"], parked, params={"iop": {"p": p_iop}},
-                  active=base + ("iop",)),
-            Stage("place", 1, parked, params={"cavity": {"dv": -p["drain_volume"]}},
-                  active=base + sponge_terms, before=place_sponge),
-            Stage("suture", p["steps_suture"], held, params={"sutures": {"tightening": tight}},
-                  active=base + sponge_terms + ("sutures",), before=tie_sutures),
-        ]
-    elif deformable:
-        band_all = node_dofs(mesh.node_set("band"))
-        held = (np.r_[held[0], band_all], np.zeros(len(held[0]) + len(band_all)))
-        *tightened, shorten = tightened_band(parts, np.r_[fix, parts.extra_dof], p["tightening"])
-        tight = three_bar_tightening(p)
-        band_terms = ("cavity", "buckle", "band_springs")
-        stages = [
-            Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
-                  active=base + ("iop",)),
-            Stage("tighten", p["steps_tighten"], tuple(tightened),
-                  params={"cavity": {"dv": -p["drain_volume"]}, **shorten},
-                  active=base + band_terms, before=place_band),
-            Stage("suture", p["steps_suture"], tuple(tightened),
-                  params={"sutures": {"tightening": tight}},
-                  active=base + band_terms + ("sutures",), before=tie_sutures),
-        ]
-    else:
-        motion = {"d": np.full(1, p["tightening"] * parts.d_per_mm),
-                  "s": np.full(1, p["buckle_shift"])}
-        ridge = {"ridge": np.full(1, KINDS[b.kind][2])}
-        # a pulled band (force control) moves freely: its radial motion is an unknown
-        held_band = held_eye if pulled else held
-        pull = {"band_pull": {"f": p["band_tension"]}} if pulled else {}
-        stages = [
-            Stage("pressurise", p["steps_pressurise"], held, params={"iop": {"p": p_iop}},
-                  active=base + ("iop",)),
-            Stage("tighten" if b.encircling else "place", p["steps_tighten"], held_band,
-                  params={"buckle": {**motion, **ridge}, "sutures": motion,
-                          "cavity": {"dv": -p["drain_volume"]}, **pull},
-                  active=base + ("cavity", "buckle") + tuple(pull), before=place_buckle),
-            Stage("suture", p["steps_suture"], held_band if b.encircling else held_eye,
-                  params={"sutures": {"tightening": np.full(2 * p["n_sutures"],
-                                                            p["suture_tightening"] / 2)}},
-                  active=base + ("cavity", "buckle", "sutures") + tuple(pull),
-                  before=tie_sutures),
-        ]
+                        wall[:3] + (contact, sutures) + wall[3:] + holds, n_extra_dofs=1)
+    model = body.model(model, parts)
+    path = LoadPath(node_dofs(mesh.node_set("eye/nerve_end")), parts.extra_dof,
+                    p["iop_mmhg"] * MMHG)
     last = {}
 
     def probe(model, q, theta):
-        out = outcomes(parts, model, q, theta)
         last["state"] = (model, q, theta)
-        return out
+        return {**outcomes(parts, model, q, theta), **body.outcomes(parts, model, q, theta)}
 
     def finish(rows, out_dir, plots):
         summary = stage_summary(rows)
         write_csv(Path(out_dir) / "stages.csv", summary)
         if plots and "state" in last:
-            pictures(parts, *last["state"], Path(out_dir))
+            pictures(parts, *last["state"], Path(out_dir), summary=summary[-1])
         final = summary[-1]
-        out = {"iop_mmhg": final["iop_mmhg"], "indentation_mm": final["indentation_mm"],
-               "axial_length_change_mm": final["axial_length_change_mm"],
-               "volume_change_mm3": final["volume_change_mm3"],
-               "max_suture_force_N": final["max_suture_force_N"],
-               "iop_after_tightening_mmhg": summary[1]["iop_mmhg"] if len(summary) > 1 else None,
-               "elements": int(mesh.n_elem), "buckle_body": p.get("buckle_body", "rigid")}
-        if band is not None and rows:
-            out.update({k: rows[-1][k] for k in BAND_OUTPUTS})
+        out = {k: final[k] for k in ("iop_mmhg", "indentation_mm", "axial_length_change_mm",
+                                     "volume_change_mm3", "max_suture_force_N",
+                                     "refraction_change_D", "corneal_power_change_D",
+                                     "corneal_astigmatism_D", "anterior_chamber_depth_change_mm")}
+        out.update({"iop_after_tightening_mmhg": summary[1]["iop_mmhg"] if len(summary) > 1
+                    else None, "elements": int(mesh.n_elem),
+                    "buckle_body": p.get("buckle_body", "rigid")})
+        if rows:
+            out.update({k: rows[-1][k] for k in body.summary_outcomes})
         return out
 
-    setup = Setup("surgery", model, stages, probe, finish)
-    setup.parts = parts
-    return setup
+    return Setup("surgery", model, body.stages(parts, path), probe, finish, parts=parts)
+
+
+def _with_wetted_surface(mesh):
+    """The eye mesh with the face set "wetted" (wall inside and lens: the liquid's
+    boundary) and the node set "eye/sclera_outer"."""
+    faces = np.concatenate([mesh.face_set("eye/inner"), mesh.face_set("lens/surface")])
+    return mesh.replace(face_sets={**mesh.face_sets, "wetted": faces},
+                        node_sets={**mesh.node_sets, "eye/sclera_outer":
+                                   np.unique(mesh.face_set("eye/sclera_outer"))})
+
+
+def _eye_terms(parts: SurgeryParts) -> tuple:
+    """The eye's own terms: zonule, IOP load, cavity, lens springs, orbit."""
+    eye, p, mesh = parts.eye, parts.p, parts.eye.mesh
+    lens_eq, zf, zxi = eye.zonule
+    zonule = Bars("zonule", np.repeat(lens_eq[:, None], 4, 1), zf, np.zeros((len(lens_eq), 2)),
+                  zxi, mesh.nodes, EA=p["zonule_E"] * eye.geometry.zonule_area)
+    return (zonule, PressureLoad("iop", mesh, "wetted", 0.0),
+            FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"]),
+            NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3),
+            orbit_spring(mesh, parts.sclera_nodes, p))
 
 
 def check_parameters(p):
@@ -495,24 +242,6 @@ def _check_deformable(p):
                          "by its sutures alone (suture_tightening); set tightening = 0")
 
 
-def snug_scale(parts: SurgeryParts, q, node=None):
-    """Radial scale of a buckle fitted snug on the eye at state q (n_dof,): the largest
-    |x| / |X| of the outer scleral nodes under it (jax or numpy). ``node``: evaluate at
-    that node instead (the maximiser, for a derivative). See :func:`snug_node`."""
-    mesh = parts.eye.mesh
-    s = snug_node(parts, q) if node is None else node
-    x = mesh.nodes[s] + q[3 * s: 3 * s + 3]
-    return jnp.linalg.norm(x) / np.linalg.norm(mesh.nodes[s])
-
-
-def snug_node(parts: SurgeryParts, q) -> int:
-    """The outer scleral node under the buckle that the snug buckle touches (numpy q)."""
-    mesh = parts.eye.mesh
-    s = parts.sclera_nodes[buckle_zone(parts)]
-    x = mesh.nodes[s] + np.asarray(q)[: 3 * mesh.n_nodes].reshape(-1, 3)[s]
-    return int(s[np.argmax(np.linalg.norm(x, axis=1) / np.linalg.norm(mesh.nodes[s], axis=1))])
-
-
 def orbit_spring(mesh, sclera_nodes, p) -> OrbitSpring:
     """The orbit's hold on the globe: springs on the rigid rotation (N mm/rad) and lateral
     translation (N/mm) of the outer scleral ring at the equator (case fields
@@ -538,109 +267,70 @@ def orbit_spring(mesh, sclera_nodes, p) -> OrbitSpring:
                        k_trans=p["globe_translation"], k_axial=p["globe_axial"])
 
 
-def _buckle_coords(parts: SurgeryParts):
-    """Across (a) and along coordinates (mm) of the outer scleral nodes relative to the
-    buckle centre line, and a mask of nodes within the buckle's length."""
-    eye, b = parts.eye, parts.buckle
-    g = eye.geometry
-    X = eye.mesh.nodes[parts.sclera_nodes]
-    th = np.arccos(np.clip(X[:, 2] / np.linalg.norm(X, axis=1), -1, 1))
-    if b.encircling:
-        return g.scleral_radius * (th - b.centre_angle(g)), np.ones(len(X), bool)
-    cen, acr, nrm, _ = suture_anchor_frame(b, g, 1)
-    v = X - cen[0]
-    return v @ acr[0], np.abs(v @ np.cross(nrm[0], acr[0])) < 2.0
+def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=None,
+             title: str = ""):
+    """Meridional section (with a zoomed panel at the buckle, its indentation marked) and
+    outside view, coloured by von Mises stress (kPa): section_von_mises.png and
+    outside_von_mises.png in out_dir.
 
+    Drawn: the buckle (a rigid one's surface; a deformable one's elements grey), the
+    sutures, the undeformed outline (dashed). Title: ``title`` (default: the buckle and
+    its placement from the case parameters), the stage and the headline outcomes of
+    ``summary`` (a row of eyefem.eye.outcomes.stage_summary; default: the state's IOP and
+    indentation from eyefem.eye.outcomes.outcomes). Returns the two Drawn records.
+    """
+    from eyefem.eye.outcomes import outcome_nodes, positions
+    from eyefem.io.pictures import Zoom, plane_basis, plot_outside, plot_section
 
-def buckle_zone(parts: SurgeryParts):
-    """Mask of the outer scleral nodes under the buckle."""
-    a, ok = _buckle_coords(parts)
-    if not parts.buckle.encircling:
-        cen, acr, nrm, _ = suture_anchor_frame(parts.buckle, parts.eye.geometry, 1)
-        v = parts.eye.mesh.nodes[parts.sclera_nodes] - cen[0]
-        ok = np.abs(v @ np.cross(nrm[0], acr[0])) < 5.0
-    return ok & (np.abs(a) < parts.buckle.width / 2)
-
-
-def indentation(parts: SurgeryParts, x) -> float:
-    """Buckle indentation height (mm): mean outer radius of the sclera 1.5-3 mm beside
-    the buckle minus that under its central half, in the buckle's cross-section
-    (encircling: all around; segmental: within 2 mm of the sponge centre)."""
-    b = parts.buckle
-    rho = np.linalg.norm(x[parts.sclera_nodes], axis=1)
-    a, ok = _buckle_coords(parts)
-    under = ok & (np.abs(a) < b.width / 4)
-    beside = ok & (np.abs(a) > b.width / 2 + 1.5) & (np.abs(a) < b.width / 2 + 3.0)
-    if not under.any() or not beside.any():
-        raise ValueError("indentation: no scleral nodes under or beside the buckle; refine the mesh")
-    return float(rho[beside].mean() - rho[under].mean())
-
-
-def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
-    """IOP (mmHg), cavity volume (mm^3), axial length (mm), indentation (mm), max suture force (N)."""
-    mesh = parts.eye.mesh
-    x = mesh.nodes + q[: 3 * mesh.n_nodes].reshape(-1, 3)
-    cav = model.term("cavity")
-    P, V = cav.pressures(q, theta["cavity"])
-    closed = theta["iop"]["p"] == 0.0  # close_cavity releases the surface load
-    iop = float(P[0]) if closed else float(theta["iop"]["p"])
-    L0 = axial_length(mesh, mesh.nodes)
-    forces = model.term("sutures").forces(q, theta["sutures"])
-    out = {"iop_mmhg": iop / MMHG, "volume_mm3": float(V[0]),
-           "axial_length_mm": axial_length(mesh, x),
-           "axial_length_change_unloaded_mm": axial_length(mesh, x) - L0,
-           "indentation_mm": indentation(parts, x),
-           "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
-           else 0.0}
-    if parts.band is not None:
-        out.update(band_outcomes(parts, model, q, theta))
-    elif not parts.sponge:
-        out["buckle_free_motion_mm"] = float(q[parts.extra_dof])
-        out["band_shortening_mm"] = (parts.p["tightening"] + float(q[parts.extra_dof]) / parts.d_per_mm
-                                     if parts.buckle.encircling else 0.0)
-    return out
-
-
-def stage_summary(rows) -> list[dict]:
-    """The last row of every stage, with the volume and axial length changes since the
-    end of the first stage (the pressurised pre-operative eye)."""
-    out, v_closed, l_preop = [], None, None
-    for i, r in enumerate(rows):
-        if i + 1 == len(rows) or rows[i + 1]["stage"] != r["stage"]:
-            if v_closed is None:
-                v_closed = r["volume_mm3"]
-            if l_preop is None:
-                l_preop = r["axial_length_mm"]
-            out.append({"stage": r["stage"], "iop_mmhg": r["iop_mmhg"],
-                        "indentation_mm": r["indentation_mm"],
-                        "axial_length_mm": r["axial_length_mm"],
-                        "axial_length_change_mm": r["axial_length_mm"] - l_preop,
-                        "volume_change_mm3": r["volume_mm3"] - v_closed,
-                        "max_suture_force_N": r["max_suture_force_N"]})
-    return out
-
-
-def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path):
-    """Meridional section and outside view coloured by von Mises stress (PNG)."""
-    from eyefem.io.pictures import plot_outside, plot_section
-
-    mesh = parts.eye.mesh
+    mesh, p, b = model.mesh, parts.p, parts.buckle
+    q = np.asarray(q)
     x = mesh.nodes + q[: 3 * mesh.n_nodes].reshape(-1, 3)
     vm = model.terms[0].fields(q, theta["solid"])["von_mises"] / 1e-3  # kPa
-    normal = (0.0, 1.0, 0.0)
-    if not parts.buckle.encircling:
-        ph = np.radians(parts.buckle.meridian_deg)
-        normal = (-np.sin(ph), np.cos(ph), 0.0)
-    vmax, title = None, ""
+    names = [t.name for t in model.terms]
+    rigid = model.term("buckle").geometry(q, theta["buckle"]) if "buckle" in names else None
+    buckle = (rigid[0], rigid[2]) if rigid is not None and rigid[1] == "triangle" else None
+    sut = model.term("sutures").geometry(q, theta["sutures"]) if "sutures" in names else None
+    lines = (sut[0], sut[2], sut[3]["force_N"]) if sut is not None else None
+    ph = np.radians(b.meridian_deg)
+    if b.encircling and lines is not None and len(lines[1]):  # the section through a suture
+        mid = np.asarray(lines[0])[np.asarray(lines[1])[0]].mean(0)
+        ph = float(np.arctan2(mid[1], mid[0]))
+    normal = (-np.sin(ph), np.cos(ph), 0.0)
     body = "band" if parts.band is not None else "sponge" if parts.sponge else None
-    if body:  # the silicone buckle (MPa) would set the eye's colour scale
-        eye_el = np.setdiff1d(np.arange(mesh.n_elem), mesh.element_sets[body])
-        name = "tire" if parts.buckle.kind.startswith("tire") else body
-        vmax, title = float(np.percentile(vm[eye_el], 99)), f" with the deformable {name}"
-    plot_section(out_dir / "section_von_mises.png", x, mesh.hexes, vm, normal=normal,
-                 title="meridional section" + title, label="von Mises stress, kPa", vmax=vmax)
-    plot_outside(out_dir / "outside_von_mises.png", x, mesh.hexes, vm,
-                 title="outside view" + title, label="von Mises stress, kPa", vmax=vmax)
+    exclude = mesh.element_sets[body] if body else None
+    name = "tire and band" if body == "band" and b.kind.startswith("tire") else body
+    s = summary or {"stage": "final", **outcomes(parts, model, q, theta)}
+    head = [f"IOP {s['iop_mmhg']:.1f} mmHg", f"indentation {s['indentation_mm']:.2f} mm"]
+    for key, fmt in (("axial_length_change_mm", "axial length {:+.3f} mm"),
+                     ("refraction_change_D", "refraction {:+.2f} D")):
+        if key in s:
+            head.append(fmt.format(s[key]))
+    title = title or (f"{b.kind.replace('_', ' ')} ({p.get('buckle_body', 'rigid')}), "
+                      f"tightening {p['tightening']:g} mm, suture width {p['suture_width']:g} "
+                      f"mm, {b.distance:g} mm behind the limbus")
+    full = f"{title}\nstage '{s['stage']}': " + ", ".join(head)
+    nodes = outcome_nodes(parts)
+    under, beside = (positions(mesh.nodes, q, ids) for ids in (nodes.under, nodes.beside))
+    e1 = plane_basis(normal)[0]
+    side = under[(np.abs(under @ np.asarray(normal)) < 2.0) & (under @ e1 > 0)]
+    centre = (side if len(side) else under).mean(0)
+    r_in = float(np.linalg.norm(under, axis=1).mean())
+    r_out = float(np.linalg.norm(beside, axis=1).mean())
+    zoom = Zoom(tuple(centre / np.linalg.norm(centre) * r_in), b.width / 2 + 3.5, r_in, r_out,
+                f"indentation\n{s['indentation_mm']:.2f} mm")
+    kw = {"label": "von Mises stress, kPa", "exclude": exclude, "buckle": buckle,
+          "sutures": lines, "exclude_label": f"deformable {name} (grey: not to scale)"}
+    section = plot_section(out_dir / "section_von_mises.png", x, mesh.hexes, vm, normal=normal,
+                           title=full, reference=mesh.nodes, zoom=zoom,
+                           buckle_thickness=b.thickness if b.encircling else 0.0,
+                           xlabel=f"meridian {np.degrees(ph):.0f}\N{DEGREE SIGN} from +x "
+                                  "(+x nasal), mm", ylabel="z (+ anterior), mm", **kw)
+    outside = plot_outside(out_dir / "outside_von_mises.png", x, mesh.hexes, vm, title=full,
+                           directions={"nasal +x": (1, 0, 0), "+y": (0, 1, 0),
+                                       "anterior +z": (0, 0, 1)},
+                           buckle_lift=b.thickness if b.encircling else None,
+                           **{k: v for k, v in kw.items() if k != "exclude_label"})
+    return section, outside
 
 
 surgery.check = check_parameters

@@ -204,3 +204,31 @@ def suture_bar_ends(layout: SutureLayout, over_node_ids=None):
     na, nb = chain_n[:, :-1].reshape(-1, 4), chain_n[:, 1:].reshape(-1, 4)
     xa, xb = chain_x[:, :-1].reshape(-1, 2), chain_x[:, 1:].reshape(-1, 2)
     return na, xa, nb, xb, np.repeat(np.arange(k), m + 1)
+
+
+def radial_bite_sensitivity(xyz, bites: EmbeddedPoint, points, dpoints,
+                            globe_centre=(0.0, 0.0, 0.0)):
+    """d xi / d s (n, 2) of bites that are the radial projections of points p(s) onto the
+    faces they lie in (the bites of :func:`generate_sutures`), for dp/ds = ``dpoints``.
+
+    The bite x(xi) = N(xi) . X_face lies on the ray from the globe centre c through p:
+    x(xi) - c - r u(p) = 0 with u = (p - c) / |p - c| and r = |x - c|. Differentiating,
+    [dx/dxi, -u] [dxi/ds; dr/ds] = r du/ds with du/ds = (I - u u^T) dp/ds / |p - c|:
+    one 3 x 3 solve per bite, exact within the bite's face (its derivative jumps where a
+    bite crosses a face boundary, as the bite itself stays continuous).
+
+    Args: xyz (n_nodes, 3); bites: (n) face nodes and parametric coordinates; points,
+    dpoints: (n, 3) the projected points and their derivatives, mm per unit of s.
+    """
+    c = np.asarray(globe_centre, float)
+    rel = np.asarray(points, float) - c
+    out = np.zeros((len(rel), 2))
+    for i, (nodes, xi) in enumerate(zip(bites.nodes, bites.xi)):
+        xf = xyz[nodes]
+        x = bilinear(xi) @ xf
+        dist = np.linalg.norm(rel[i])
+        u = rel[i] / dist
+        du = (dpoints[i] - u * (u @ dpoints[i])) / dist
+        J = np.column_stack([(_dbilinear(xi).T @ xf).T, -u])
+        out[i] = np.linalg.solve(J, np.linalg.norm(x - c) * du)[:2]
+    return out

@@ -90,11 +90,20 @@ class Bars(Term):
     def static_key(self):
         return (self.tension_only,)
 
-    def lengths(self, q_loc, params, data):
+    def endpoints(self, q_loc, params, data):
+        """Current end positions xa, xb (n, 3), mm."""
         u = q_loc.reshape(-1, 8, 3)
         xa = embedded_positions(data["X"][:, :4], u[:, :4], params["xi"][:, 0])
         xb = embedded_positions(data["X"][:, 4:], u[:, 4:], params["xi"][:, 1])
+        return xa, xb
+
+    def lengths(self, q_loc, params, data):
+        xa, xb = self.endpoints(q_loc, params, data)
         return jnp.sqrt(jnp.sum((xb - xa) ** 2, axis=1))
+
+    def geometry(self, q, params):
+        """The bars as lines (2 points each) with their axial force 'force_N' (n,)."""
+        return bar_lines(self, q, params)
 
     def local_energy(self, q_loc, params, data):
         l = self.lengths(q_loc, params, data)
@@ -117,6 +126,18 @@ class Bars(Term):
     def report(self, q, params):
         f = self.forces(q, params)
         return {"max_force_N": float(f.max()) if len(f) else 0.0}
+
+
+def bar_lines(term, q, params):
+    """(points (2n, 3) mm, "line", cells (n, 2), {"force_N": (n,), "length_mm": (n,)}) of a
+    bar term with ``endpoints`` and ``forces``."""
+    xa, xb = (np.asarray(a) for a in term.endpoints(jnp.asarray(q)[term.dofs], params,
+                                                     term.data))
+    n = len(xa)
+    points = np.stack([xa, xb], axis=1).reshape(2 * n, 3)
+    return (points, "line", np.arange(2 * n).reshape(n, 2),
+            {"force_N": np.asarray(term.forces(q, params), np.float64),
+             "length_mm": np.linalg.norm(xb - xa, axis=1)})
 
 
 def rotate_z(x, angle):
@@ -196,7 +217,8 @@ class AnchoredBars(Term):
     def static_key(self):
         return (self.tension_only, self.extra_dof >= 0)
 
-    def lengths(self, q_loc, params, data):
+    def endpoints(self, q_loc, params, data):
+        """Current positions (n, 3), mm, of the bites xa and the moved anchors xb."""
         xa = embedded_positions(data["X"], q_loc[:, :12].reshape(-1, 4, 3), params["xi"])
         d = params["d"][data["body"]]
         if self.extra_dof >= 0:
@@ -204,8 +226,15 @@ class AnchoredBars(Term):
         b = data["body"]
         xb = (data["anchor"] + d[:, None] * data["dir"] + params["s"][b][:, None] * data["dir2"]
               + params["dr"][b][:, None] * data["dir3"])
-        xb = rotate_z(xb, params["rot"][b])
+        return xa, rotate_z(xb, params["rot"][b])
+
+    def lengths(self, q_loc, params, data):
+        xa, xb = self.endpoints(q_loc, params, data)
         return jnp.sqrt(jnp.sum((xb - xa) ** 2, axis=1))
+
+    def geometry(self, q, params):
+        """The bars as lines (bite to anchor) with their axial force 'force_N' (n,)."""
+        return bar_lines(self, q, params)
 
     def _stretch(self, q_loc, params, data):
         s = self.lengths(q_loc, params, data) - (params["L0"] - params["tightening"])

@@ -55,6 +55,7 @@ import numpy as np
 from eyefem.fem.bars import rotate_z
 from eyefem.fem.contact import node_areas, penalty_gauss_newton
 from eyefem.fem.mesh import Mesh
+from eyefem.fem.rigid import grid_triangles
 from eyefem.fem.terms import Term
 
 BUCKLE_PENALTY_FACTOR = 10.0
@@ -219,9 +220,85 @@ class BuckleContact(Term):
         z = -np.asarray(g) / self.smoothing
         return self.alpha * np.asarray(smooth_penetration(g, self.smoothing)) * expit(z)
 
+    def _motion(self, q, params):
+        """(R + dr, d (with the free radial motion), s, rot) as floats."""
+        d = float(params["d"][0]) + (float(np.asarray(q)[self.extra_dof])
+                                     if self.extra_dof >= 0 else 0.0)
+        return (self.radius + float(params["dr"][0]), d, float(params["s"][0]),
+                float(params["rot"][0]))
+
+    def facing(self, q, params) -> np.ndarray:
+        """(n,) bool: candidate nodes over the buckle's footprint (across the ring's
+        width; along the sponge, within its radius of its axis sideways, on its side of
+        the globe), where the gap is the distance to the buckle under the node (elsewhere
+        it is the smooth fade-out of the penalty or the distance to a far side)."""
+        x = self.mesh.nodes[self.nodes] + np.asarray(q)[self.dofs[:, :3]]
+        R, d, s, rot = self._motion(q, params)
+        x = np.asarray(rotate_z(x, -rot))
+        n0, m0, t = (np.asarray(v, float) for v in (self.n0, self.m0, self.axis))
+        if self.shape == "ring":
+            tau = np.arctan2(np.hypot(x[:, 0], x[:, 1]), x[:, 2])
+            return np.abs(R * (tau - self.theta_b) - s) <= self.width / 2
+        rs, half = self.sponge_radius, self.sponge_length / 2
+        if self.curved:
+            rho0 = R + rs - d
+            psi = np.arctan2(x @ m0, x @ n0) - s / rho0
+            return ((np.abs(psi) * rho0 <= half) & (np.abs(psi) < np.pi / 2)
+                    & (np.abs(x @ np.cross(n0, m0)) <= rs))
+        v = x - (R + rs - d) * n0 - s * m0
+        side = np.cross(t, n0)
+        return ((np.abs(v @ t) <= half) & (np.abs(v @ side) <= rs * np.linalg.norm(side))
+                & (x @ n0 > 0))
+
     def point_fields(self, q, params, n_nodes):
+        """'<name>_gap_mm' (NaN off the candidate nodes and off the buckle's footprint)
+        and '<name>_pressure_MPa' (contact force / nodal area; 0 off contact)."""
         g = self._gap_np(q, params)
-        gap, pres = np.zeros(n_nodes), np.zeros(n_nodes)
-        gap[self.nodes] = g
+        gap, pres = np.full(n_nodes, np.nan), np.zeros(n_nodes)
+        gap[self.nodes] = np.where(self.facing(q, params), g, np.nan)
         pres[self.nodes] = self.contact_forces(g) / self.data["area"]
         return {f"{self.name}_gap_mm": gap, f"{self.name}_pressure_MPa": pres}
+
+    def surface(self, q, params, n_around: int = 144, n_across: int = 12):
+        """The buckle's contact surface as triangles in its current position.
+
+        Ring: the inner surface S(a) over the width, all around the eye axis; sponge:
+        the cylinder (or, ``curved``, the tube along the meridian arc) of radius r_s over
+        its length. Returns points (m, 3) mm and triangles (k, 3).
+        """
+        R, d, s, rot = self._motion(q, params)
+        rs, L = self.sponge_radius, self.sponge_length
+        u = np.linspace(0.0, 2 * np.pi, n_around + 1)
+        if self.shape == "ring":
+            a = np.linspace(-self.width / 2, self.width / 2, n_across + 1)
+            r = R + np.asarray(ring_profile(a, self.width, float(params["ridge"][0]),
+                                            self.ridge_width)) - d
+            tau = self.theta_b + (a + s) / R
+            U, T = np.meshgrid(u, tau, indexing="ij")
+            rr = np.broadcast_to(r, U.shape)
+            P = np.stack([rr * np.sin(T) * np.cos(U), rr * np.sin(T) * np.sin(U),
+                          rr * np.cos(T)], -1)
+        else:
+            n0, m0, t = (np.asarray(v, float) for v in (self.n0, self.m0, self.axis))
+            if self.curved:
+                rho0 = R + rs - d
+                b = np.cross(n0, m0)
+                psi = s / rho0 + np.linspace(-L / 2, L / 2, n_across + 1) / rho0
+                U, PS = np.meshgrid(u, psi, indexing="ij")
+                er = np.cos(PS)[..., None] * n0 + np.sin(PS)[..., None] * m0
+                P = (rho0 + rs * np.cos(U))[..., None] * er + (rs * np.sin(U))[..., None] * b
+            else:
+                e1 = n0 - (n0 @ t) * t
+                e1 /= np.linalg.norm(e1)
+                e2 = np.cross(t, e1)
+                C = (R + rs - d) * n0 + s * m0
+                U, A = np.meshgrid(u, np.linspace(-L / 2, L / 2, n_across + 1), indexing="ij")
+                P = (C + A[..., None] * t + rs * np.cos(U)[..., None] * e1
+                     + rs * np.sin(U)[..., None] * e2)
+        P = np.asarray(rotate_z(P.reshape(-1, 3), rot))
+        return P, grid_triangles(n_around, n_across, closed_u=True)
+
+    def geometry(self, q, params):
+        """The buckle's contact surface (triangles; see :meth:`surface`)."""
+        P, tris = self.surface(q, params)
+        return P, "triangle", tris, {}

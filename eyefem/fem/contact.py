@@ -182,12 +182,25 @@ class RigidContact(Term):
                 "force_N": float(self.alpha * pen.sum())}
 
     def point_fields(self, q, params, n_nodes):
+        """'<name>_gap_mm' (NaN at unpaired nodes), '<name>_pressure_MPa' (0 off contact)."""
         g, node, area = self._state(q, params)
-        gap = np.zeros(n_nodes)
+        gap = np.full(n_nodes, np.nan)
         pres = np.zeros(n_nodes)
         gap[node] = g
         pres[node] = self.alpha * np.maximum(-g, 0.0) / area
         return {f"{self.name}_gap_mm": gap, f"{self.name}_pressure_MPa": pres}
+
+    def geometry(self, q, params):
+        """The rigid bodies' triangles moved by their params d and s; cell data 'body'."""
+        pts, tris, body, off = [], [], [], 0
+        for k, b in enumerate(self.bodies):
+            d1, d2 = b.motion_dirs(b.points)
+            pts.append(b.points + float(params["d"][k]) * d1 + float(params["s"][k]) * d2)
+            tris.append(b.triangles + off)
+            body.append(np.full(len(b.triangles), k, np.int32))
+            off += len(b.points)
+        return (np.concatenate(pts), "triangle", np.concatenate(tris),
+                {"body": np.concatenate(body)})
 
 
 # --- deformable-deformable ------------------------------------------------------------------
@@ -520,8 +533,9 @@ class SurfaceContact(Term):
                 "force_N": float(params["scale"] * self._forces(g).sum())}
 
     def point_fields(self, q, params, n_nodes):
+        """'<name>_gap_mm' (NaN at unpaired nodes), '<name>_pressure_MPa' (0 off contact)."""
         g, node, area = self._gaps(q)
-        gap, pres = np.zeros(n_nodes), np.zeros(n_nodes)
+        gap, pres = np.full(n_nodes, np.nan), np.zeros(n_nodes)
         gap[node] = g
         pres[node] = self._forces(g) / area
         return {f"{self.name}_gap_mm": gap, f"{self.name}_pressure_MPa": pres}

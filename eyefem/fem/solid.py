@@ -177,7 +177,9 @@ class SolidQ1P0(Term):
         """Per-element post-processing from the global dof vector q (numpy).
 
         Returns dict of (n_elem, ...) arrays averaged over the Gauss points: 'cauchy'
-        (3, 3) MPa, 'von_mises' MPa, 'pressure' (-tr sigma / 3) MPa, 'lambda' MPa, 'J'.
+        (3, 3) MPa, 'von_mises' MPa, 'pressure' (-tr sigma / 3) MPa, 'lambda' MPa, 'J',
+        'green_lagrange' E = (F^T F - I) / 2 (3, 3) and its largest eigenvalue
+        'max_principal_strain' (dimensionless).
         """
         return _fields(q[self.dofs], params, self.data)
 
@@ -190,16 +192,19 @@ def _fields_jit(q_loc, coeffs, mat, grad_n):
     P = _point_grad(F, lam, coeffs[mat])
     J = jnp.linalg.det(F)
     sig = jnp.einsum("egij,egkj->egik", P, F) / J[..., None, None]
-    return sig, J, lam
+    E = 0.5 * (jnp.einsum("egki,egkj->egij", F, F) - jnp.eye(3))
+    return sig, J, lam, E
 
 
 def _fields(q_loc, params, data):
-    sig, J, lam = (np.asarray(a) for a in _fields_jit(
+    sig, J, lam, E = (np.asarray(a) for a in _fields_jit(
         q_loc, params["coeffs"], data["mat"], data["grad_n"]))
     w = data["dv"] / data["dv"].sum(axis=1, keepdims=True)
     s = np.einsum("eg,egij->eij", w, sig)
     p = -np.trace(s, axis1=1, axis2=2) / 3.0
     dev = s + p[:, None, None] * np.eye(3)
     vm = np.sqrt(1.5 * np.sum(dev * dev, axis=(1, 2)))
+    E = np.einsum("eg,egij->eij", w, E)
     return {"cauchy": s, "von_mises": vm, "pressure": p, "lambda": lam,
-            "J": np.einsum("eg,eg->e", w, J)}
+            "J": np.einsum("eg,eg->e", w, J), "green_lagrange": E,
+            "max_principal_strain": np.linalg.eigvalsh(E)[:, -1]}

@@ -90,3 +90,10 @@ class PressureLoad(Term):
     def local_energy(self, q_loc, params, data):
         x = data["X"] + q_loc.reshape(-1, 4, 3)
         return params["p"] * face_cone_volume(x, data["origin"])
+
+    def point_fields(self, q, params, n_nodes) -> dict:
+        """'<name>_pressure_MPa' (n_nodes,): the applied pressure p on loaded nodes, 0
+        elsewhere."""
+        f = np.zeros(n_nodes)
+        f[self.dofs[:, ::3] // 3] = float(params["p"])
+        return {f"{self.name}_pressure_MPa": f}

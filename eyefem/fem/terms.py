@@ -136,6 +136,13 @@ class Term(abc.ABC):
         """Nodal fields (n_nodes, ...) for the VTU output (e.g. contact pressure)."""
         return {}
 
+    def geometry(self, q: np.ndarray, params) -> tuple | None:
+        """This term's own shape for the VTU output, in the current configuration:
+        (points (n, 3) mm, meshio cell type, cells (m, k), cell data name -> (m,)), e.g.
+        a rigid buckle's surface or the sutures as lines with their forces; None
+        (default): nothing beyond the mesh."""
+        return None
+
     def static_key(self) -> tuple:
         """Hashable configuration that changes the compiled code (not the arrays)."""
         return ()

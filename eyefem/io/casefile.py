@@ -29,12 +29,16 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import logging
+import math
 import tomllib
 from pathlib import Path
 from typing import Any, Callable
 
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.solve.solver import NewtonOptions
+
+log = logging.getLogger(__name__)
 
 
 class CaseError(ValueError):
@@ -47,7 +51,12 @@ class Field:
 
     Attributes: name; type (float, int, str, bool, list); default (``REQUIRED`` if
     none); doc (with units); check: optional predicate on the value with ``check_doc``
-    describing the valid range.
+    describing the valid range. Numbers must be finite. Plausibility of a number:
+    ``warn`` (lo, hi) logs a warning outside it (outside the physiological range),
+    ``refuse`` (lo, hi) is an error outside it (impossible); ``unit`` is the field's unit
+    and ``slips`` ((unit, factor), ...) the units a user may have typed by mistake, where
+    ``factor`` converts a value in that unit into ``unit`` (MPa -> mmHg: 7500.6); the
+    message suggests the one that brings the value into ``warn``.
     """
 
     name: str
@@ -56,6 +65,10 @@ class Field:
     doc: str
     check: Callable[[Any], bool] | None = None
     check_doc: str = ""
+    warn: tuple[float, float] | None = None
+    refuse: tuple[float, float] | None = None
+    unit: str = ""
+    slips: tuple[tuple[str, float], ...] = ()
 
 
 REQUIRED = object()
@@ -64,6 +77,42 @@ REQUIRED = object()
 def _suggest(name, choices):
     m = difflib.get_close_matches(name, list(choices), n=1)
     return f" (did you mean '{m[0]}'?)" if m else ""
+
+
+def unit_slip(value: float, plausible: tuple[float, float], unit: str,
+              slips: tuple[tuple[str, float], ...]) -> str:
+    """The likely unit mistake behind an implausible value, e.g. "did you give MPa?
+    15 mmHg = 0.002 MPa", or ""."""
+    for other, factor in slips:
+        v = value * factor
+        if plausible[0] <= v <= plausible[1]:
+            return f"did you give {other}? {v:.3g} {unit} = {value:g} {other}"
+    return ""
+
+
+def plausibility(value: float, f: Field, where: str) -> None:
+    """Refuse (CaseError) or warn (logged) when a number is outside ``f``'s ranges."""
+    unit = f" {f.unit}" if f.unit else ""
+    for rng, refuse in ((f.refuse, True), (f.warn, False)):
+        if rng is None or rng[0] <= value <= rng[1]:
+            continue
+        slip = unit_slip(value, f.warn or rng, f.unit, f.slips)
+        what = "impossible" if refuse else "outside the plausible range"
+        msg = (f"{where}: field '{f.name}' = {value:g}{unit} is {what} "
+               f"({rng[0]:g} to {rng[1]:g}{unit})" + (f": {slip}" if slip else ""))
+        if refuse:
+            raise CaseError(msg + f" ({f.doc})")
+        log.warning("%s; check the value and its unit", msg)
+        return
+
+
+def check_finite(value, name: str, where: str) -> None:
+    """CaseError naming the field when a number (or a number in a list) is nan or inf."""
+    items = value if isinstance(value, list) else [value]
+    for v in items:
+        if isinstance(v, float) and not math.isfinite(v):
+            raise CaseError(f"{where}: field '{name}' = {value!r} is not a finite number; "
+                            "give a finite value")
 
 
 def parse_section(values: dict, fields: list[Field], where: str) -> dict:
@@ -86,9 +135,12 @@ def parse_section(values: dict, fields: list[Field], where: str) -> dict:
         if not isinstance(v, f.type) or (f.type in (int, float) and isinstance(v, bool)):
             raise CaseError(f"{where}: field '{f.name}' = {v!r} has type {type(v).__name__}; "
                             f"expected {f.type.__name__} ({f.doc})")
+        check_finite(v, f.name, where)
         if f.check is not None and not f.check(v):
             raise CaseError(f"{where}: field '{f.name}' = {v!r} is out of range: {f.check_doc} "
                             f"({f.doc})")
+        if f.type in (int, float):
+            plausibility(v, f, where)
         out[f.name] = v
     return out
 
@@ -123,10 +175,18 @@ class Case:
 def load_case(path: str | Path, schemas: dict[str, list[Field]]) -> Case:
     """Read and validate a case file against the problem schemas (problem -> fields)."""
     path = Path(path)
+    if path.is_dir():
+        raise CaseError(f"case file '{path}' is a directory; give a .toml case file "
+                        f"(list them with: eyefem cases {path})")
     if not path.is_file():
         raise CaseError(f"case file '{path}' does not exist")
     try:
-        raw = tomllib.loads(path.read_text())
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise CaseError(f"{path}: not a text file (a case file is TOML text, UTF-8); "
+                        "did you give a result or mesh file?") from None
+    except OSError as exc:
+        raise CaseError(f"{path}: cannot read the case file: {exc.strerror or exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise CaseError(f"{path}: not valid TOML: {exc}") from None
     top = {"case", "parameters", "materials", "solver", "output"}
@@ -148,10 +208,17 @@ def load_case(path: str | Path, schemas: dict[str, list[Field]]) -> Case:
     for name, terms in raw.get("materials", {}).items():
         if not isinstance(terms, dict):
             raise CaseError(f"{path} [materials]: '{name}' must be a table of coefficients")
+        for k, v in terms.items():
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise CaseError(f"{path} [materials.{name}]: coefficient '{k}' = {v!r} is not a "
+                                "number; give it in MPa, e.g. c10 = 0.0833")
         try:
             mats[name] = MooneyRivlin.from_terms(name, terms)
         except ValueError as exc:
             raise CaseError(f"{path} [materials.{name}]: {exc}") from None
+        c10 = terms.get("c10")
+        if isinstance(c10, (int, float)) and not isinstance(c10, bool):
+            plausibility(float(c10), material_c10_field(name), f"{path} [materials.{name}]")
     solver = parse_section(raw.get("solver", {}), SOLVER_FIELDS, f"{path} [solver]")
     solver["backend"] = solver["backend"] or None
     try:
@@ -162,6 +229,34 @@ def load_case(path: str | Path, schemas: dict[str, list[Field]]) -> Case:
     if not out["directory"]:
         out["directory"] = str(Path("results") / path.stem)
     return Case(path, problem, case["title"] or path.stem, params, mats, opts, out, raw)
+
+
+_SOFT_TISSUE = ((1e-4, 1.0), (0.0, 20.0))
+MATERIAL_C10_MPA = {  # name -> (warn, refuse) ranges of c10, MPa
+    **{t: _SOFT_TISSUE for t in ("sclera", "cornea", "limbus", "ciliary_body", "choroid",
+                                 "retina", "optic_nerve")},
+    "lens": ((1e-4, 20.0), (0.0, 1000.0)),
+}
+"""Plausible Mooney-Rivlin c10 of the eye's tissues (sclera ~0.08 MPa); any other
+material is refused above 1e4 MPa only (no rubber-like solid is that stiff)."""
+
+
+def material_c10_field(name: str) -> Field:
+    """The plausibility Field of the c10 coefficient of material ``name`` (MPa)."""
+    warn, refuse = MATERIAL_C10_MPA.get(name, ((0.0, 1e3), (0.0, 1e4)))
+    return Field("c10", float, 0.0, f"Mooney-Rivlin c10 of '{name}', MPa", warn=warn,
+                 refuse=refuse, unit="MPa", slips=(("kPa", 1e-3), ("Pa", 1e-6)))
+
+
+def check_material_names(case: Case, used) -> None:
+    """CaseError for a ``[materials.NAME]`` of ``case`` that the built model does not use
+    (``used``: the model's material names), with a did-you-mean."""
+    used = sorted(set(used))
+    for name in case.materials:
+        if name not in used:
+            raise CaseError(f"{case.path} [materials.{name}]: unknown material '{name}'"
+                            f"{_suggest(name, used)}; the materials of this "
+                            f"'{case.problem}' model are: {', '.join(used)}")
 
 
 def positive(x) -> bool:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import io
 import logging
 import os
@@ -67,39 +68,98 @@ def write_csv(path: Path, rows: Iterable[Mapping[str, float]]):
     write_text(path, buf.getvalue())
 
 
-def write_vtu(path: Path, nodes, hexes, point_data: Mapping, cell_data: Mapping,
-              field_data: Mapping | None = None):
-    """Write one hexahedral VTU file atomically with meshio.
+@dataclasses.dataclass(frozen=True)
+class Part:
+    """One further dataset of a time series frame (a rigid buckle, sutures...).
 
-    Args: nodes (n, 3); hexes (e, 8); point_data name -> (n, ...); cell_data name -> (e, ...).
+    Attributes: points (n, 3) mm in the current configuration; cell_type a meshio cell
+    type ("triangle", "line", "hexahedron"...); cells (m, k) point indices; point_data
+    name -> (n, ...); cell_data name -> (m, ...).
+    """
+
+    points: np.ndarray
+    cell_type: str
+    cells: np.ndarray
+    point_data: Mapping = dataclasses.field(default_factory=dict)
+    cell_data: Mapping = dataclasses.field(default_factory=dict)
+
+
+def write_vtu(path: Path, nodes, hexes, point_data: Mapping, cell_data: Mapping,
+              field_data: Mapping | None = None, cell_type: str = "hexahedron"):
+    """Write one VTU file (one cell block) atomically with meshio.
+
+    Args: nodes (n, 3); hexes (e, k) cells of ``cell_type``; point_data name -> (n, ...);
+    cell_data name -> (e, ...) (trailing dimensions flattened, a (3, 3) tensor as 9
+    components); field_data name -> number or 1-D array (ParaView's field data).
     """
     import meshio
 
+    hexes = np.asarray(hexes)
     cd = {}
     for k, v in cell_data.items():
         v = np.asarray(v)
         cd[k] = [v.reshape(len(hexes), -1) if v.ndim > 2 else v]
-    mesh = meshio.Mesh(np.asarray(nodes), [("hexahedron", np.asarray(hexes))],
+    mesh = meshio.Mesh(np.asarray(nodes, np.float64), [(cell_type, hexes)],
                        point_data={k: np.asarray(v) for k, v in point_data.items()},
-                       cell_data=cd,
-                       field_data={k: np.atleast_1d(np.asarray(v, dtype=np.float64))
-                                   for k, v in (field_data or {}).items()})
+                       cell_data=cd)
     with atomic_path(Path(path)) as tmp:
         meshio.write(tmp, mesh, file_format="vtu")
+        if field_data:
+            _add_field_data(tmp, field_data)
 
 
-def write_pvd(path: Path, entries: list[tuple[float, str]]):
-    """A ParaView collection file listing (time, relative vtu file) entries."""
+def _add_field_data(path: Path, field_data: Mapping):
+    """Insert a <FieldData> block of ASCII Float64 arrays into a VTU file written by
+    meshio (whose VTU writer drops ``field_data``; its reader and ParaView read it)."""
+    from xml.sax.saxutils import quoteattr
+
+    arrays = []
+    for k, v in field_data.items():
+        v = np.atleast_1d(np.asarray(v, dtype=np.float64)).ravel()
+        arrays.append(f'<DataArray type="Float64" Name={quoteattr(str(k))} '
+                      f'NumberOfTuples="{len(v)}" format="ascii">'
+                      + " ".join(f"{x:.17g}" for x in v) + "</DataArray>")
+    text = Path(path).read_text()
+    tag = "<UnstructuredGrid>"
+    if text.count(tag) != 1:
+        raise RuntimeError(f"{path}: expected one {tag} in meshio's VTU output; cannot add "
+                           "field data (meshio's writer changed?)")
+    Path(path).write_text(text.replace(tag, tag + "\n<FieldData>\n" + "\n".join(arrays)
+                                       + "\n</FieldData>", 1))
+
+
+def write_pvd(path: Path, entries: list[tuple[float, str]], parts: Mapping[str, str] | None = None):
+    """A ParaView collection file listing (time, relative vtu file) entries.
+
+    ``parts`` maps a file name prefix (the text before ``_NNNN.vtu``) to a dataset name;
+    files of one prefix form one part (ParaView shows one block per part, named by the
+    ``name`` attribute). Entries whose prefix is not in ``parts`` form part 0.
+    """
+    parts = dict(parts or {})
+    order = list(dict.fromkeys(parts.values()))
     lines = ['<?xml version="1.0"?>',
              '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
              "  <Collection>"]
-    lines += [f'    <DataSet timestep="{t:.8g}" group="" part="0" file="{f}"/>' for t, f in entries]
+    for t, f in entries:
+        prefix = Path(f).name.rsplit("_", 1)[0]
+        name = parts.get(prefix, "")
+        if name:
+            k = order.index(name)
+            lines.append(f'    <DataSet timestep="{t:.10g}" group="" part="{k}" name="{name}" '
+                         f'file="{f}"/>')
+        else:
+            lines.append(f'    <DataSet timestep="{t:.10g}" group="" part="0" file="{f}"/>')
     lines += ["  </Collection>", "</VTKFile>", ""]
     write_text(path, "\n".join(lines))
 
 
 class SeriesWriter:
-    """Writes one VTU per converged step and keeps the .pvd collection up to date.
+    """Writes one frame per converged step and keeps the .pvd collection up to date.
+
+    A frame is the main hexahedral dataset ``vtu/<name>_NNNN.vtu`` (part 0 of the PVD,
+    named ``name``) and optionally further datasets ``vtu/<name>-<part>_NNNN.vtu`` (the
+    rigid buckle, the sutures...), each its own part of the same series. ``entries`` is
+    the list of (time, relative file) written so far (what a checkpoint stores).
 
     Args:
       directory: output directory (created).
@@ -111,11 +171,44 @@ class SeriesWriter:
         self.name = name
         self.entries: list[tuple[float, str]] = []
 
-    def add(self, time: float, nodes, hexes, point_data, cell_data, field_data=None):
-        fname = f"{self.name}_{len(self.entries):04d}.vtu"
-        write_vtu(self.dir / "vtu" / fname, nodes, hexes, point_data, cell_data, field_data)
-        self.entries.append((time, f"vtu/{fname}"))
-        write_pvd(self.dir / f"{self.name}.pvd", self.entries)
+    def _parts(self) -> dict:
+        """File prefix -> dataset name of every part in ``entries`` (main first)."""
+        out = {self.name: self.name}
+        for _, f in self.entries:
+            prefix = Path(f).name.rsplit("_", 1)[0]
+            if prefix.startswith(f"{self.name}-"):
+                out[prefix] = prefix[len(self.name) + 1:]
+        return out
+
+    @property
+    def n_frames(self) -> int:
+        """Frames written so far (main datasets in ``entries``)."""
+        return sum(Path(f).name.rsplit("_", 1)[0] == self.name for _, f in self.entries)
+
+    def add(self, time: float, nodes, hexes, point_data, cell_data, field_data=None,
+            parts: Mapping[str, Part] | None = None):
+        """Write one frame at ``time`` (monotone) and rewrite the .pvd.
+
+        Args: nodes (n, 3) reference coordinates, mm; hexes (e, 8); point_data,
+        cell_data, field_data as :func:`write_vtu`; parts: dataset name -> Part (names
+        of letters, digits and underscores), written with the same field data.
+        """
+        if self.entries and time < self.entries[-1][0]:
+            raise ValueError(f"SeriesWriter '{self.name}': time {time} after "
+                             f"{self.entries[-1][0]}; frame times must not decrease")
+        frame = self.n_frames
+        fname = f"vtu/{self.name}_{frame:04d}.vtu"
+        write_vtu(self.dir / fname, nodes, hexes, point_data, cell_data, field_data)
+        self.entries.append((time, fname))
+        for pname, part in (parts or {}).items():
+            if not pname.replace("_", "").isalnum():
+                raise ValueError(f"SeriesWriter '{self.name}': part name '{pname}'; use "
+                                 "letters, digits and underscores")
+            fname = f"vtu/{self.name}-{pname}_{frame:04d}.vtu"
+            write_vtu(self.dir / fname, part.points, part.cells, part.point_data,
+                      part.cell_data, field_data, cell_type=part.cell_type)
+            self.entries.append((time, fname))
+        write_pvd(self.dir / f"{self.name}.pvd", self.entries, self._parts())
 
 
 def plot_curves(path: Path, x, curves: Mapping[str, tuple], *, xlabel: str, ylabel: str,

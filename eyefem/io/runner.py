@@ -7,6 +7,7 @@ compares the recorded curve with theory, plots it and returns a summary.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import time
@@ -15,8 +16,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from eyefem.io import checkpoint
-from eyefem.io.output import SeriesWriter, write_csv
+from eyefem.io import checkpoint, manifest
+from eyefem.io.output import Part, SeriesWriter, write_csv
+from eyefem.io.progress import Progress
 from eyefem.solve.model import Model
 from eyefem.solve.solver import ACCEPTED_FLAGS, NewtonOptions, Solution, Stage, solve
 
@@ -37,6 +39,8 @@ class Setup:
       probe: ``f(model, q, theta) -> dict`` of scalars recorded at every step.
       finish: ``f(rows, out_dir, plots) -> dict`` summary (theory comparison, plots).
       q0: optional initial state.
+      parts: what the problem was built from, for outputs and planning (the surgery:
+        eyefem.eye.parts.SurgeryParts), or None.
     """
 
     name: str
@@ -45,6 +49,7 @@ class Setup:
     probe: Callable[[Model, np.ndarray, Any], dict]
     finish: Callable[[list[dict], Path, bool], dict]
     q0: np.ndarray | None = None
+    parts: Any = None
 
 
 @dataclasses.dataclass
@@ -57,21 +62,87 @@ class RunResult:
     out_dir: Path
 
 
-def cell_and_point_fields(model: Model, q, theta):
-    """VTU fields: displacement and term point fields; solid stresses and materials per cell."""
-    n = model.mesh.n_nodes
-    point = {"displacement": q[: 3 * n].reshape(n, 3)}
+def cell_and_point_fields(model: Model, q, theta, active=None, prescribed=None):
+    """VTU fields of the state q (n_dof,) for the design theta.
+
+    Point fields (n_nodes, ...): 'displacement' (3) mm; every term's ``point_fields``
+    (cavity and contact pressures, gaps...); with ``prescribed`` (dof indices)
+    'reaction_force_N' (3): the residual of the active terms on the prescribed
+    displacement dofs (the force the supports exert on the body), 0 elsewhere.
+    Cell fields (n_elem, ...): 'material' (id into ``mesh.materials``) and the solid
+    terms' ``fields`` (stresses, strains; NaN outside a term's elements).
+    Fields of terms not in ``active`` (a stage's active names; None: all) are NaN, so
+    every frame of a series has the same arrays and ParaView's colour ranges skip them.
+    """
+    n, n_elem = model.mesh.n_nodes, model.mesh.n_elem
+    point = {"displacement": np.asarray(q[: 3 * n], np.float64).reshape(n, 3)}
     cell = {"material": model.mesh.material_ids.astype(np.int32)}
     for t in model.terms:
-        point.update(t.point_fields(q, theta[t.name], n))
+        on = active is None or t.name in active
+        for k, v in t.point_fields(q, theta[t.name], n).items():
+            point[k] = np.asarray(v, np.float64) if on else np.full(np.shape(v), np.nan)
         if hasattr(t, "fields"):
-            f = t.fields(q, theta[t.name])
-            idx = t.elements
-            for k, v in f.items():
-                full = np.zeros((model.mesh.n_elem,) + v.shape[1:])
-                full[idx] = v
-                cell[k] = full
+            for k, v in t.fields(q, theta[t.name]).items():
+                v = np.asarray(v, np.float64)
+                full = cell.setdefault(k, np.full((n_elem,) + v.shape[1:], np.nan))
+                full[t.elements] = v if on else np.nan
+    if prescribed is not None:
+        dofs = np.asarray(prescribed, np.int64)
+        dofs = dofs[dofs < 3 * n]
+        reaction = np.zeros(3 * n)
+        reaction[dofs] = model.gradient(q, theta, active)[dofs]
+        point["reaction_force_N"] = reaction.reshape(n, 3)
     return point, cell
+
+
+def term_parts(model: Model, q, theta, active=None) -> dict[str, Part]:
+    """Term name -> Part for every term with a ``geometry`` (rigid buckle surfaces,
+    sutures and zonule as lines with 'force_N'), in the current configuration. Each has
+    the cell field 'active' (1 when the term is in ``active``); the float cell fields of
+    an inactive term (forces) are NaN, except its lengths ('..._mm', geometry)."""
+    parts = {}
+    for t in model.terms:
+        geo = t.geometry(q, theta[t.name])
+        if geo is None:
+            continue
+        points, cell_type, cells, cell_data = geo
+        on = active is None or t.name in active
+        cd = {k: (np.full(len(cells), np.nan) if not on and not k.endswith("_mm")
+                  and np.issubdtype(np.asarray(v).dtype, np.floating) else np.asarray(v))
+              for k, v in cell_data.items()}
+        cd["active"] = np.full(len(cells), int(on), np.int32)
+        parts[t.name] = Part(np.asarray(points, np.float64), cell_type, np.asarray(cells), {}, cd)
+    return parts
+
+
+def add_frame(writer: SeriesWriter, model: Model, q, theta, stages, index: int, t: float):
+    """Write the state q of stage ``stages[index]`` at load factor t in [0, 1] as one
+    frame at time index + t: the mesh with :func:`cell_and_point_fields`, the terms'
+    parts (:func:`term_parts`) and field data 'time', 'stage' (index), 'load_factor',
+    'stage:<name>' -> index of every stage and 'material:<name>' -> material id."""
+    stage, t = stages[index], round(float(t), 12)  # t of the last step: 1 - 1e-16 -> 1
+    point, cell = cell_and_point_fields(model, q, theta, stage.active, stage.prescribed[0])
+    field = {"time": index + t, "stage": index, "load_factor": t,
+             **{f"stage:{s.name}": i for i, s in reversed(list(enumerate(stages)))},
+             **{f"material:{m}": i for i, m in enumerate(model.mesh.materials)}}
+    writer.add(index + t, model.mesh.nodes, model.mesh.hexes, point, cell, field,
+               term_parts(model, q, theta, stage.active))
+
+
+def write_step(writer: SeriesWriter, setup: Setup, stage_name: str, t: float, model: Model,
+               q, theta):
+    """Append a converged step (stage ``stage_name``, load factor t) to the series; a
+    fresh series first gets the undeformed state (``setup.q0`` or zero, default design,
+    the first stage's active terms) at time 0."""
+    stages = setup.stages
+    if not writer.entries:
+        q0 = np.zeros(setup.model.n_dof) if setup.q0 is None else np.asarray(setup.q0)
+        add_frame(writer, setup.model, q0, setup.model.theta0(), stages, 0, 0.0)
+    last = writer.entries[-1][0]
+    names = [s.name for s in stages]
+    index = next((i for i, s in enumerate(names) if s == stage_name and i + t > last),
+                 names.index(stage_name))
+    add_frame(writer, model, q, theta, stages, index, t)
 
 
 def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOptions(), *,
@@ -83,27 +154,45 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     ``resume=True`` the run continues after the last completed stage of the checkpoint
     (``key`` identifies the case, so a checkpoint of another case is refused).
     """
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = manifest.check_writable(Path(out_dir))  # before any solving
+    release = manifest.acquire(out_dir)  # a second run into out_dir is refused
     rows: list[dict] = []
     writer = SeriesWriter(out_dir, setup.name)
     tic = time.perf_counter()
+    case_hash = manifest.case_hash(key)
     key = checkpoint.fingerprint(key, setup.name, setup.model.n_dof, len(setup.stages))
     q0, theta0, completed = setup.q0, None, ()
-    if resume:
-        ck = checkpoint.load(out_dir, key)
-        rows[:] = ck["rows"]
-        writer.entries = list(ck["vtu_entries"])
-        q0, theta0, completed = ck["q"], ck["theta"], ck["starts"]
-        log.info("resuming %s after stage %d ('%s') from %s", setup.name, ck["stage"] + 1,
-                 setup.stages[ck["stage"]].name, out_dir / checkpoint.FILENAME)
+    try:
+        if resume:
+            ck = checkpoint.load(out_dir, key)
+            rows[:] = ck["rows"]
+            writer.entries = list(ck["vtu_entries"])
+            q0, theta0, completed = ck["q"], ck["theta"], ck["starts"]
+            (out_dir / "summary.json").unlink(missing_ok=True)
+            log.info("resuming %s after stage %d ('%s') from %s", setup.name, ck["stage"] + 1,
+                     setup.stages[ck["stage"]].name, out_dir / checkpoint.FILENAME)
+        else:
+            manifest.clear_outputs(out_dir)
+        mesh = setup.model.mesh
+        run = manifest.write(out_dir, {
+            "format": manifest.FORMAT, "code_version": manifest.code_version(),
+            "case_hash": case_hash, "name": setup.name, "resumed": bool(resume),
+            "mesh": {"nodes": mesh.n_nodes, "elements": mesh.n_elem,
+                     "dofs": setup.model.n_dof},
+            "stages": [s.name for s in setup.stages], "status": "running",
+            "started": manifest.now()})
+    except BaseException:
+        release()
+        raise
 
     active = {s.name: s.active for s in setup.stages}
+    progress = Progress(setup.stages, len(completed))  # stage k/n, step k/n, time left
 
     def on_step(rec, model, q, theta):
         row = {"stage": rec.stage, "step": rec.step, "t": rec.t, "iterations": rec.iterations,
                "residual_N": rec.residual,
-               **{flag: int(rec.info.get(flag, False)) for flag in ACCEPTED_FLAGS.values()}}
+               **{flag: int(rec.info.get(flag, False)) for flag in ACCEPTED_FLAGS.values()},
+               "unbalanced_N": float(rec.info.get("unbalanced_N", 0.0))}
         row.update(setup.probe(model, q, theta))
         report = model.report(q, theta, active.get(rec.stage))
         row.update(report)
@@ -114,21 +203,45 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
             log.info("    %s", ", ".join(logged))
         write_csv(out_dir / f"{setup.name}_history.csv", rows)
         if vtu:
-            point, cell = cell_and_point_fields(model, q, theta)
-            writer.add(float(len(rows)), model.mesh.nodes, model.mesh.hexes, point, cell)
+            write_step(writer, setup, rec.stage, rec.t, model, q, theta)
+        progress.step(rec.stage, rec.step, rec.t)
 
     def on_stage_end(i, model, q, theta, starts):
         checkpoint.save(out_dir, key=key, stage=i, q=q, theta=theta, starts=starts, rows=rows,
                         vtu_entries=writer.entries)
 
-    sol = solve(setup.model, setup.stages, q0=q0, theta=theta0, options=options,
-                on_step=on_step, on_stage_end=on_stage_end, completed=completed)
-    if not sol.history:  # resumed after the last stage: nothing left to solve
-        setup.probe(sol.model, sol.q, sol.theta)
-    summary = setup.finish(rows, out_dir, plots)
+    progress.start()
+    try:
+        sol = solve(setup.model, setup.stages, q0=q0, theta=theta0, options=options,
+                    on_step=on_step, on_stage_end=on_stage_end, completed=completed)
+        if not sol.history:  # resumed after the last stage: nothing left to solve
+            setup.probe(sol.model, sol.q, sol.theta)
+        summary = setup.finish(rows, out_dir, plots)
+        manifest.updated(out_dir, run, status="complete", finished=manifest.now())
+    except BaseException as exc:
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        with contextlib.suppress(OSError):  # the folder may be what failed
+            manifest.updated(out_dir, run, status=status, finished=manifest.now(),
+                             reason=f"{type(exc).__name__}: {exc}"[:2000])
+        raise
+    finally:
+        progress.close()
+        release()
     summary["wall_s"] = time.perf_counter() - tic
     summary["newton_iterations"] = int(sum(r.iterations for r in sol.history))
     for flag, key in (("stalled", "steps_accepted_on_a_stall"),
                       ("contact_cycle", "steps_accepted_on_a_contact_cycle")):
         summary[key] = int(sum(r.info.get(flag, False) for r in sol.history))
+    summary["unbalanced_steps"] = unbalanced_steps(rows)
     return RunResult(summary, rows, sol, out_dir)
+
+
+def unbalanced_steps(rows: list[dict]) -> dict:
+    """The steps of a run accepted without converging (on a stall or a cycling contact
+    pairing): their count, the largest force left out of balance (N) and where (at most
+    ten "stage step k (t = ...)"). Every outcome is reported from a converged state only
+    when the count is 0."""
+    bad = [r for r in rows if any(r.get(f) for f in ACCEPTED_FLAGS.values())]
+    return {"count": len(bad),
+            "largest_unbalanced_N": max((r.get("unbalanced_N", 0.0) for r in bad), default=0.0),
+            "steps": [f"{r['stage']} step {r['step']} (t = {r['t']:.4g})" for r in bad[:10]]}

@@ -76,7 +76,15 @@ def value_and_grad(objective: Callable[[Any, Any], Any], solution, *, active=Non
       solution: a :class:`eyefem.solve.solver.Solution` (holds model, q, theta, last
         assembler and factorisation).
     Returns: (value, gradient pytree like theta).
+
+    The gradient is that of an equilibrium: a solution whose last step was accepted out of
+    balance (on a cycling contact pairing) gets a warning naming the step and the force.
     """
+    last = solution.history[-1] if solution.history else None
+    if last is not None and last.info.get("unbalanced_N"):
+        log.warning("adjoint gradient at stage '%s' step %d (t = %.4g), accepted with %.3e N "
+                    "out of balance: the gradient is that of the nearby converged pairing",
+                    last.stage, last.step, last.t, last.info["unbalanced_N"])
     solution = solution.factorised()
     model, q, theta = solution.model, solution.q, solution.theta
     active = solution.active if active is None else active

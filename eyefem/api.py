@@ -1,0 +1,228 @@
+"""The JAX-native entry point: ``simulate(case, design) -> outcomes``, differentiable in the design.
+
+``simulate`` runs a rigid-buckle surgery case (stages: pressurise, fit and tighten the
+buckle, tie the sutures) and returns its outcomes (eyefem.eye.design.OUTCOMES)::
+
+    import jax, eyefem
+    jax.config.update("jax_enable_x64", True)
+    iop = lambda d: eyefem.simulate("cases/surgery/case1.toml", d, mesh="coarse")["iop_mmhg"]
+    jax.grad(iop)({"suture_width": 9.0})      # d IOP / d suture width, mmHg/mm
+
+Under ``jax.grad`` / ``jax.vjp`` / ``jax.jacrev`` / ``jax.jit`` the forward solve is a
+``jax.pure_callback`` (Newton on the host, scipy sparse), wrapped in a ``jax.custom_vjp``
+whose backward pass is the adjoint: a host callback takes the cotangent of the outcomes
+and returns the gradient of their weighted sum (SurgerySimulator.weighted_gradient:
+three adjoint solves on the stages' last factorisations, whatever the cotangent), so
+``jax.grad`` of any scalar of the outcomes costs one forward solve and three adjoint
+solves; ``jax.jacrev`` one backward pass per outcome. Forward-mode (``jax.jvp``, ``jax.jacfwd``) is not
+supported (custom_vjp). A call without traced values runs the host solve directly and
+returns floats.
+
+One SurgerySimulator is kept per (case, mesh) - keyed by the parsed case's contents, so a
+case-file path and the Case read from it share one - so repeated calls start from the
+last converged states, and the converged states of recent designs are remembered.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import difflib
+import hashlib
+import logging
+import threading
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from eyefem.catalog import schemas
+from eyefem.eye.design import DESIGN_VARIABLES, OUTCOMES, SurgerySimulator
+from eyefem.io import casefile
+from eyefem.io.casefile import Case
+
+log = logging.getLogger(__name__)
+
+CACHED_SIMULATORS = 4
+"""How many (case, mesh) simulators simulate() keeps (least recently used dropped)."""
+REMEMBERED_DESIGNS = 8
+"""How many converged designs each simulator remembers (for their backward passes)."""
+
+_simulators: collections.OrderedDict = collections.OrderedDict()
+_simulators_lock = threading.Lock()
+
+
+def load_case(path: str | Path) -> Case:
+    """Read and validate a case file against the schemas of every known problem."""
+    return casefile.load_case(path, schemas())
+
+
+def clear_cache() -> None:
+    """Forget every simulator simulate() has built (and their warm-start states)."""
+    with _simulators_lock:
+        _simulators.clear()
+
+
+def simulate(case: str | Path | Case, design: dict | None = None, *,
+             mesh: str | None = None) -> dict:
+    """Outcomes of a rigid-buckle surgery case at a design; differentiable in the design.
+
+    Args:
+      case: a case-file path (relative to the current directory) or a parsed Case
+        (load_case); its ``[case] problem`` must be "surgery" with a rigid buckle.
+      design: design-variable name -> value (eyefem.eye.design.DESIGN_VARIABLES: mm,
+        degrees, N, MPa, mm^3 as documented there), overriding the case; scalars, Python
+        floats or JAX values (traced under jax.grad / jax.jit).
+      mesh: eye mesh level overriding the case's ``[parameters] mesh`` ("coarse", ...).
+
+    Returns:
+      outcome name (OUTCOMES: iop_mmhg, indentation_mm, axial_length_change_mm,
+      max_suture_force_N, refraction_change_D, corneal_power_change_D,
+      corneal_astigmatism_D, anterior_chamber_depth_change_mm) -> float, or 0-d float64
+      array when the design is traced.
+
+    Raises ValueError for a case simulate cannot run, an unknown design variable or mesh
+    level, or a variable the case cannot vary; RuntimeError when x64 is off (call
+    ``jax.config.update("jax_enable_x64", True)`` first: switching it inside a traced
+    function would not change the types already traced).
+    """
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError("eyefem.simulate needs 64-bit floats: call "
+                           "jax.config.update('jax_enable_x64', True) before any JAX work "
+                           "(the Newton solve and its adjoint lose accuracy in float32)")
+    design = dict(design or {})
+    _check_design(design)
+    host = _host(case, mesh)
+    if not any(isinstance(v, jax.core.Tracer) for v in design.values()):
+        values = host.outcomes({k: float(v) for k, v in design.items()})
+        return {k: float(v) for k, v in zip(OUTCOMES, values)}
+    names = tuple(design)
+    x = jnp.stack([jnp.asarray(design[k], dtype=jnp.float64) for k in names])
+    y = host.differentiable(names)(x)
+    return {k: y[i] for i, k in enumerate(OUTCOMES)}
+
+
+def _check_design(design: dict) -> None:
+    for k, v in design.items():
+        if k not in DESIGN_VARIABLES:
+            m = difflib.get_close_matches(str(k), list(DESIGN_VARIABLES), n=1)
+            hint = f" (did you mean '{m[0]}'?)" if m else ""
+            raise ValueError(f"unknown design variable '{k}'{hint}; known: "
+                             f"{', '.join(DESIGN_VARIABLES)}")
+        if np.ndim(v) != 0:
+            raise ValueError(f"design variable '{k}' has shape {np.shape(v)}; give one "
+                             "scalar per variable")
+
+
+def _parsed(case) -> Case:
+    if isinstance(case, Case):
+        return case
+    if isinstance(case, (str, Path)):
+        return load_case(case)
+    raise TypeError(f"simulate: case is a {type(case).__name__}; give a case-file path "
+                    "(str or pathlib.Path) or a Case from eyefem.load_case")
+
+
+def _host(case, mesh: str | None) -> _Host:
+    """The cached simulator of (case, mesh), built on first use. The key is the parsed
+    case's contents (its path resolved), so a path and the Case read from it share one."""
+    parsed = _parsed(case)
+    contents = repr(dataclasses.replace(parsed, path=Path(parsed.path).resolve()))
+    key = (hashlib.sha256(contents.encode()).hexdigest(), mesh)
+    with _simulators_lock:
+        if key in _simulators:
+            _simulators.move_to_end(key)
+            return _simulators[key]
+    params = _surgery_parameters(parsed, mesh)
+    log.info("simulate: building the simulator of %s on the %s mesh", parsed.path, params["mesh"])
+    host = _Host(SurgerySimulator(params, parsed.materials, parsed.solver))
+    with _simulators_lock:
+        _simulators[key] = host
+        while len(_simulators) > CACHED_SIMULATORS:
+            _simulators.popitem(last=False)
+    return host
+
+
+def _surgery_parameters(case: Case, mesh: str | None) -> dict:
+    """The case's surgery parameters with the mesh override; ValueError for a case that
+    simulate cannot run."""
+    if case.problem != "surgery":
+        raise ValueError(f"{case.path}: [case] problem = '{case.problem}'; eyefem.simulate runs "
+                         "the rigid-buckle surgery cases (problem = \"surgery\"); run this case "
+                         f"with `eyefem run {case.path}` or build it with eyefem.solve")
+    params = dict(case.parameters)
+    body = params.get("buckle_body", "rigid")
+    if body != "rigid":
+        raise ValueError(f"{case.path}: [parameters] buckle_body = '{body}'; eyefem.simulate "
+                         "and its gradients support the rigid-buckle surgery cases (the design "
+                         "moves the rigid buckle's exact surface); set buckle_body = 'rigid', "
+                         f"or run the deformable buckle with `eyefem run {case.path}`")
+    if mesh is not None:
+        field = next(f for f in schemas()["surgery"] if f.name == "mesh")
+        if not field.check(mesh):
+            raise ValueError(f"simulate: mesh = {mesh!r}; {field.doc}")
+        params["mesh"] = mesh
+    return params
+
+
+class _Host:
+    """One SurgerySimulator with a memory of recent designs (their converged states)."""
+
+    def __init__(self, sim: SurgerySimulator):
+        self.sim = sim
+        self.lock = threading.RLock()
+        self.memo: collections.OrderedDict = collections.OrderedDict()
+        self.functions: dict = {}
+
+    def _entry(self, design: dict) -> dict:
+        full = {**self.sim.design0(), **design}
+        key = tuple(sorted((k, float(v)) for k, v in full.items()))
+        with self.lock:
+            if key not in self.memo:
+                self.memo[key] = {"result": self.sim.run(design)}
+                while len(self.memo) > REMEMBERED_DESIGNS:
+                    self.memo.popitem(last=False)
+            self.memo.move_to_end(key)
+            return self.memo[key]
+
+    def outcomes(self, design: dict) -> np.ndarray:
+        """Outcome values (n_outcomes,) in the order of OUTCOMES."""
+        res = self._entry(design)["result"]
+        return np.array([res.outcomes[k] for k in OUTCOMES], dtype=np.float64)
+
+    def cotangent_gradient(self, design: dict, cotangent) -> np.ndarray:
+        """d (cotangent . outcomes) / d design (len(design),), three adjoint solves."""
+        entry = self._entry(design)
+        weights = dict(zip(OUTCOMES, np.asarray(cotangent, dtype=np.float64)))
+        with self.lock:
+            grad = self.sim.weighted_gradient(entry["result"], weights)
+        return np.array([grad[k] for k in design], dtype=np.float64)
+
+    def differentiable(self, names: tuple):
+        """x (len(names),) -> outcomes (n_outcomes,): a custom_vjp over host callbacks."""
+        if names in self.functions:
+            return self.functions[names]
+        out = jax.ShapeDtypeStruct((len(OUTCOMES),), jnp.float64)
+
+        def design_of(x):
+            return dict(zip(names, (float(v) for v in np.asarray(x, dtype=np.float64))))
+
+        @jax.custom_vjp
+        def outcomes(x):
+            return jax.pure_callback(lambda x: self.outcomes(design_of(x)), out, x,
+                                     vmap_method="sequential")
+
+        grad = jax.ShapeDtypeStruct((len(names),), jnp.float64)
+
+        def forward(x):
+            return outcomes(x), x
+
+        def backward(x, cotangent):
+            return (jax.pure_callback(
+                lambda x, c: self.cotangent_gradient(design_of(x), c), grad, x, cotangent,
+                vmap_method="sequential"),)
+
+        outcomes.defvjp(forward, backward)
+        self.functions[names] = outcomes
+        return outcomes

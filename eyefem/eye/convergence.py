@@ -1,0 +1,189 @@
+"""Discretisation uncertainty from three grids: observed order, Richardson, GCI.
+
+The procedure of Celik et al. 2008 (J. Fluids Eng. 130:078001, "Procedure for estimation
+and reporting of uncertainty due to discretization in CFD applications") with Roache's
+grid convergence index (safety factor Fs = 1.25 for three grids), for refinement ratios
+that need not be constant. Pure numpy; no eye model needed.
+
+Grids are ordered fine to coarse: h1 < h2 < h3 with values phi1, phi2, phi3. For the eye
+the grid size measure is h = 1 / n, n the elements per cubed-sphere patch edge (the wall
+keeps 4 element layers at every level, so refinement is in-plane only; the limit h -> 0 is
+the 4-layer through-thickness model, not the continuum).
+
+  r21 = h2 / h1, r32 = h3 / h2, eps21 = phi2 - phi1, eps32 = phi3 - phi2
+  s = sign(eps32 / eps21); s < 0 is oscillatory convergence (no p, no extrapolation)
+  p = (ln|eps32 / eps21| + q(p)) / ln r21,  q(p) = ln((r21^p - s) / (r32^p - s))
+  phi_ext = (r21^p phi1 - phi2) / (r21^p - 1)
+  e_a21 = |(phi1 - phi2) / phi1|, e_ext21 = |(phi_ext - phi1) / phi_ext|
+  GCI_fine21 = Fs e_a21 / (r21^p - 1)
+
+Celik's Eq. (5a) takes |.| of the right-hand side, which turns a monotone divergence
+(differences growing as h shrinks) into a positive p; here p is solved without the
+absolute value, and p <= 0 is reported as divergence, never as an order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+SAFETY_FACTOR = 1.25
+"""Roache's factor of safety for a three-grid study with an observed order."""
+
+MONOTONE = "monotone"
+OSCILLATORY = "oscillatory"
+DIVERGENT = "divergent"
+INDETERMINATE = "indeterminate"
+
+
+@dataclasses.dataclass(frozen=True)
+class ThreeGridStudy:
+    """Result of the three-grid procedure for one quantity (grids fine -> coarse).
+
+    Attributes:
+      h: grid sizes (h1, h2, h3), h1 < h2 < h3.
+      values: (phi1, phi2, phi3) on those grids.
+      r21, r32: refinement ratios h2 / h1, h3 / h2.
+      behaviour: "monotone", "oscillatory" (eps32 / eps21 < 0), "divergent" (no
+        positive order fits: the differences do not shrink with h) or "indeterminate"
+        (a difference is zero, or the iteration for p did not converge).
+      p: observed order (nan unless monotone).
+      extrapolated: Richardson extrapolated value phi_ext21 (nan unless monotone).
+      e_a21: approximate relative error |phi1 - phi2| / |phi1|.
+      e_ext21: extrapolated relative error |phi_ext - phi1| / |phi_ext| (nan unless
+        monotone).
+      gci_fine: GCI_fine21, relative (0.05 = 5 %; nan unless monotone).
+      gci_medium: GCI of grid 2 from the same extrapolation, Fs |phi_ext - phi2| / |phi2|.
+      asymptotic_ratio: GCI32 / (r21^p GCI21), ~1 in the asymptotic range (Roache).
+      spread: (max - min) / |phi1| of the three values, the oscillation amplitude used
+        for non-monotone sequences (not a GCI).
+      note: why a number is missing, or a warning (empty when all is well).
+    """
+
+    h: tuple[float, float, float]
+    values: tuple[float, float, float]
+    r21: float
+    r32: float
+    behaviour: str
+    p: float
+    extrapolated: float
+    e_a21: float
+    e_ext21: float
+    gci_fine: float
+    gci_medium: float
+    asymptotic_ratio: float
+    spread: float
+    note: str = ""
+
+    def as_dict(self) -> dict:
+        """JSON-ready dict (nan -> None)."""
+        def clean(v):
+            if isinstance(v, tuple):
+                return [clean(x) for x in v]
+            if isinstance(v, float) and not math.isfinite(v):
+                return None
+            return v
+        return {k: clean(v) for k, v in dataclasses.asdict(self).items()}
+
+
+def observed_order(r21: float, r32: float, eps21: float, eps32: float,
+                   tol: float = 1e-12, max_iter: int = 200) -> tuple[float, bool]:
+    """Observed order p by fixed-point iteration of Celik's Eq. (5) (signed, see module).
+
+    Args:
+      r21, r32: refinement ratios (> 1).
+      eps21, eps32: phi2 - phi1 and phi3 - phi2 (same sign: monotone sequence).
+    Returns:
+      (p, converged). p <= 0 means the differences do not shrink with h.
+    """
+    s = 1.0 if eps32 / eps21 > 0 else -1.0
+    lr = math.log(abs(eps32 / eps21))
+    p = lr / math.log(r21)  # the constant-ratio answer as the start
+    for _ in range(max_iter):
+        if p == 0.0:
+            p = 1e-9
+        q = math.log((r21 ** p - s) / (r32 ** p - s))
+        p_new = (lr + q) / math.log(r21)
+        if not math.isfinite(p_new):
+            return float("nan"), False
+        if abs(p_new - p) <= tol * max(1.0, abs(p_new)):
+            return p_new, True
+        p = p_new
+    return p, False
+
+
+def three_grid_study(h, values, safety_factor: float = SAFETY_FACTOR) -> ThreeGridStudy:
+    """The three-grid procedure for one quantity.
+
+    Args:
+      h: three grid sizes, any order (sorted here fine -> coarse), all distinct and > 0.
+      values: the quantity on those grids (same order as h).
+      safety_factor: Fs of the GCI (1.25).
+    Returns:
+      ThreeGridStudy; behaviour says whether p, the extrapolation and the GCI exist.
+    """
+    h = np.asarray(h, float)
+    values = np.asarray(values, float)
+    if h.shape != (3,) or values.shape != (3,):
+        raise ValueError(f"three_grid_study: need 3 grid sizes and 3 values, got h {h.shape}, "
+                         f"values {values.shape}; pass one consecutive triple of levels")
+    if np.any(h <= 0) or len(np.unique(h)) != 3:
+        raise ValueError(f"three_grid_study: grid sizes h={h.tolist()} must be distinct and > 0")
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"three_grid_study: values {values.tolist()} must be finite "
+                         "(a failed run?)")
+    order = np.argsort(h)
+    (h1, h2, h3), (f1, f2, f3) = h[order], values[order]
+    r21, r32 = h2 / h1, h3 / h2
+    eps21, eps32 = f2 - f1, f3 - f2
+    scale = abs(f1) if f1 != 0 else max(abs(f2), abs(f3), 1e-300)
+    spread = float((values.max() - values.min()) / scale)
+    e_a21 = abs(eps21) / scale
+    nan = float("nan")
+    common = {"h": (float(h1), float(h2), float(h3)),
+              "values": (float(f1), float(f2), float(f3)),
+              "r21": float(r21), "r32": float(r32), "e_a21": float(e_a21), "spread": spread}
+
+    def without(behaviour, note, p=nan):
+        return ThreeGridStudy(**common, behaviour=behaviour, p=p, extrapolated=nan,
+                              e_ext21=nan, gci_fine=nan, gci_medium=nan,
+                              asymptotic_ratio=nan, note=note)
+
+    if eps21 == 0.0 or eps32 == 0.0:
+        return without(INDETERMINATE, "a difference between grids is exactly zero")
+    if eps32 / eps21 < 0:
+        return without(OSCILLATORY, "eps32 / eps21 < 0: the values oscillate with h; "
+                       "no order or extrapolation, spread given instead")
+    p, ok = observed_order(r21, r32, eps21, eps32)
+    if not ok:
+        return without(INDETERMINATE, "the fixed-point iteration for p did not converge")
+    if p <= 0:
+        return without(DIVERGENT, "the differences grow as h shrinks (p <= 0)", p=float(p))
+    rp = r21 ** p
+    ext = (rp * f1 - f2) / (rp - 1)
+    gci_fine = safety_factor * e_a21 / (rp - 1)
+    gci_medium = safety_factor * abs(ext - f2) / abs(f2) if f2 != 0 else nan
+    gci32 = safety_factor * abs(eps32) / abs(f2) / (r32 ** p - 1) if f2 != 0 else nan
+    e_ext = abs(ext - f1) / abs(ext) if ext != 0 else nan
+    note = ""
+    if p < 0.5 or p > 4.0:
+        note = f"observed order p = {p:.2f} is far from the element's order (1..2): " \
+               "not in the asymptotic range, treat the GCI with caution"
+    return ThreeGridStudy(**common, behaviour=MONOTONE, p=float(p), extrapolated=float(ext),
+                          e_ext21=float(e_ext), gci_fine=float(gci_fine),
+                          gci_medium=float(gci_medium),
+                          asymptotic_ratio=float(gci32 / (rp * gci_fine)), note=note)
+
+
+def relative_gci(value: float, extrapolated: float,
+                 safety_factor: float = SAFETY_FACTOR) -> float:
+    """GCI of any grid from an extrapolated value: Fs |phi_ext - phi| / |phi| (relative).
+
+    For the finest grid of the triple this equals GCI_fine21; for a coarser grid it is its
+    estimated discretisation error (times Fs) against the finest triple's extrapolation.
+    """
+    if not (math.isfinite(value) and math.isfinite(extrapolated)) or value == 0:
+        return float("nan")
+    return safety_factor * abs(extrapolated - value) / abs(value)

@@ -1,0 +1,133 @@
+"""The surgical outcomes, each defined once as a function of the state.
+
+A state's outcomes (:func:`outcomes`): IOP, cavity volume, axial length, buckle
+indentation, suture force and the clinical optics (corneal power and astigmatism,
+anterior chamber depth; eyefem.eye.optics); a buckle body adds its own (a band's tension
+and shortening). The outcomes of an operation are changes from the pressurised
+pre-operative eye (:func:`changes`: axial length, refraction, corneal power, anterior
+chamber depth). The geometric ones are written with jax.numpy on node positions, so the
+reported value (numpy) and its adjoint gradient (eyefem.eye.design, JAX) come from the
+same function.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from eyefem.eye import optics
+from eyefem.eye.parts import SurgeryParts, buckle_coords
+from eyefem.fem.units import MMHG
+
+
+@dataclasses.dataclass(frozen=True)
+class OutcomeNodes:
+    """The node ids the geometric outcomes read (fixed for one eye mesh).
+
+    Attributes: under, beside: outer scleral nodes under the buckle's central half and
+    1.5-3 mm beside it; apex, pole: corneal apex and outer posterior pole; cornea: the
+    anterior corneal nodes of the fit zone (cornea_zone_mm across); lens_pole: the lens's
+    anterior pole; n_nodes: nodes of the mesh (the displacement block of q).
+    """
+
+    under: np.ndarray
+    beside: np.ndarray
+    apex: int
+    pole: int
+    cornea: np.ndarray
+    cornea_zone_mm: float
+    lens_pole: int
+    n_nodes: int
+
+
+def outcome_nodes(parts: SurgeryParts) -> OutcomeNodes:
+    """The outcome node sets of the parts' eye and buckle. The indentation reads the
+    buckle's cross-section (encircling: all around; segmental: within 2 mm of the sponge
+    centre); ValueError where the mesh has no scleral node under or beside the buckle."""
+    mesh, b = parts.eye.mesh, parts.buckle
+    a, ok = buckle_coords(parts)
+    nodes = parts.sclera_nodes
+    under = nodes[ok & (np.abs(a) < b.width / 4)]
+    beside = nodes[ok & (np.abs(a) > b.width / 2 + 1.5) & (np.abs(a) < b.width / 2 + 3.0)]
+    if not len(under) or not len(beside):
+        raise ValueError("indentation: no scleral nodes under or beside the buckle; refine the mesh")
+    cornea, zone = optics.cornea_zone(mesh)
+    return OutcomeNodes(under, beside, int(mesh.node_set("eye/apex")[0]),
+                        int(mesh.node_set("eye/pole")[0]), cornea, zone,
+                        optics.lens_anterior_pole(mesh), int(mesh.n_nodes))
+
+
+def positions(X, q, ids):
+    """Current positions (k, 3) of the nodes ids: reference X (n_nodes, 3) + displacement."""
+    return X[ids] + q[: 3 * len(X)].reshape(-1, 3)[ids]
+
+
+def indentation(X, q, nodes: OutcomeNodes):
+    """Buckle indentation height, mm: the mean outer radius of the sclera beside the buckle
+    minus that under its central half."""
+    r = lambda ids: jnp.mean(jnp.linalg.norm(positions(X, q, ids), axis=1))  # noqa: E731
+    return r(nodes.beside) - r(nodes.under)
+
+
+def eye_optics(X, q, nodes: OutcomeNodes) -> dict:
+    """Axial length (mm), corneal power and astigmatism (D), anterior chamber depth (mm)."""
+    x = X + q[: 3 * len(X)].reshape(-1, 3)
+    return {"axial_length_mm": jnp.linalg.norm(x[nodes.apex] - x[nodes.pole]),
+            "corneal_power_D": optics.corneal_power_d(x, nodes.cornea),
+            "corneal_astigmatism_D": optics.corneal_astigmatism_d(x, nodes.cornea),
+            "anterior_chamber_depth_mm": optics.anterior_chamber_depth(x, nodes.apex,
+                                                                     nodes.lens_pole)}
+
+
+def changes(now: dict, preop: dict) -> dict:
+    """The outcomes of an operation from the optics (:func:`eye_optics`) of a state and of
+    the pressurised pre-operative eye: axial length change (mm), refraction change (D;
+    negative: myopic), corneal power change (D), anterior chamber depth change (mm)."""
+    d_axial = now["axial_length_mm"] - preop["axial_length_mm"]
+    d_power = now["corneal_power_D"] - preop["corneal_power_D"]
+    return {"axial_length_change_mm": d_axial,
+            "refraction_change_D": optics.refraction_change_d(d_axial, d_power),
+            "corneal_power_change_D": d_power,
+            "anterior_chamber_depth_change_mm": (now["anterior_chamber_depth_mm"]
+                                                 - preop["anterior_chamber_depth_mm"])}
+
+
+def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
+    """The outcomes every buckle reports at state q (n_dof,): IOP (mmHg), cavity volume
+    (mm^3), axial length and its change from the unloaded eye (mm), indentation (mm),
+    largest suture bar force (N), corneal power and astigmatism (D), anterior chamber
+    depth (mm). A buckle body adds its own (BuckleBody.outcomes)."""
+    X, nodes = model.mesh.nodes, outcome_nodes(parts)
+    cav = model.term("cavity")
+    P, V = cav.pressures(q, theta["cavity"])
+    closed = theta["iop"]["p"] == 0.0  # close_cavity releases the surface load
+    iop = float(P[0]) if closed else float(theta["iop"]["p"])
+    forces = model.term("sutures").forces(q, theta["sutures"])
+    now = {k: float(v) for k, v in eye_optics(X, q, nodes).items()}
+    unloaded = eye_optics(X, np.zeros_like(q), nodes)["axial_length_mm"]
+    return {"iop_mmhg": iop / MMHG, "volume_mm3": float(V[0]),
+            "axial_length_mm": now["axial_length_mm"],
+            "axial_length_change_unloaded_mm": now["axial_length_mm"] - float(unloaded),
+            "indentation_mm": float(indentation(X, q, nodes)),
+            "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
+            else 0.0, **{k: v for k, v in now.items() if k != "axial_length_mm"}}
+
+
+def stage_summary(rows) -> list[dict]:
+    """The last row of every stage, with the changes since the end of the first stage (the
+    pressurised pre-operative eye: :func:`changes`) and its volume change."""
+    out, pre = [], None
+    for i, r in enumerate(rows):
+        if i + 1 < len(rows) and rows[i + 1]["stage"] == r["stage"]:
+            continue
+        pre = r if pre is None else pre
+        out.append({"stage": r["stage"], "iop_mmhg": r["iop_mmhg"],
+                    "indentation_mm": r["indentation_mm"],
+                    "axial_length_mm": r["axial_length_mm"],
+                    "volume_change_mm3": r["volume_mm3"] - pre["volume_mm3"],
+                    "max_suture_force_N": r["max_suture_force_N"],
+                    "corneal_astigmatism_D": r["corneal_astigmatism_D"],
+                    **{k: float(v) for k, v in changes(r, pre).items()}})
+    return out

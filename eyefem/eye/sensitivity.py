@@ -1,0 +1,156 @@
+"""Adjoint gradients of a surgery's outcomes with respect to its design variables.
+
+:class:`DesignGradients` is the gradient half of eyefem.eye.design.SurgerySimulator: three
+adjoint solves per outcome (stages 3, 2 and the pre-operative stage 1), each reusing the
+last Newton factorisation of its stage, chained through the maps from the design to the
+stages' params (eyefem.eye.design's module docstring has the equations).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from eyefem.eye.outcomes import changes, eye_optics
+from eyefem.eye.parts import snug_scale
+from eyefem.eye.rigid_buckle import suture_frame, suture_layout
+from eyefem.eye.sutures import radial_bite_sensitivity
+from eyefem.eye.variables import (
+    DESIGN_VARIABLES,
+    OPTICAL_CHANGES,
+    OUTCOMES,
+    STAGE_PARAMS,
+)
+from eyefem.fem.cavity import cavity_pressures
+from eyefem.solve.adjoint import value_and_grad
+
+
+class DesignGradients:
+    """d outcome / d design variable of a converged design (mixed into SurgerySimulator,
+    whose attributes it reads: parts, params, model, preop, pulled and the outcome nodes)."""
+
+    def _preop_route(self, res, name: str) -> Callable | None:
+        """q1 -> the outcome with the state held at ``res`` and the pre-operative eye at q1
+        (its gradient is the outcome's dependence on the pre-operative state); None for the
+        outcomes that do not depend on it."""
+        if name not in OPTICAL_CHANGES:
+            return None
+        X, nodes = self.parts.eye.mesh.nodes, self._nodes
+        now = {k: float(v) for k, v in eye_optics(X, res.sol3.q, nodes).items()}
+        return lambda q1: changes(now, eye_optics(X, q1, nodes))[name]
+
+    # --- adjoint ------------------------------------------------------------------
+    def gradients(self, res, outcomes=None) -> dict[str, dict[str, float]]:
+        """d outcome / d design variable for the named outcomes (default: all OUTCOMES):
+        three adjoint solves per outcome."""
+        fns = self.outcome_fns(res)
+        names = list(OUTCOMES) if outcomes is None else list(outcomes)
+        return {name: self._gradient(res, fns[name], self._preop_route(res, name))
+                for name in names}
+
+    def weighted_gradient(self, res, weights: dict) -> dict[str, float]:
+        """d (sum_k w_k outcome_k) / d design variable, for outcome name -> weight w_k: the
+        cost of one outcome's gradient (three adjoint solves) whatever the weights (the
+        backward pass of eyefem.simulate)."""
+        fns = self.outcome_fns(res)
+        items = [(k, float(w)) for k, w in weights.items() if w]
+        routes = [(self._preop_route(res, k), w) for k, w in items]
+        routes = [(r, w) for r, w in routes if r is not None]
+
+        def objective(q, theta):
+            return sum(w * fns[k](q, theta) for k, w in items)
+
+        def route(q1):
+            return sum(w * r(q1) for r, w in routes)
+
+        if not items:
+            return {k: 0.0 for k in DESIGN_VARIABLES}
+        return self._gradient(res, objective, route if routes else None)
+
+    def _gradient(self, res, objective, route) -> dict[str, float]:
+        """d objective / d design: the adjoints of stages 3, 2 and 1, chained through the
+        design map (SurgerySimulator.design_map, by jax.vjp) and the bites' derivatives."""
+        sut, pre = res.sutures, res.preop or self.preop
+        rs = self.parts.eye.geometry.scleral_radius
+        _, g3 = value_and_grad(objective, res.sol3)
+        gL0 = jnp.asarray(g3["sutures"]["L0"])
+
+        def tied_length(q, theta):
+            return jnp.dot(gL0, sut.lengths(q[sut.dofs], theta["sutures"], sut.data))
+
+        _, g2 = value_and_grad(tied_length, res.sol2)
+        g1 = self._preop_adjoint(pre, sum(float(np.sum(g["cavity"]["v_ini"])) for g in (g2, g3)),
+                                 rs * sum(float(np.sum(g[t]["dr"])) for g in (g2, g3)
+                                          for t in ("buckle", "sutures")), route)
+        dxi_w = self._dxi(res, "suture_width")
+        encircling = self.parts.buckle.encircling
+        dxi_m = 0 * dxi_w if encircling else self._dxi(res, "buckle_meridian_deg")
+        bites = (res.sol3.theta["sutures"]["xi"], dxi_w, dxi_m, res.design["suture_width"],
+                 res.design["buckle_meridian_deg"])
+        design = {k: jnp.asarray(v, jnp.float64) for k, v in res.design.items()}
+        total = dict.fromkeys(DESIGN_VARIABLES, 0.0)
+        for stage, g, like in ((1, g1, pre.sol1.theta), (2, g2, res.sol2.theta),
+                               (3, g3, res.sol3.theta)):
+            keys = [(t, k) for t, k in STAGE_PARAMS[stage] if t in g and k in g[t]]
+
+            def params(d, like=like, keys=keys):
+                values = self.design_map(d, like, bites)
+                return [values[t][k] for t, k in keys]
+
+            _, vjp = jax.vjp(params, design)
+            (gd,) = vjp([jnp.asarray(g[t][k], jnp.float64) for t, k in keys])
+            for k, v in gd.items():
+                total[k] += float(v)
+        if encircling:  # its sutures are spread evenly around: no meridian
+            total["buckle_meridian_deg"] = 0.0
+        return total
+
+    def jacobian(self, res, variables, outcomes=None) -> np.ndarray:
+        """d outcome / d variable at the converged design ``res``: array (n_outcomes,
+        n_variables), rows in the order of ``outcomes`` (default: all OUTCOMES), columns
+        in the order of ``variables`` (names in DESIGN_VARIABLES). Built from gradients()."""
+        names = list(OUTCOMES) if outcomes is None else list(outcomes)
+        variables = list(variables)
+        unknown = [v for v in variables if v not in DESIGN_VARIABLES]
+        if unknown:
+            raise ValueError(f"unknown design variables {unknown}; known: "
+                             f"{sorted(DESIGN_VARIABLES)}")
+        grads = self.gradients(res, names)
+        jac = [[grads[o][v] for v in variables] for o in names]
+        return np.array(jac, dtype=float).reshape(len(names), len(variables))
+
+    def _preop_adjoint(self, pre, g_volume, g_scale, route=None):
+        """Stage-1 adjoint: d/dtheta_1 of g_volume V(q1) + g_scale s(q1) + route(q1), the
+        routes by which the pre-operative eye enters the later stages and the outcome
+        (``route``: :meth:`_preop_route`, or None)."""
+        cav = self.model.term("cavity")
+
+        def preop(q, theta):
+            V = cavity_pressures(q, theta["cavity"], cav.data, cav.dofs)[1][0]
+            out = g_volume * V + g_scale * snug_scale(self.parts, q, pre.node)
+            return out if route is None else out + route(q)
+
+        return value_and_grad(preop, pre.sol1)[1]
+
+    def _dxi(self, res, var: str):
+        """d xi / d var (n_bars, 2) of the bites (var: suture_width or buckle_meridian_deg,
+        per degree), exact within each bite's face (eyefem.eye.sutures.
+        radial_bite_sensitivity): a bite is the radial projection of the point
+        p = c + s w/2 a' beside the buckle's centre line (s = -1, +1), so
+        dp/dw = s a'/2 and, the segmental buckle turning about the eye's axis z,
+        dp/dmeridian = z x p (pi / 180 per degree)."""
+        w, m = res.design["suture_width"], res.design["buckle_meridian_deg"]
+        layout = suture_layout(self.parts, w, m)
+        cen, acr, nrm = suture_frame(self.parts, m)
+        ang = np.radians(self.params["suture_angle_deg"])
+        a_rot = np.cos(ang) * acr + np.sin(ang) * np.cross(nrm, acr)
+        out = []
+        for bites, sgn in ((layout.bite_a, -1.0), (layout.bite_b, 1.0)):
+            p = cen + sgn * 0.5 * w * a_rot
+            dp = (sgn * 0.5 * a_rot if var == "suture_width"
+                  else np.pi / 180 * np.cross([0.0, 0.0, 1.0], p))
+            out.append(radial_bite_sensitivity(self.parts.eye.mesh.nodes, bites, p, dp))
+        return np.concatenate(out)

@@ -1,0 +1,171 @@
+"""The load path: stages of load steps, from load factor t = 0 to 1 in each.
+
+Within a stage, prescribed displacements and term params are interpolated linearly from
+their values at the stage start to the stage's targets. Each step is solved by Newton
+(eyefem.solve.newton); a step that fails (diverges, inverts an element, produces
+non-finite values) is cut in half and retried, and the increment grows back after easy
+steps; after ``max_cuts`` cuts the solve stops with :class:`ConvergenceError`, which
+carries the last converged state.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from typing import Any, Callable, Sequence
+
+import jax
+import numpy as np
+
+from eyefem.solve.assembly import Assembler
+from eyefem.solve.model import Model, check_x64
+from eyefem.solve.newton import newton
+from eyefem.solve.options import NewtonOptions
+from eyefem.solve.records import (
+    ACCEPTED_FLAGS,
+    ConvergenceError,
+    Solution,
+    StepFailed,
+    StepRecord,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One stage of a load path.
+
+    Attributes:
+      name: stage name (logs, outputs).
+      n_steps: nominal number of load steps.
+      prescribed: (dofs (n,), targets (n,)): displacement dofs prescribed during the
+        stage and their values (mm) at its end, reached linearly from the start values.
+      params: term name -> params at the end of the stage (linear ramp); others held.
+      active: names of the terms in the energy (None: all).
+      before: optional host-side hook ``f(model, q, theta) -> (model, q, theta)`` run at
+        the stage start (closing a cavity, switching contact on...).
+    """
+
+    name: str
+    n_steps: int
+    prescribed: tuple[np.ndarray, np.ndarray]
+    params: dict = dataclasses.field(default_factory=dict)
+    active: tuple[str, ...] | None = None
+    before: Callable | None = None
+
+    def __post_init__(self):
+        if self.n_steps < 1:
+            raise ValueError(f"stage '{self.name}': n_steps = {self.n_steps}; must be >= 1")
+        d, v = self.prescribed
+        d = np.asarray(d, np.int64).ravel()
+        v = np.broadcast_to(np.asarray(v, np.float64), d.shape).copy()
+        if len(np.unique(d)) != len(d):
+            raise ValueError(f"stage '{self.name}': a dof is prescribed twice")
+        object.__setattr__(self, "prescribed", (d, v))
+
+
+def interpolate(a, b, t):
+    """The pytree (1 - t) a + t b (numpy leaves)."""
+    return jax.tree_util.tree_map(lambda x, y: (1.0 - t) * np.asarray(x) + t * np.asarray(y), a, b)
+
+
+def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
+          options: NewtonOptions = NewtonOptions(),
+          on_step: Callable[[StepRecord, Model, np.ndarray, Any], None] | None = None,
+          on_stage_end: Callable[[int, Model, np.ndarray, Any, list], None] | None = None,
+          completed: Sequence[tuple[np.ndarray, Any]] = ()) -> Solution:
+    """Run a load path from q0 (default zero) with design theta (default model.theta0()).
+
+    ``on_step(record, model, q, theta)`` is called after every converged step (outputs,
+    progress); ``on_stage_end(index, model, q, theta, starts)`` after every completed
+    stage, with ``starts`` the (q, theta) at the start of every stage so far (what a
+    checkpoint needs). To resume, pass ``completed`` = those starts of the stages already
+    done and q0/theta = the state at their end: their ``before`` hooks are replayed on
+    the model (not re-solved) and the load path goes on with the next stage. Raises
+    ConvergenceError with the last converged state on failure.
+    """
+    check_x64()
+    q = np.zeros(model.n_dof) if q0 is None else np.array(q0, dtype=np.float64)
+    theta = model.theta0() if theta is None else theta
+    history: list[StepRecord] = []
+    vref = float(sum(np.sum(t.data["dv"]) for t in model.terms if "dv" in t.data)) or 1.0
+    asm, last_solver, stage = None, None, None
+    starts = list(completed)
+    for (q_s, theta_s), done in zip(completed, stages):
+        if done.before is not None:
+            model, _, _ = done.before(model, np.array(q_s), theta_s)
+    for i_stage, stage in enumerate(stages):
+        if i_stage < len(completed):
+            continue
+        starts.append((q.copy(), theta))
+        if stage.before is not None:
+            model, q, theta = stage.before(model, q, theta)
+        dofs, targets = stage.prescribed
+        prescribed = np.zeros(model.n_dof, bool)
+        prescribed[dofs] = True
+        asm = Assembler(model, prescribed, beta=options.beta)
+        start_vals = q[dofs].copy()
+        theta_start = theta
+        theta_end = dict(theta)
+        for name, p in stage.params.items():
+            model.term(name)
+            theta_end[name] = {**theta[name], **p}
+        t, dt, step, cuts, step_refs, prev = 0.0, 1.0 / stage.n_steps, 0, 0, [], None
+        while t < 1.0 - 1e-12:
+            t_new = min(1.0, t + dt)
+            th = interpolate(theta_start, theta_end, t_new)
+            tic = time.perf_counter()
+            fscale = float(np.median(step_refs)) if step_refs else 0.0
+            starts_q = [q]
+            if options.extrapolate and prev is not None:  # secant predictor along the path
+                starts_q.insert(0, q + (q - prev[0]) * ((t_new - t) / (t - prev[1])))
+            try:
+                for k, q_start in enumerate(starts_q):
+                    dqp = np.zeros(model.n_dof)
+                    dqp[dofs] = start_vals + t_new * (targets - start_vals) - q_start[dofs]
+                    try:
+                        done = newton(model, asm, q_start, th, dqp, options, stage.active, vref,
+                                      fscale, final=t_new >= 1.0 - 1e-12)
+                        break
+                    except StepFailed as exc:
+                        if k + 1 == len(starts_q):
+                            raise
+                        log.debug("step from the extrapolated state failed (%s); retrying from "
+                                  "the last converged state", exc)
+            except StepFailed as exc:
+                cuts += 1
+                if cuts > options.max_cuts:
+                    msg = (f"stage '{stage.name}': step to t = {t_new:.4g} failed after {cuts - 1} "
+                           f"cuts (last increment {dt:.3g}): {exc}. The last converged state "
+                           f"(t = {t:.4g}) is kept")
+                    log.error(msg)
+                    raise ConvergenceError(msg, q, interpolate(theta_start, theta_end, t), history) from None
+                dt *= 0.5
+                log.warning("stage '%s': step to t = %.4g failed (%s); cutting the increment to %.3g",
+                            stage.name, t_new, exc, dt)
+                continue
+            step += 1
+            step_refs.append(done.fref)
+            prev = (q, t)
+            t, q, theta, model, its = t_new, done.q, th, done.model, done.iterations
+            last_solver = done.solver
+            rec = StepRecord(stage.name, step, t, its, done.residual, time.perf_counter() - tic,
+                             {} if done.status.balanced else
+                             {ACCEPTED_FLAGS[done.status]: True, "unbalanced_N": done.unbalanced_N})
+            history.append(rec)
+            log.info("stage %-12s step %3d  t = %.4f  iterations %2d  |r| = %.2e N  (%.2f s)",
+                     stage.name, step, t, its, done.residual, rec.wall)
+            if on_step is not None:
+                on_step(rec, model, q, theta)
+            if cuts and its <= options.grow_iterations:
+                dt = min(1.0 / stage.n_steps, dt * 2.0)
+                cuts = max(cuts - 1, 0)
+        theta = theta_end
+        if on_stage_end is not None:
+            on_stage_end(i_stage, model, q, theta, starts)
+    if asm is not None:
+        asm.model = model
+    return Solution(model, q, theta, history, asm, last_solver,
+                    stage.active if stage is not None else None)

@@ -1,0 +1,163 @@
+"""Newton's method for one load step: the consistent linear predictor, the iterations
+with their convergence test, the contact strategy (eyefem.solve.contact_strategy), the
+acceptance of a stalled step, and the globalised update (eyefem.solve.globalisation)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from eyefem.solve.assembly import Assembler
+from eyefem.solve.contact_strategy import has_contact, repaired, settle_pairing
+from eyefem.solve.globalisation import globalised_update
+from eyefem.solve.model import Model
+from eyefem.solve.options import NewtonOptions
+from eyefem.solve.records import StepFailed, StepResult, StepStatus
+
+log = logging.getLogger(__name__)
+
+PREDICTOR_SCALES = (1.0, 0.5, 0.25, 0.125, 0.0)
+"""Fractions of the linear predictor's correction tried in turn (:func:`predicted`)."""
+
+
+def predicted(q_prescribed, correction, residual):
+    """The start of a step with prescribed increments: q_prescribed (n_dof,) (the last
+    state with the prescribed dofs moved) plus the largest fraction of the consistent
+    linear predictor's ``correction`` (n_dof,) in PREDICTOR_SCALES at which ``residual``
+    (q -> (n_dof,)) is finite. Far from linear (a stiff tire pulled by its ends and held by
+    a penalty contact that the tangent at the fit linearises at a fraction of its
+    stiffness) the full correction pushed the default eye's sclera into inverted
+    elements, and the step was cut twice before Newton could start."""
+    for s in PREDICTOR_SCALES:
+        q = q_prescribed + s * correction
+        if np.all(np.isfinite(residual(q))):
+            if s < 1.0:
+                log.debug("  predictor scaled to %g (the full one inverts an element)", s)
+            return q
+    return q_prescribed + correction  # the iterations report the inverted element
+
+
+
+@dataclasses.dataclass
+class _Iterate:
+    """What Newton carries from one iteration of a step to the next (private, mutable)."""
+
+    model: Model
+    q: np.ndarray
+    fref: float
+    solver: object = None
+    frozen: bool = False  # contact pairs frozen
+    history: list = dataclasses.field(default_factory=list)  # force residuals, N
+    best: tuple | None = None  # (force residual, q, model, paired earlier) of the best iterate
+    flips: list = dataclasses.field(default_factory=list)  # forces left by re-pairings
+
+
+def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOptions,
+           active=None, vref=1.0, fscale=0.0, final=True) -> StepResult:
+    """Solve one load step from q (n_dof,), the state at the previous step.
+
+    dq_prescribed (n_dof,): the increment of the prescribed dofs (zero elsewhere), taken
+    with the consistent linear predictor. The force tolerance is relative to the largest
+    of the step's first out-of-balance force, the reactions and ``fscale`` (the stage's
+    typical step force), so a cut step is not held to a tighter absolute tolerance than
+    a full one. Contact pairs are re-paired every iteration until frozen
+    (NewtonOptions.contact_freeze). A step that stalls below ``stall_rtol`` x the
+    reference is accepted unless it is ``final`` (it ends a stage). The returned model
+    carries the step's pairing. Raises StepFailed (the load path cuts the step)."""
+    free, mult = asm.free_primal, asm.mult
+    s = _Iterate(model, q.copy(), fscale)
+    asm.model = model  # after a failed try the assembler holds that try's contact pairing
+    if np.any(dq_prescribed):
+        _predict(s, asm, theta, dq_prescribed, opts, active)
+    for it in range(opts.max_iter + 1):
+        paired_here = not s.frozen  # this iterate is re-paired at its own state
+        if paired_here:
+            s.model = s.model.update(s.q, theta)
+        asm.model = s.model
+        r = s.model.gradient(s.q, theta, active)
+        if not np.all(np.isfinite(r)):
+            raise StepFailed("non-finite residual (an element inverted?)")
+        rf, rm, nf = r[free], r[mult], np.linalg.norm(r[free])
+        s.fref = max(s.fref, nf if it == 0 else 0.0, np.linalg.norm(r[asm.prescribed]))
+        nm = np.linalg.norm(rm) / vref if len(rm) else 0.0
+        log.debug("  iter %d |r_u| %.3e (ref %.3e) |r_vol| %.3e%s", it, nf, s.fref, nm,
+                  " (pairs frozen)" if s.frozen else "")
+        if nf <= opts.rtol * s.fref + opts.atol and nm <= opts.vtol:
+            if not s.frozen:
+                return StepResult(s.model, s.q, it, nf, s.solver, s.fref)
+            done, goes_on = settle_pairing(s.model, s.q, theta, active, asm, opts, s.fref, nf,
+                                           it, s.flips, s.solver)
+            if done is not None:
+                return done
+            s.model, r, nf = goes_on
+            rf, s.frozen, paired_here, asm.model = r[free], False, True, s.model
+        elif nf <= opts.contact_freeze * s.fref and has_contact(s.model):
+            s.frozen = True
+        s.history.append(nf)
+        if nm <= opts.stall_vtol and (s.best is None or nf < s.best[0]):
+            s.best = (nf, s.q, s.model, not paired_here)
+        stalled = _stalled(s.history, opts.stall_iterations)
+        if not final and stalled and s.best is not None and s.best[0] <= opts.stall_rtol * s.fref:
+            accepted = _accept_stall(s, asm, theta, active, opts, it)
+            if accepted is not None:
+                return accepted
+            continue
+        if stalled and not s.frozen and nf <= opts.modified_newton * s.fref and has_contact(s.model):
+            # re-paired at every iterate, the pairing flips back and forth above the
+            # freeze threshold (the residual alternates between two values): freeze it,
+            # converge, and let the re-pairing decide (contact_rtol, contact_cycle_rtol)
+            log.debug("  stalled with the pairs re-paired at every iterate: pairs frozen")
+            s.frozen, s.history = True, []
+        if opts.stall_cut and stalled and min(s.history) <= opts.modified_newton * s.fref:
+            raise StepFailed(f"stalled at |r_u| = {nf:.3e} N (reference {s.fref:.3e} N, volume "
+                             f"residual {nm:.2e}) after {it} iterations")
+        if it == opts.max_iter:
+            break
+        s.q, s.solver = globalised_update(s.model, asm, s.q, theta, active, opts, rf, rm, nf, nm,
+                                          s.fref, vref, s.frozen)
+    raise StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
+                     f"reference {s.fref:.3e} N, volume residual {nm:.2e})")
+
+
+def _predict(s: _Iterate, asm: Assembler, theta, dq_prescribed, opts: NewtonOptions, active):
+    """The step's start: the prescribed increment with the consistent linear predictor
+    (:func:`predicted`); the reference force becomes the predictor's right-hand side."""
+    free, mult, model, q = asm.free_primal, asm.mult, s.model, s.q
+    r, K, B, D, lr = asm.assemble(q, theta, active)
+    hv = model.hvp(q, dq_prescribed, theta, active)
+    s.solver = asm.solver(K, B, D, lr, opts.backend, cg_rtol=opts.cg_rtol)
+    rhs = r + hv
+    x, y = s.solver.solve(-rhs[free], -rhs[mult])
+    s.q = predicted(q + dq_prescribed, asm.expand(x, y),
+                    lambda z: model.gradient(z, theta, active))
+    s.fref = np.linalg.norm(rhs[free])
+
+
+def _stalled(history: list, k: int) -> bool:
+    """Whether the best residual of the last k iterations is not 10% below the best before
+    them (on a plateau the residual wanders up and down)."""
+    return len(history) > k and min(history[-k:]) > 0.9 * min(history[:-k])
+
+
+def _accept_stall(s: _Iterate, asm: Assembler, theta, active, opts: NewtonOptions, it: int):
+    """A stalled step's best iterate, flagged STALLED; None if it was found with the pairs
+    frozen and re-paired is out of balance by more than stall_repair_rtol (the pairs are
+    then released and Newton goes on)."""
+    nf_best, q_best, model_best, paired_earlier = s.best
+    note, unbalanced = "", nf_best
+    if paired_earlier:  # in balance with earlier pairs: accepted if nearly so re-paired
+        _, _, nf2, fc = repaired(model_best, q_best, theta, active, asm.free_primal)
+        if nf2 > opts.stall_repair_rtol * max(s.fref, fc):
+            log.debug("  stalled; its best iterate, re-paired, is %.3e N out of balance: "
+                      "pairs released", nf2)
+            s.frozen, s.history, s.best = False, [], None
+            return None
+        note, unbalanced = f"; re-paired, {nf2:.3e} N out of balance", max(nf_best, nf2)
+    log.warning("step accepted on a stall: |r_u| = %.3e N, the best of %d iterations (%.1e of "
+                "the reference %.3e N; tolerance %.1e)%s", nf_best, it, nf_best / s.fref,
+                s.fref, opts.rtol, note)
+    asm.model = model_best
+    return StepResult(model_best, q_best, it, nf_best, s.solver, s.fref, StepStatus.STALLED,
+                      unbalanced)

@@ -1,0 +1,133 @@
+"""eyefem.simulate, the JAX entry point: jax.grad against central differences, jax.jit,
+jax.jacrev, the host simulator, docs/api.md's quick-start, and the errors for bad input.
+
+Everything runs coarse case 1 through simulate's own cache of one simulator (module
+scope in effect): the first call solves the pressurised eye and the three stages; every
+later design is a warm-started continuation step, and jit / jacrev / the docs reuse the
+remembered converged design and its Jacobian. Measured on the shared 2-core machine
+(load ~12): first call 221 s, the Jacobian (3 adjoint solves x 4 outcomes) 187 s, each
+finite-difference design 6 s, the rest a few seconds; about 9 minutes in all there, a few
+on an idle machine.
+"""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+import eyefem
+from eyefem.eye.design import OUTCOMES, SurgerySimulator
+
+ROOT = Path(__file__).resolve().parents[1]
+CASE1 = str(ROOT / "cases" / "surgery" / "case1.toml")
+
+RECORDED = {"iop_mmhg": 25.234206543169915, "indentation_mm": 0.9834220323611618,
+            "axial_length_change_mm": 0.8580145574183504,
+            "max_suture_force_N": 0.17972601659881948}
+"""Case 1 on the coarse mesh, default Newton settings (rtol 1e-8), recorded with this
+code; 1e-6 relative leaves room for the solver's tolerance and the BLAS's summation order."""
+
+
+def iop(design):
+    return eyefem.simulate(CASE1, design, mesh="coarse")["iop_mmhg"]
+
+
+@pytest.fixture(scope="module")
+def base():
+    return eyefem.simulate(CASE1, mesh="coarse")
+
+
+@pytest.fixture(scope="module")
+def grad_width(base):
+    return float(jax.grad(iop)({"suture_width": 9.0})["suture_width"])
+
+
+def test_plain_call_returns_the_recorded_outcomes_as_floats(base):
+    assert list(base) == list(OUTCOMES)
+    assert all(type(v) is float for v in base.values())
+    for k, v in RECORDED.items():
+        assert base[k] == pytest.approx(v, rel=1e-6), k
+    # the parsed case shares the path's simulator and its remembered design
+    assert eyefem.simulate(eyefem.load_case(CASE1), mesh="coarse") == base
+
+
+def test_grad_matches_central_differences(base, grad_width):
+    """The issue's example, h = 1e-3 mm: measured 1.3188249 (central) and 1.3188236
+    (2h) against the adjoint's 1.3188150 mmHg/mm, 7.5e-6 relative. A smaller h would let
+    the IOP's roundoff under Newton's 1e-8 tolerance (K / V_ini = 0.35 MPa/mm^3 amplifies
+    it) dominate; a larger one the truncation (the difference of h and 2h is 1e-6)."""
+    h = 1e-3
+    fd = (iop({"suture_width": 9.0 + h}) - iop({"suture_width": 9.0 - h})) / (2 * h)
+    assert grad_width == pytest.approx(fd, rel=1e-4)
+
+
+def test_jit_gives_the_same_value_and_gradient(base, grad_width):
+    assert float(jax.jit(iop)({"suture_width": 9.0})) == base["iop_mmhg"]
+    value, g = jax.jit(jax.value_and_grad(iop))({"suture_width": 9.0})
+    assert float(value) == base["iop_mmhg"]
+    assert float(g["suture_width"]) == grad_width
+
+
+def test_jacrev_over_two_variables(base, grad_width):
+    jac = jax.jacrev(lambda d: eyefem.simulate(CASE1, d, mesh="coarse"))(
+        {"suture_width": 9.0, "suture_tightening": 0.6})
+    assert set(jac) == set(OUTCOMES)
+    assert float(jac["iop_mmhg"]["suture_width"]) == grad_width
+    assert all(np.isfinite(float(v)) for row in jac.values() for v in row.values())
+    assert float(jac["iop_mmhg"]["suture_tightening"]) > 0  # tighter loops squeeze the eye
+    assert float(jac["max_suture_force_N"]["suture_tightening"]) > 0
+
+
+def test_the_docs_quick_start_runs(base, monkeypatch, capsys):
+    text = (ROOT / "docs" / "api.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.DOTALL)
+    assert blocks, "docs/api.md has no ```python block"
+    monkeypatch.chdir(ROOT)  # the quick-start's paths are relative to the repository
+    for code in blocks:
+        exec(compile(code, "docs/api.md", "exec"), {})  # noqa: S102 (our own docs)
+    assert "d IOP / d suture width" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_plain_call_matches_the_surgery_simulator(base):
+    """What `eyefem run` of the case computes: the same simulator, built directly."""
+    case = eyefem.load_case(CASE1)
+    sim = SurgerySimulator({**case.parameters, "mesh": "coarse"}, case.materials, case.solver)
+    direct = sim.run().outcomes
+    for k in OUTCOMES:
+        assert base[k] == pytest.approx(direct[k], rel=1e-9), k
+
+
+@pytest.mark.parametrize("case, design, mesh, message", [
+    (CASE1, {"suture_widht": 9.0}, "coarse", "did you mean 'suture_width'"),
+    (CASE1, {"suture_width": [9.0, 8.0]}, "coarse", "one scalar per variable"),
+    (CASE1, None, "fine-ish", "mesh = 'fine-ish'"),
+    (str(ROOT / "cases" / "surgery" / "deformable_band.toml"), None, "coarse",
+     r"\[parameters\] buckle_body = 'deformable'"),
+    (str(ROOT / "cases" / "verification" / "uniaxial.toml"), None, None,
+     r"\[case\] problem = 'uniaxial'"),
+])
+def test_bad_input_names_the_field(case, design, mesh, message):
+    with pytest.raises(ValueError, match=message):
+        eyefem.simulate(case, design, mesh=mesh)
+
+
+def test_import_is_lazy_and_x64_is_required():
+    """In a fresh interpreter: `import eyefem` imports no JAX; simulate refuses float32."""
+    code = ("import sys, eyefem\n"
+            "assert 'jax' not in sys.modules, 'import eyefem imported jax'\n"
+            "assert set(eyefem.__all__) <= set(dir(eyefem))\n"
+            "assert isinstance(eyefem.__version__, str)\n"
+            "try:\n"
+            f"    eyefem.simulate({CASE1!r}, mesh='coarse')\n"
+            "except RuntimeError as exc:\n"
+            "    assert 'jax_enable_x64' in str(exc), exc\n"
+            "else:\n"
+            "    raise AssertionError('simulate ran with x64 off')\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, check=False)
+    assert res.returncode == 0, res.stderr[-2000:]

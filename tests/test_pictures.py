@@ -1,0 +1,145 @@
+"""Pictures (eyefem.io.pictures) and run progress (eyefem.io.progress) on tiny inputs.
+
+A spherical shell of 6 x 2^2 x 1 hexahedra stands in for the eye: the plot functions
+write PNGs, draw the buckle and the sutures they are given, colour up to the true
+maximum (an extend arrow only where vmax clips it) and carry the titles passed.
+"""
+
+import logging
+
+import numpy as np
+import pytest
+
+from eyefem.fem.generators import spherical_shell
+from eyefem.io.pictures import (
+    Zoom,
+    boundary_quads,
+    plane_basis,
+    plot_outside,
+    plot_section,
+    section_segments,
+)
+from eyefem.io.progress import Progress
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def shell():
+    """(mesh, deformed positions (n, 3), element values (e,), buckle surface, sutures)."""
+    mesh = spherical_shell(10.0, 1.0, 4, 1)
+    x = mesh.nodes * 1.02
+    values = np.linspace(0.0, 7.5, mesh.n_elem)  # true maximum 7.5
+    u = np.linspace(0, 2 * np.pi, 33)
+    a = np.array([-2.0, 2.0])
+    U, A = np.meshgrid(u, a, indexing="ij")  # a band around z at z = A, radius 11.2
+    pts = np.stack([11.2 * np.cos(U), 11.2 * np.sin(U), A], -1).reshape(-1, 3)
+    idx = np.arange(len(pts)).reshape(len(u), 2)
+    tris = np.concatenate([np.stack([idx[:-1, 0], idx[1:, 0], idx[1:, 1]], 1),
+                           np.stack([idx[:-1, 0], idx[1:, 1], idx[:-1, 1]], 1)])
+    sut_pts = np.array([[11.0, 0.0, -4.0], [11.3, 0.0, -2.0], [0.0, 11.0, 4.0],
+                        [0.0, 11.3, 2.0]])
+    sutures = (sut_pts, np.array([[0, 1], [2, 3]]), np.array([0.4, 0.3]))
+    return mesh, x, values, (pts, tris), sutures
+
+
+def test_section_segments_of_a_square_are_its_cut():
+    """A unit square in the plane z = 0 spanning x in [-1, 1] cut by the plane x = 0:
+    one segment from y = 0 to y = 1 (either split triangle may hold it)."""
+    pts = np.array([[-1.0, 0, 0], [1.0, 0, 0], [1.0, 1.0, 0], [-1.0, 1.0, 0]])
+    seg = section_segments(pts, np.array([[0, 1, 2, 3]]), (1.0, 0, 0))
+    ys = np.sort(np.unique(np.round(seg[:, :, 1], 12)))
+    assert np.allclose(seg[:, :, 0], 0.0)
+    assert ys[0] == 0.0 and ys[-1] == 1.0
+    assert np.allclose(plane_basis((0.0, 1.0, 0.0)), [[1, 0, 0], [0, 0, 1]])
+
+
+def test_section_draws_buckle_sutures_and_true_maximum(shell, tmp_path):
+    mesh, x, values, buckle, sutures = shell
+    title = "Case T: a test band\nstage 'suture': IOP 15.0 mmHg"
+    drawn = plot_section(tmp_path / "s.png", x, mesh.hexes, values, reference=mesh.nodes,
+                         buckle=buckle, sutures=sutures, title=title,
+                         zoom=Zoom((10.2, 0.0, 0.0), 5.0, 10.2, 10.7, "indentation\n0.50 mm"))
+    assert (tmp_path / "s.png").read_bytes()[:8] == PNG
+    assert drawn.title == title
+    assert drawn.n_buckle > 0  # the band's cut: a segment at x = +-11.2 on each side
+    assert drawn.n_sutures == 1  # only the suture in the plane y = 0
+    cut_max = drawn.data_max
+    assert drawn.vmin == 0.0 and drawn.vmax == cut_max and drawn.extend == "neither"
+    assert 0 < cut_max <= 7.5
+
+
+def test_clipped_scale_has_an_extend_arrow(shell, tmp_path):
+    mesh, x, values, *_ = shell
+    drawn = plot_outside(tmp_path / "o.png", x, mesh.hexes, values, vmax=3.0, title="clipped")
+    assert (tmp_path / "o.png").read_bytes()[:8] == PNG
+    assert drawn.vmax == 3.0 and drawn.extend == "max"
+    owner = boundary_quads(mesh.hexes)[1]
+    assert drawn.data_max == pytest.approx(values[owner].max())
+
+
+def test_outside_draws_buckle_sutures_and_excludes(shell, tmp_path):
+    mesh, x, values, buckle, sutures = shell
+    hot = np.argsort(values)[-3:]  # the hottest elements, excluded from the scale
+    drawn = plot_outside(tmp_path / "o.png", x, mesh.hexes, values, buckle=buckle,
+                         sutures=sutures, exclude=hot, title="outside",
+                         directions={"nasal +x": (1, 0, 0), "anterior +z": (0, 0, 1)})
+    assert drawn.n_buckle == len(buckle[1])
+    assert 1 <= drawn.n_sutures <= 2  # those on the side facing the viewer
+    keep = np.setdiff1d(boundary_quads(mesh.hexes)[1], hot)
+    assert drawn.vmax == pytest.approx(values[keep].max()) and drawn.extend == "neither"
+    assert drawn.title == "outside"
+
+
+class _Clock:
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+class _Stage:
+    def __init__(self, name, n_steps):
+        self.name, self.n_steps = name, n_steps
+
+
+def test_progress_lines_throttled_with_time_left(caplog):
+    clock = _Clock()
+    progress = Progress([_Stage("pressurise", 1), _Stage("tighten", 4)], interval=5.0,
+                        clock=clock)
+    with caplog.at_level(logging.INFO, logger="eyefem.io.progress"):
+        clock.now = 10.0
+        progress.step("pressurise", 1, 1.0)  # a stage's end is always logged
+        clock.now = 11.0
+        progress.step("tighten", 1, 0.25)  # 1 s after the last line: quiet
+        clock.now = 20.0
+        progress.beat()  # a step under way for 9 s: a heartbeat
+        clock.now = 21.0
+        progress.step("tighten", 2, 0.5)  # 1 s after the heartbeat: quiet
+        clock.now = 32.0
+        progress.step("tighten", 3, 0.75)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 3, lines
+    assert lines[0].startswith("progress: stage 1/2 pressurise, step 1/1, t = 1.000, 20% done")
+    assert "about 40 s left" in lines[0]  # 10 s for 1 of 5 steps
+    assert "stage 2/2 tighten, step 1/4" in lines[1] and "step 2 under way for 9 s" in lines[1]
+    assert "step 3/4, t = 0.750, 80% done, 32 s elapsed, about 8 s left" in lines[2]
+    assert "[" not in "".join(lines)  # numbers, not arrays
+
+
+def test_progress_heartbeat_thread_stops():
+    progress = Progress([_Stage("a", 1)], interval=0.01)
+    with progress:
+        assert progress._thread is not None and progress._thread.is_alive()
+    assert progress._thread is None
+
+
+@pytest.mark.slow
+def test_surgery_cases_write_their_pictures(coarse_comparison):
+    """Every coarse case 1-6 of the session's comparison (about 10 minutes, shared) wrote
+    the meridional section and the outside view (eyefem.eye.surgery.pictures)."""
+    for name in ("section_von_mises.png", "outside_von_mises.png"):
+        found = sorted(coarse_comparison.rglob(name))
+        assert len(found) == 6, found
+        assert all(p.read_bytes()[:8] == PNG for p in found)
