@@ -209,7 +209,7 @@ def markdown(study: dict) -> str:
             lines.append("| " + " | ".join(row) + " |")
         lines += ["", ("(levels: c coarse, m medium, D default, f fine, F finer; behaviour of "
                        "each triple, observed order p, Richardson value and GCI_fine of its "
-                       "finest level; (!): p outside 0.5..4, not in the asymptotic range; "
+                       "finest level; (!): p outside 0.5..4 or the extrapolation changes sign; "
                        "'GCI of default': Fs |phi_ext - phi_default| / |phi_default| against "
                        "the finest triple's extrapolation)"), ""]
     return "\n".join(lines)
@@ -237,7 +237,8 @@ def plot(case: str, s: dict, path: Path) -> None:
                     label=f"Richardson (p = {t['p']:.2f})")
             ax.axhline(t["extrapolated"], color="C2", ls=":", lw=0.8)
         elif t:
-            what = t["behaviour"] if not t["note"] else f"p = {t['p']:.2f}: not asymptotic"
+            what = (f"p = {t['p']:.2f}: not credible" if t["behaviour"] == "monotone"
+                    else t["behaviour"])
             ax.text(0.02, 0.05, what, transform=ax.transAxes, fontsize=8)
         ax.set_xlim(left=0.0)
         ax.set_xlabel("h = 1 / n")

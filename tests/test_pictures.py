@@ -1,6 +1,6 @@
 """Pictures (eyefem.io.pictures) and run progress (eyefem.io.progress) on tiny inputs.
 
-A spherical shell of 6 x 2^2 x 1 hexahedra stands in for the eye: the plot functions
+A spherical shell of 6 x 3^2 x 1 hexahedra (no node layer on the plane y = 0) stands in for the eye: the plot functions
 write PNGs, draw the buckle and the sutures they are given, colour up to the true
 maximum (an extend arrow only where vmax clips it) and carry the titles passed.
 """
@@ -17,6 +17,7 @@ from eyefem.io.pictures import (
     plane_basis,
     plot_outside,
     plot_section,
+    section_polygons,
     section_segments,
 )
 from eyefem.io.progress import Progress
@@ -27,7 +28,7 @@ PNG = b"\x89PNG\r\n\x1a\n"
 @pytest.fixture(scope="module")
 def shell():
     """(mesh, deformed positions (n, 3), element values (e,), buckle surface, sutures)."""
-    mesh = spherical_shell(10.0, 1.0, 4, 1)
+    mesh = spherical_shell(10.0, 1.0, 3, 1)
     x = mesh.nodes * 1.02
     values = np.linspace(0.0, 7.5, mesh.n_elem)  # true maximum 7.5
     u = np.linspace(0, 2 * np.pi, 33)
@@ -64,9 +65,10 @@ def test_section_draws_buckle_sutures_and_true_maximum(shell, tmp_path):
     assert drawn.title == title
     assert drawn.n_buckle > 0  # the band's cut: a segment at x = +-11.2 on each side
     assert drawn.n_sutures == 1  # only the suture in the plane y = 0
-    cut_max = drawn.data_max
-    assert drawn.vmin == 0.0 and drawn.vmax == cut_max and drawn.extend == "neither"
-    assert 0 < cut_max <= 7.5
+    cut = section_polygons(x, mesh.hexes, (0.0, 1.0, 0.0))[1]
+    assert len(cut) >= 12  # the section: a ring of elements
+    assert drawn.data_max == values[cut].max()  # the true maximum of the cut elements
+    assert drawn.vmin == 0.0 and drawn.vmax == drawn.data_max and drawn.extend == "neither"
 
 
 def test_clipped_scale_has_an_extend_arrow(shell, tmp_path):
@@ -117,6 +119,8 @@ def test_progress_lines_throttled_with_time_left(caplog):
         progress.beat()  # a step under way for 9 s: a heartbeat
         clock.now = 21.0
         progress.step("tighten", 2, 0.5)  # 1 s after the heartbeat: quiet
+        clock.now = 25.5
+        progress.beat()  # the step converged 4.5 s ago: quiet
         clock.now = 32.0
         progress.step("tighten", 3, 0.75)
     lines = [r.getMessage() for r in caplog.records]

@@ -12,7 +12,56 @@ import pytest
 
 pytestmark = pytest.mark.slow
 
-RECORDED = {}
+RECORDED = {
+    "case1": {
+        "iop_mmhg": 25.234206543169915,
+        "iop_after_tightening_mmhg": 24.88082424390705,
+        "indentation_mm": 0.98342203236116,
+        "axial_length_change_mm": 0.8580145574183504,
+        "volume_change_mm3": -0.0034227161722810706,
+        "max_suture_force_N": 0.17972601659881948,
+    },
+    "case2": {
+        "iop_mmhg": 29.72292783475821,
+        "iop_after_tightening_mmhg": 29.878578281553757,
+        "indentation_mm": 1.476850793973167,
+        "axial_length_change_mm": 1.2198975720290335,
+        "volume_change_mm3": -0.004923918917484116,
+        "max_suture_force_N": 0.21599096032310897,
+    },
+    "case3": {
+        "iop_mmhg": 28.643317299442703,
+        "iop_after_tightening_mmhg": 29.878578281553757,
+        "indentation_mm": 1.423791777145432,
+        "axial_length_change_mm": 1.187744123053264,
+        "volume_change_mm3": -0.004562855221593054,
+        "max_suture_force_N": 0.1913729305566181,
+    },
+    "case4": {
+        "iop_mmhg": 44.442918497811355,
+        "iop_after_tightening_mmhg": 42.640592788360614,
+        "indentation_mm": 2.172063458247843,
+        "axial_length_change_mm": 2.532434184805389,
+        "volume_change_mm3": -0.009846855530668108,
+        "max_suture_force_N": 0.24434447010021365,
+    },
+    "case5": {
+        "iop_mmhg": 15.09942191676131,
+        "iop_after_tightening_mmhg": 15.000626746926178,
+        "indentation_mm": 0.1778358124850481,
+        "axial_length_change_mm": 0.009715059924438663,
+        "volume_change_mm3": -3.3250550586672034e-05,
+        "max_suture_force_N": 0.016763238064978928,
+    },
+    "case6": {
+        "iop_mmhg": 15.08232057236807,
+        "iop_after_tightening_mmhg": 15.000508379495226,
+        "indentation_mm": 0.13574036538017253,
+        "axial_length_change_mm": 0.005610032197264303,
+        "volume_change_mm3": -2.7531196792551782e-05,
+        "max_suture_force_N": 0.01419313142477132,
+    },
+}
 """case -> outcome -> value recorded with commit 5fef21e (coarse mesh)."""
 
 RTOL = 1e-6

@@ -95,8 +95,9 @@ def test_seed_eye_rigidity_is_the_recorded_one(tmp_path):
 @pytest.mark.slow
 @pytest.mark.xfail(reason="open: on the coarse eye at the physiological constants the adjoint "
                    "dK/dc10 (-0.005919 per uL per MPa) differs from central differences "
-                   "(h = 1e-4 c10: -0.005751) by 2.9%; not yet explained (docs/validation.md)",
-                   strict=False)
+                   "(h = 1e-4 c10: -0.005751) by 2.9%; not yet explained (docs/validation.md); "
+                   "not run by default (minutes for a known failure): pytest --runxfail",
+                   run=False)
 def test_adjoint_gradient_of_rigidity_matches_central_differences():
     from optimize.calibrate import PressureVolumeFit, rigidity_of
 

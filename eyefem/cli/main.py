@@ -252,7 +252,7 @@ def cmd_export_feb(args) -> int:
 
 def cmd_import_feb(args) -> int:
     from eyefem.io import manifest
-    from eyefem.io.febio import feb_setup
+    from eyefem.io.febio_read import feb_setup
     from eyefem.io.output import write_text
     from eyefem.io.runner import run_setup
     from eyefem.solve.solver import ConvergenceError

@@ -59,7 +59,8 @@ class ThreeGridStudy:
       asymptotic_ratio: GCI32 / (r21^p GCI21), ~1 in the asymptotic range (Roache).
       spread: (max - min) / |phi1| of the three values, the oscillation amplitude used
         for non-monotone sequences (not a GCI).
-      note: why a number is missing, or a warning (empty when all is well).
+      note: why a number is missing, or a warning (empty when all is well): an order
+        outside 0.5..4 or an extrapolated value of the other sign than phi1.
     """
 
     h: tuple[float, float, float]
@@ -171,6 +172,9 @@ def three_grid_study(h, values, safety_factor: float = SAFETY_FACTOR) -> ThreeGr
     if p < 0.5 or p > 4.0:
         note = f"observed order p = {p:.2f} is far from the element's order (1..2): " \
                "not in the asymptotic range, treat the GCI with caution"
+    elif ext * f1 < 0:
+        note = f"the extrapolated value {ext:.4g} has the other sign than the values: " \
+               "not credible (a quantity that tends to zero, or not asymptotic)"
     return ThreeGridStudy(**common, behaviour=MONOTONE, p=float(p), extrapolated=float(ext),
                           e_ext21=float(e_ext), gci_fine=float(gci_fine),
                           gci_medium=float(gci_medium),

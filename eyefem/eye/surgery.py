@@ -280,7 +280,13 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=Non
     indentation from eyefem.eye.outcomes.outcomes). Returns the two Drawn records.
     """
     from eyefem.eye.outcomes import outcome_nodes, positions
-    from eyefem.io.pictures import Zoom, plane_basis, plot_outside, plot_section
+    from eyefem.io.pictures import (
+        Zoom,
+        plane_basis,
+        plot_outside,
+        plot_section,
+        section_segments,
+    )
 
     mesh, p, b = model.mesh, parts.p, parts.buckle
     q = np.asarray(q)
@@ -312,7 +318,9 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=Non
     nodes = outcome_nodes(parts)
     under, beside = (positions(mesh.nodes, q, ids) for ids in (nodes.under, nodes.beside))
     e1 = plane_basis(normal)[0]
-    side = under[(np.abs(under @ np.asarray(normal)) < 2.0) & (under @ e1 > 0)]
+    near = (section_segments(buckle[0], buckle[1], normal).reshape(-1, 3) if buckle
+            else under[np.abs(under @ np.asarray(normal)) < 2.0])  # at the buckle
+    side = near[near @ e1 > 0]
     centre = (side if len(side) else under).mean(0)
     r_in = float(np.linalg.norm(under, axis=1).mean())
     r_out = float(np.linalg.norm(beside, axis=1).mean())
@@ -323,13 +331,15 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=Non
     section = plot_section(out_dir / "section_von_mises.png", x, mesh.hexes, vm, normal=normal,
                            title=full, reference=mesh.nodes, zoom=zoom,
                            buckle_thickness=b.thickness if b.encircling else 0.0,
+                           buckle_tube=not b.encircling, near=3.0 if b.encircling else 6.0,
                            xlabel=f"meridian {np.degrees(ph):.0f}\N{DEGREE SIGN} from +x "
                                   "(+x nasal), mm", ylabel="z (+ anterior), mm", **kw)
     outside = plot_outside(out_dir / "outside_von_mises.png", x, mesh.hexes, vm, title=full,
                            directions={"nasal +x": (1, 0, 0), "+y": (0, 1, 0),
                                        "anterior +z": (0, 0, 1)},
                            buckle_lift=b.thickness if b.encircling else None,
-                           **{k: v for k, v in kw.items() if k != "exclude_label"})
+                           azim=-60.0 if b.encircling else b.meridian_deg - 50.0, elev=15.0,
+                           **kw)
     return section, outside
 
 

@@ -169,6 +169,13 @@ def _colorbar(fig, norm, cmap, label, extend, data_max, **kw):
     return fig.colorbar(sm, label=label + note, extend=extend, **kw)
 
 
+def _wrapped(title: str, width: int) -> str:
+    """The title with each of its lines wrapped at ``width`` characters."""
+    import textwrap
+
+    return "\n".join(textwrap.fill(line, width) for line in title.splitlines())
+
+
 def _save(fig, path):
     import matplotlib.pyplot as plt
 
@@ -178,13 +185,14 @@ def _save(fig, path):
 
 
 def _near_lines(lines, normal, near):
-    """The (2, 3) suture lines with both ends within ``near`` mm of the plane."""
+    """The (2, 3) suture lines whose midpoint lies within ``near`` mm of the plane, and
+    their forces."""
     if lines is None or not len(lines[0]):
         return np.zeros((0, 2, 3)), np.zeros(0)
     pts, cells, force = lines
     seg = np.asarray(pts)[np.asarray(cells)]
     n = np.asarray(normal, float) / np.linalg.norm(normal)
-    ok = np.all(np.abs(seg @ n) < near, axis=1)
+    ok = np.abs(seg.mean(1) @ n) < near
     return seg[ok], np.asarray(force)[ok]
 
 
@@ -215,7 +223,7 @@ def _draw_section(ax, proj, polys, colours, excluded, outline, buckle_segs, sutu
 def plot_section(path: Path, x, hexes, values, *, normal=(0.0, 1.0, 0.0), axes=None,
                  label="von Mises stress, MPa", title="", vmin=0.0, vmax=None,
                  cmap="viridis", reference=None, exclude=None, exclude_label="excluded",
-                 buckle=None, buckle_thickness=0.0, sutures=None, near=2.0,
+                 buckle=None, buckle_thickness=0.0, buckle_tube=False, sutures=None, near=3.0,
                  zoom: Zoom | None = None,
                  xlabel=None, ylabel=None, highlight=None) -> Drawn:
     """Section of the deformed mesh by the plane normal . p = 0, coloured by an element
@@ -232,9 +240,11 @@ def plot_section(path: Path, x, hexes, values, *, normal=(0.0, 1.0, 0.0), axes=N
         buckle), named ``exclude_label`` in the legend.
       buckle: (points (m, 3), triangles (k, 3)) a rigid buckle's contact surface, drawn
         as its section curve and, with ``buckle_thickness`` (mm) > 0, the body of a ring
-        (encircling) buckle shaded up to its outer face (:func:`_ring_body`).
-      sutures: (points (2s, 3), lines (s, 2), force_N (s,)) drawn where both ends lie
-        within ``near`` mm of the plane.
+        (encircling) buckle shaded up to its outer face (:func:`_ring_body`); with
+        ``buckle_tube`` the region between its inner and outer section arcs (a sponge cut
+        along its axis) shaded.
+      sutures: (points (2s, 3), lines (s, 2), force_N (s,)) drawn, projected on the
+        plane, where their midpoint lies within ``near`` mm of it.
       zoom: a zoomed panel at the buckle with the indentation marked (:class:`Zoom`).
       highlight: list of (polygon (k, 3), colour) filled overlays.
     Returns: :class:`Drawn`.
@@ -262,8 +272,8 @@ def plot_section(path: Path, x, hexes, values, *, normal=(0.0, 1.0, 0.0), axes=N
 
     polys, ids = section_polygons(x, hexes, normal)
     skip = np.isin(ids, np.asarray(exclude if exclude is not None else [], np.int64))
-    coloured = [p for p, s in zip(polys, skip) if not s]
-    excluded = [p for p, s in zip(polys, skip) if s]
+    coloured = [p for p, s in zip(polys, skip, strict=True) if not s]
+    excluded = [p for p, s in zip(polys, skip, strict=True) if s]
     vals = np.asarray(values, float)[ids[~skip]]
     colours, norm, data_max, extend = _scale(vals, vmin, vmax, cmap)
     outline = (section_segments(reference, boundary_quads(hexes)[0], normal)
@@ -274,7 +284,8 @@ def plot_section(path: Path, x, hexes, values, *, normal=(0.0, 1.0, 0.0), axes=N
 
     fig = plt.figure(figsize=(11.5, 6.2) if zoom else (7.2, 6.2), dpi=130)
     ax = fig.add_axes([0.07, 0.1, 0.5, 0.74] if zoom else [0.1, 0.1, 0.66, 0.74])
-    body = _ring_body(buckle_segs, buckle_thickness, basis[:, 0] if axes is None else None)
+    body = (_tube_body(buckle_segs, proj) if buckle_tube else
+            _ring_body(buckle_segs, buckle_thickness, basis[:, 0] if axes is None else None))
     drawn = (coloured, colours, excluded, outline, buckle_segs, near_sutures, body)
     _draw_section(ax, proj, *drawn)
     for poly, col in highlight or []:
@@ -289,7 +300,7 @@ def plot_section(path: Path, x, hexes, values, *, normal=(0.0, 1.0, 0.0), axes=N
         handles.append(Line2D([], [], color="0.25", ls=(0, (4, 3)), lw=0.9, label="undeformed"))
     if len(buckle_segs):
         handles.append(Patch(facecolor=BUCKLE_FILL, edgecolor=BUCKLE_COLOUR, lw=1.5,
-                             label="buckle") if buckle_thickness > 0 else
+                             label="buckle") if len(body) else
                        Line2D([], [], color=BUCKLE_COLOUR, lw=2.2, label="buckle"))
     if len(near_sutures[0]):
         handles.append(Line2D([], [], color=SUTURE_COLOUR, lw=1.6,
@@ -307,7 +318,7 @@ def plot_section(path: Path, x, hexes, values, *, normal=(0.0, 1.0, 0.0), axes=N
         cax = fig.add_axes([0.8, 0.15, 0.03, 0.62])
         _colorbar(fig, norm, cmap, label, extend, data_max, cax=cax)
     if title:
-        fig.suptitle(title, fontsize=10)
+        fig.suptitle(_wrapped(title, 120 if zoom else 80), fontsize=10)
     _save(fig, path)
     return Drawn(Path(path), float(norm.vmin), float(norm.vmax), data_max, extend, title,
                  len(buckle_segs), len(near_sutures[0]))
@@ -325,6 +336,21 @@ def _ring_body(segs, thickness, e1):
                    r[~side].max() if (~side).any() else 0.0)
     out = segs / np.maximum(r, 1e-9) * (top[:, None, None] + thickness)
     return np.concatenate([segs, out[:, ::-1]], 1)
+
+
+def _tube_body(segs, proj):
+    """(1, k, 3) polygon between the inner and outer arcs of a tube's section (the
+    segments' end points nearer to / farther from the origin than their mid radius),
+    each ordered by polar angle in the drawing plane."""
+    if not len(segs):
+        return np.zeros((0, 4, 3))
+    pts = np.unique(np.round(segs.reshape(-1, 3), 9), axis=0)
+    r = np.linalg.norm(pts, axis=1)
+    inner = r < (r.min() + r.max()) / 2
+    p2 = proj(pts)
+    ang = np.arctan2(p2[:, 1], p2[:, 0])
+    a, b = pts[inner][np.argsort(ang[inner])], pts[~inner][np.argsort(-ang[~inner])]
+    return np.concatenate([a, b])[None]
 
 
 def _zoom_panel(fig, ax, proj, zoom: Zoom, drawn):
@@ -364,15 +390,16 @@ def _zoom_panel(fig, ax, proj, zoom: Zoom, drawn):
 
 def plot_outside(path: Path, x, hexes, values, *, elev=10.0, azim=-60.0,
                  label="von Mises stress, MPa", title="", vmin=0.0, vmax=None,
-                 cmap="viridis", exclude=None, buckle=None, buckle_lift=None, sutures=None,
-                 directions=None) -> Drawn:
+                 cmap="viridis", exclude=None, exclude_label="excluded from the colour scale",
+                 buckle=None, buckle_lift=None, sutures=None, directions=None) -> Drawn:
     """Outside view of the deformed boundary coloured by the owning element's value.
 
     Args:
       x: (n, 3) deformed positions, mm; hexes (e, 8); values (e,).
       elev, azim: the view (degrees, matplotlib's convention).
       vmin, vmax: colour scale; vmax None: the true maximum of the drawn faces' values.
-      exclude: element ids whose faces are grey, outside the colour scale.
+      exclude: element ids whose faces are grey, outside the colour scale, named
+        ``exclude_label`` in the legend.
       buckle: (points (m, 3), triangles (k, 3)) a rigid buckle's contact surface; with
         ``buckle_lift`` (mm; a ring's thickness) not None its points are moved radially
         to the radius of its outermost point + buckle_lift (a ring's outer face).
@@ -407,7 +434,8 @@ def plot_outside(path: Path, x, hexes, values, *, elev=10.0, azim=-60.0,
         face_colours += [matplotlib.colors.to_rgba(BUCKLE_COLOUR)] * len(tris)
         n_buckle = len(tris)
     fig = plt.figure(figsize=(7.5, 6.5), dpi=130)
-    ax = fig.add_axes([0.0, 0.0, 0.82, 0.9], projection="3d")
+    ax = fig.add_axes([0.0, 0.0, 0.82, 0.86], projection="3d")
+    ax.computed_zorder = False  # the sutures over the surface (only the visible side's)
     edges = [(0.0, 0.0, 0.0, 1.0)] * len(faces) + face_colours[len(faces):]
     ax.add_collection3d(Poly3DCollection(polys, facecolors=face_colours, edgecolors=edges,
                                          linewidths=0.05))
@@ -440,13 +468,13 @@ def plot_outside(path: Path, x, hexes, values, *, elev=10.0, azim=-60.0,
     if n_sut:
         handles.append(Line2D([], [], color=SUTURE_COLOUR, lw=1.8, label="sutures (visible side)"))
     if grey.any():
-        handles.append(Patch(color=EXCLUDED_COLOUR, label="excluded from the colour scale"))
+        handles.append(Patch(color=EXCLUDED_COLOUR, label=exclude_label))
     if handles:
         ax.legend(handles=handles, loc="upper left", fontsize=8, framealpha=0.85)
     cax = fig.add_axes([0.84, 0.2, 0.03, 0.55])
     _colorbar(fig, norm, cmap, label, extend, data_max, cax=cax)
     if title:
-        fig.suptitle(title, fontsize=10)
+        fig.suptitle(_wrapped(title, 85), fontsize=10)
     _save(fig, path)
     return Drawn(Path(path), float(norm.vmin), float(norm.vmax), data_max, extend, title,
                  n_buckle, n_sut)

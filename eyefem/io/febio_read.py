@@ -1,0 +1,443 @@
+"""Reading FEBio 4 input decks of hexahedral Mooney-Rivlin solids back into eyefem (the
+mapping: eyefem.io.febio, docs/febio.md)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from eyefem.fem.materials import MooneyRivlin
+from eyefem.fem.mesh import Mesh, hex_geometry
+from eyefem.fem.surface import PressureLoad
+from eyefem.io.febio import SPEC_VERSION, FebError
+from eyefem.io.runner import Setup
+from eyefem.solve.model import Model, node_dofs, solid_model
+from eyefem.solve.solver import Stage
+
+log = logging.getLogger(__name__)
+
+_XYZ = "xyz"
+
+
+# --------------------------------------------------------------------------- reading
+@dataclasses.dataclass(frozen=True)
+class FebLoads:
+    """The load step of a deck, in eyefem's terms.
+
+    Attributes:
+      prescribed: (dofs (n,), targets (n,) mm) at the end of the step (from zero).
+      pressures: (name, face set, p at the start, p at the end) per pressure load, MPa.
+      n_steps: FEBio's time_steps.
+      bulk_moduli: material name -> FEBio's k (MPa), not used by eyefem.
+    """
+
+    prescribed: tuple[np.ndarray, np.ndarray]
+    pressures: tuple[tuple[str, str, float, float], ...]
+    n_steps: int
+    bulk_moduli: dict
+
+
+def _err(path, msg):
+    return FebError(f"{path}: {msg}")
+
+
+def _floats(text, path, what) -> list[float]:
+    try:
+        return [float(v) for v in (text or "").replace(",", " ").split()]
+    except ValueError:
+        shown = (text or "").strip()[:60]
+        raise _err(path, f"{what}: '{shown}' is not a list of numbers") from None
+
+
+def _ints(text, path, what) -> list[int]:
+    """Comma-separated ids, with FEBio's 'a:b' ranges."""
+    out = []
+    for tok in (text or "").replace(",", " ").split():
+        try:
+            if ":" in tok:
+                a, b = tok.split(":")[:2]
+                out.extend(range(int(a), int(b) + 1))
+            else:
+                out.append(int(tok))
+        except ValueError:
+            raise _err(path, f"{what}: '{tok}' is not a node or element id") from None
+    return out
+
+
+def _child_float(el, tag, path, where, default=None) -> float:
+    c = el.find(tag)
+    if c is None:
+        if default is not None:
+            return default
+        raise _err(path, f"{where}: <{tag}> is missing")
+    v = _floats(c.text, path, f"{where} <{tag}>")
+    if len(v) != 1:
+        raise _err(path, f"{where} <{tag}>: expected one number, got '{c.text}'")
+    return v[0]
+
+
+_IGNORED = {"Globals", "Output", "Module", "Control", "Material", "Mesh", "MeshDomains",
+            "Boundary", "Loads", "LoadData", "Step"}
+
+
+def read_feb(path) -> tuple[Mesh, dict, FebLoads]:
+    """Read an FEBio 4 deck of hex8 Mooney-Rivlin solids with fixed / prescribed
+    displacements and surface pressures (one step, loads linear in time).
+
+    Returns: the mesh (materials named as in the deck, face sets from the Surfaces, node
+      sets from the NodeSets), the materials (name -> MooneyRivlin with c10 = c1,
+      c01 = c2) and the loads (:class:`FebLoads`).
+    Raises: FebError (a ValueError) naming the file and the tag, element or value it
+      cannot read: another spec version, tetrahedra or shells, another material, contact,
+      more than one step, a load curve that is not linear over the step; OSError.
+    """
+    path = Path(path)
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise _err(path, f"not valid XML ({exc})") from None
+    if root.tag != "febio_spec":
+        raise _err(path, f"root tag <{root.tag}>; an FEBio deck starts with <febio_spec>")
+    if root.get("version") != SPEC_VERSION:
+        raise _err(path, f"febio_spec version '{root.get('version')}'; this reader reads "
+                   f"version {SPEC_VERSION} (save the model as FEBio 4 in FEBio Studio)")
+    for el in root:
+        if not isinstance(el.tag, str):
+            continue
+        if el.tag not in _IGNORED and len(el):
+            raise _err(path, f"<{el.tag}> is not supported (eyefem reads hex8 Mooney-Rivlin "
+                       "solids with displacement and pressure loads; remove it)")
+    module = root.find("Module")
+    if module is not None and module.get("type", "solid") != "solid":
+        raise _err(path, f"<Module type=\"{module.get('type')}\">; only 'solid' is supported")
+    sections = {t: root.find(t) for t in ("Control", "Boundary", "Loads")}
+    steps = root.find("Step")
+    if steps is not None and len(steps):
+        if len(steps) > 1:
+            raise _err(path, f"<Step> has {len(steps)} steps; eyefem imports one step")
+        for t, top in list(sections.items()):
+            inner = steps[0].find(t)
+            if inner is not None:
+                if top is not None and len(top) and t != "Control":
+                    raise _err(path, f"<{t}> both at the top and in the step; merge them")
+                sections[t] = inner
+
+    materials, bulk, by_id = _read_materials(root, path)
+    nodes, node_index = _read_nodes(root, path)
+    hexes, blocks, elem_ids = _read_elements(root, path, node_index)
+    mat_of_block = _read_domains(root, path, blocks, materials, by_id)
+    used = sorted({mat_of_block[b] for b, _ in blocks}, key=list(materials).index)
+    mids = np.concatenate([np.full(n, used.index(mat_of_block[b])) for b, n in blocks])
+    _check_jacobians(nodes, hexes, elem_ids, path)
+    face_sets, node_sets = _read_sets(root, path, node_index)
+    mesh = Mesh(nodes, hexes, mids, tuple(used), node_sets, face_sets)
+
+    n_steps, t_end = _read_control(sections["Control"], path)
+    curves = _read_curves(root, path, t_end)
+    prescribed = _read_boundary(sections["Boundary"], path, mesh, curves)
+    pressures = _read_loads(sections["Loads"], path, mesh, curves)
+    loads = FebLoads(prescribed, tuple(pressures), n_steps,
+                     {m: bulk[m] for m in used})
+    log.info("read %s: %d nodes, %d hex8, materials %s, %d prescribed dofs, %d pressure "
+             "loads, %d steps", path, mesh.n_nodes, mesh.n_elem, list(used),
+             len(prescribed[0]), len(pressures), n_steps)
+    return mesh, {m: materials[m] for m in used}, loads
+
+
+def _read_materials(root, path):
+    sec = root.find("Material")
+    if sec is None or not len(sec):
+        raise _err(path, "no <Material> section; define a Mooney-Rivlin material")
+    materials, bulk, by_id = {}, {}, {}
+    for el in sec:
+        if not isinstance(el.tag, str):
+            continue
+        name = el.get("name") or f"material_{el.get('id')}"
+        where = f"material '{name}' (id {el.get('id')})"
+        if (el.get("type") or "").lower() != "mooney-rivlin":
+            raise _err(path, f"{where}: type '{el.get('type')}' is not supported; eyefem "
+                       "reads type=\"Mooney-Rivlin\" (c1, c2, k) only")
+        c1 = _child_float(el, "c1", path, where)
+        c2 = _child_float(el, "c2", path, where, default=0.0)
+        k = _child_float(el, "k", path, where, default=0.0)
+        try:
+            materials[name] = MooneyRivlin.from_terms(name, {"c10": c1, "c01": c2})
+        except ValueError as exc:
+            raise _err(path, f"{where}: {exc}") from None
+        if k < 100.0 * (c1 + c2):
+            log.warning("%s: %s has k = %g MPa < 100 (c1 + c2): FEBio treats it as "
+                        "compressible, eyefem as incompressible; the results will differ",
+                        path, where, k)
+        bulk[name] = k
+        by_id[el.get("id")] = name
+    return materials, bulk, by_id
+
+
+def _read_nodes(root, path):
+    mesh = root.find("Mesh")
+    if mesh is None:
+        raise _err(path, "no <Mesh> section")
+    ids, xyz = [], []
+    for block in mesh.findall("Nodes"):
+        for n in block.findall("node"):
+            x = _floats(n.text, path, f"node {n.get('id')}")
+            if len(x) != 3:
+                raise _err(path, f"node {n.get('id')}: {len(x)} coordinates; expected 3")
+            ids.append(int(n.get("id")))
+            xyz.append(x)
+    if not ids:
+        raise _err(path, "<Mesh> has no <Nodes>")
+    index = {i: k for k, i in enumerate(ids)}
+    if len(index) != len(ids):
+        raise _err(path, "a node id appears twice in <Nodes>")
+    return np.array(xyz, np.float64), index
+
+
+def _read_elements(root, path, node_index):
+    hexes, blocks, elem_ids = [], [], []
+    for block in root.find("Mesh").findall("Elements"):
+        etype, name = block.get("type"), block.get("name")
+        if etype != "hex8":
+            kind = ("tetrahedra" if (etype or "").startswith("tet") else f"'{etype}' elements")
+            raise _err(path, f"<Elements name=\"{name}\"> holds {kind}: hexahedra are needed "
+                       "(type=\"hex8\"); mesh the part with 8-node bricks")
+        n = 0
+        for e in block.findall("elem"):
+            conn = _ints(e.text, path, f"element {e.get('id')}")
+            if len(conn) != 8:
+                raise _err(path, f"element {e.get('id')}: {len(conn)} nodes; hex8 needs 8")
+            try:
+                hexes.append([node_index[i] for i in conn])
+            except KeyError as exc:
+                raise _err(path, f"element {e.get('id')}: node {exc.args[0]} is not in "
+                           "<Nodes>") from None
+            elem_ids.append(e.get("id"))
+            n += 1
+        blocks.append((name, n))
+    if not hexes:
+        raise _err(path, "<Mesh> has no <Elements>")
+    return np.array(hexes, np.int64), blocks, elem_ids
+
+
+def _read_domains(root, path, blocks, materials, by_id):
+    doms = root.find("MeshDomains")
+    if doms is None:
+        raise _err(path, "no <MeshDomains> section; assign a material to every element block")
+    out = {}
+    for d in doms:
+        if not isinstance(d.tag, str):
+            continue
+        if d.tag != "SolidDomain":
+            raise _err(path, f"<MeshDomains><{d.tag} name=\"{d.get('name')}\">: only "
+                       "SolidDomain is supported (no shells, beams or rigid bodies)")
+        mat = d.get("mat")
+        mat = by_id.get(mat, mat)
+        if mat not in materials:
+            raise _err(path, f"SolidDomain '{d.get('name')}': material '{d.get('mat')}' is not "
+                       f"defined in <Material>")
+        out[d.get("name")] = mat
+    for name, _ in blocks:
+        if name not in out:
+            raise _err(path, f"element block '{name}' has no SolidDomain in <MeshDomains>")
+    return out
+
+
+def _check_jacobians(nodes, hexes, elem_ids, path):
+    _, _, det = hex_geometry(nodes, hexes)
+    bad = np.nonzero(np.min(det, axis=1) <= 0)[0]
+    if bad.size:
+        raise _err(path, f"element {elem_ids[bad[0]]}: non-positive Jacobian; the element is "
+                   "inverted or its nodes are not in FEBio's hex8 order (bottom face "
+                   f"counter-clockwise seen from inside, then the top face) ({bad.size} such "
+                   "elements)")
+
+
+def _read_sets(root, path, node_index):
+    mesh = root.find("Mesh")
+    faces, nsets = {}, {}
+
+    def nid(i, where):
+        try:
+            return node_index[i]
+        except KeyError:
+            raise _err(path, f"{where}: node {i} is not in <Nodes>") from None
+
+    for el in mesh:
+        if el.tag in ("Nodes", "Elements"):
+            continue
+        name = el.get("name")
+        if el.tag == "Surface":
+            fs = []
+            for f in el:
+                if f.tag != "quad4":
+                    raise _err(path, f"surface '{name}': <{f.tag}> faces are not supported; "
+                               "quad4 faces of hexahedra are needed")
+                conn = _ints(f.text, path, f"surface '{name}' face {f.get('id')}")
+                fs.append([nid(i, f"surface '{name}'") for i in conn])
+            faces[name] = np.array(fs, np.int64).reshape(-1, 4)
+        elif el.tag == "NodeSet":
+            ids = _ints(el.text, path, f"node set '{name}'") + [
+                int(n.get("id")) for n in el.findall("n")]
+            nsets[name] = np.array([nid(i, f"node set '{name}'") for i in ids], np.int64)
+        elif el.tag == "ElementSet":
+            continue
+        else:
+            raise _err(path, f"<Mesh><{el.tag} name=\"{name}\"> is not supported (contact "
+                       "pairs, edges and discrete sets have no eyefem reader)")
+    return faces, nsets
+
+
+def _read_control(ctrl, path):
+    if ctrl is None:
+        raise _err(path, "no <Control> section (time_steps, step_size)")
+    n = int(_child_float(ctrl, "time_steps", path, "<Control>"))
+    dt = _child_float(ctrl, "step_size", path, "<Control>")
+    if n < 1 or not dt > 0:
+        raise _err(path, f"<Control>: time_steps = {n}, step_size = {dt}; both must be > 0")
+    return n, n * dt
+
+
+def _read_curves(root, path, t_end):
+    """Load controller id -> (value at t = 0, value at the end); linear curves only."""
+    out = {}
+    data = root.find("LoadData")
+    for lc in ([] if data is None else data):
+        if not isinstance(lc.tag, str):
+            continue
+        lid = lc.get("id")
+        if lc.tag != "load_controller" or lc.get("type") != "loadcurve":
+            raise _err(path, f"load controller {lid}: <{lc.tag} type=\"{lc.get('type')}\"> is "
+                       "not supported; use type=\"loadcurve\"")
+        pts = [_floats(p.text, path, f"load curve {lid} point") for p in lc.iter("pt")]
+        if len(pts) < 1 or any(len(p) != 2 for p in pts):
+            raise _err(path, f"load curve {lid}: <points> needs <pt>time,value</pt> pairs")
+        t, v = np.array(pts).T
+        mode = (lc.findtext("interpolate") or "LINEAR").strip().upper()
+        ts = np.linspace(0.0, t_end, 11)
+        vs = np.interp(ts, t, v)
+        line = vs[0] + (vs[-1] - vs[0]) * ts / t_end
+        if np.max(np.abs(vs - line)) > 1e-9 * max(1.0, np.max(np.abs(vs))) or (
+                mode != "LINEAR" and len(pts) > 2):
+            raise _err(path, f"load curve {lid}: not linear over the step [0, {t_end:g}]; "
+                       "eyefem ramps loads linearly within a step")
+        out[lid] = (float(vs[0]), float(vs[-1]))
+    return out
+
+
+def _scale(el, path, curves, where):
+    """(start, end) of a parameter ``value lc=...`` (constant without lc)."""
+    if el.get("type") == "map" or el.get("type") == "math":
+        raise _err(path, f"{where}: value type '{el.get('type')}' is not supported; give one "
+                   "number per boundary condition")
+    v = _floats(el.text, path, where)
+    if len(v) != 1:
+        raise _err(path, f"{where}: expected one number, got '{el.text}'")
+    lc = el.get("lc")
+    if lc is None:
+        return v[0], v[0]
+    if lc not in curves:
+        raise _err(path, f"{where}: load controller {lc} is not defined in <LoadData>")
+    a, b = curves[lc]
+    return v[0] * a, v[0] * b
+
+
+def _read_boundary(sec, path, mesh, curves):
+    dofs, vals = [], []
+    for bc in ([] if sec is None else sec):
+        if not isinstance(bc.tag, str):
+            continue
+        ns, kind = bc.get("node_set"), bc.get("type")
+        where = f"<bc name=\"{bc.get('name')}\" type=\"{kind}\">"
+        if bc.tag != "bc" or ns not in mesh.node_sets:
+            raise _err(path, f"{where}: node set '{ns}' is not defined in <Mesh>")
+        nodes = mesh.node_sets[ns]
+        if kind == "zero displacement":
+            comps = "".join(c for c in _XYZ
+                            if _child_float(bc, f"{c}_dof", path, where, default=0.0) != 0)
+            d = node_dofs(nodes, comps)
+            dofs.append(d)
+            vals.append(np.zeros(len(d)))
+        elif kind == "prescribed displacement":
+            comp = (bc.findtext("dof") or "").strip()
+            if comp not in ("x", "y", "z"):
+                raise _err(path, f"{where}: <dof> '{comp}'; expected x, y or z")
+            val = bc.find("value")
+            if val is None:
+                raise _err(path, f"{where}: <value> is missing")
+            start, end = _scale(val, path, curves, where)
+            if start != 0.0:
+                raise _err(path, f"{where}: the displacement is {start:g} mm at t = 0; eyefem "
+                           "starts from the undeformed state (make the load curve start at 0)")
+            d = node_dofs(nodes, comp)
+            dofs.append(d)
+            vals.append(np.full(len(d), end))
+        else:
+            raise _err(path, f"{where}: boundary condition type '{kind}' is not supported "
+                       "(zero displacement, prescribed displacement)")
+    if not dofs:
+        return np.zeros(0, np.int64), np.zeros(0)
+    d, v = np.concatenate(dofs), np.concatenate(vals)
+    u, cnt = np.unique(d, return_counts=True)
+    if np.any(cnt > 1):
+        bad = u[cnt > 1][0]
+        if np.ptp(v[d == bad]) > 0:
+            raise _err(path, f"node {bad // 3 + 1} component {_XYZ[bad % 3]} is prescribed "
+                       f"twice with different values {sorted(set(v[d == bad]))}")
+        _, first = np.unique(d, return_index=True)
+        d, v = d[np.sort(first)], v[np.sort(first)]
+    return d, v
+
+
+def _read_loads(sec, path, mesh, curves):
+    out = []
+    for sl in ([] if sec is None else sec):
+        if not isinstance(sl.tag, str):
+            continue
+        where = f"<{sl.tag} type=\"{sl.get('type')}\">"
+        if sl.tag != "surface_load" or sl.get("type") != "pressure":
+            raise _err(path, f"{where}: only surface_load type=\"pressure\" is supported")
+        surf = sl.get("surface")
+        if surf not in mesh.face_sets:
+            raise _err(path, f"{where}: surface '{surf}' is not defined in <Mesh>")
+        p = sl.find("pressure")
+        if p is None:
+            raise _err(path, f"{where}: <pressure> is missing")
+        if (sl.findtext("linear") or "0").strip() not in ("0", "false"):
+            log.warning("%s: %s on '%s' has linear = 1 (a dead load); eyefem applies a "
+                        "follower pressure", path, where, surf)
+        p0, p1 = _scale(p, path, curves, where)
+        name = sl.get("name") or f"pressure_{len(out) + 1}"
+        out.append((name, surf, p0, p1))
+    return out
+
+
+def build_model(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, Stage]:
+    """The eyefem model (Q1P0 solid + a PressureLoad per pressure) and its one Stage."""
+    terms = tuple(PressureLoad(name, mesh, surf, p0) for name, surf, p0, _ in loads.pressures)
+    model = solid_model(mesh, materials, terms)
+    stage = Stage("load", loads.n_steps, loads.prescribed,
+                  params={name: {"p": p1} for name, _, _, p1 in loads.pressures})
+    return model, stage
+
+
+def feb_setup(path) -> Setup:
+    """A Setup (for eyefem.io.runner.run_setup) of an FEBio deck: probe records the largest
+    nodal displacement (mm); the summary gives its final value and the deck's sizes."""
+    path = Path(path)
+    mesh, materials, loads = read_feb(path)
+    model, stage = build_model(mesh, materials, loads)
+    n = mesh.n_nodes
+
+    def probe(model, q, theta):
+        u = np.asarray(q[: 3 * n]).reshape(n, 3)
+        return {"max_displacement_mm": float(np.max(np.linalg.norm(u, axis=1)))}
+
+    def finish(rows, out_dir, plots):
+        return {"deck": str(path), "nodes": n, "elements": mesh.n_elem,
+                "max_displacement_mm": rows[-1]["max_displacement_mm"] if rows else 0.0}
+
+    return Setup(path.stem, model, [stage], probe, finish)
