@@ -31,8 +31,8 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from eyefem.fem.cavity import FluidCavity, close_cavity  # noqa: E402
-from eyefem.fem.contact import RigidContact  # noqa: E402
 from eyefem.fem.rigid import plane  # noqa: E402
+from eyefem.fem.rigid_contact import RigidContact  # noqa: E402
 from eyefem.problems.verification import SHELL_FIELDS, inflated_shell  # noqa: E402
 from eyefem.solve.assembly import Assembler  # noqa: E402
 from eyefem.solve.linsolve import available_backends  # noqa: E402

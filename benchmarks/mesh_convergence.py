@@ -30,6 +30,7 @@ import math
 import resource
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -207,11 +208,12 @@ def markdown(study: dict) -> str:
             ok = "" if g is None or bound is None else (" ok" if g <= bound else " **over**")
             row += [_pct(g) + ok, _pct(bound) if bound else "-"]
             lines.append("| " + " | ".join(row) + " |")
-        lines += ["", ("(levels: c coarse, m medium, D default, f fine, F finer; behaviour of "
-                       "each triple, observed order p, Richardson value and GCI_fine of its "
-                       "finest level; (!): p outside 0.5..4 or the extrapolation changes sign; "
-                       "'GCI of default': Fs |phi_ext - phi_default| / |phi_default| against "
-                       "the finest triple's extrapolation)"), ""]
+        legend = ("(levels: c coarse, m medium, D default, f fine, F finer; behaviour of "
+                  "each triple, observed order p, Richardson value and GCI_fine of its "
+                  "finest level; (!): p outside 0.5..4 or the extrapolation changes sign; "
+                  "'GCI of default': Fs |phi_ext - phi_default| / |phi_default| against "
+                  "the finest triple's extrapolation)")
+        lines += ["", textwrap.fill(legend, 92), ""]
     return "\n".join(lines)
 
 

@@ -279,7 +279,7 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m optimize.plan", description=__doc__.split("\n")[0])
     ap.add_argument("case", help="surgery case file (TOML)")
-    ap.add_argument("--mesh", help="override the case's eye mesh level (coarse, medium, default)")
+    ap.add_argument("--mesh", help="override the case's eye mesh level (coarse, medium, default, fine, finer)")
     ap.add_argument("--vars", default="tightening,suture_width,buckle_shift",
                     help="comma-separated design variables to optimise")
     ap.add_argument("--target-indentation", type=float, help="indentation target, mm")

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from eyefem.fem import generators
-from eyefem.fem.contact import RigidContact, SurfaceContact
+from eyefem.fem.contact import SurfaceContact
 from eyefem.fem.materials import invariant_derivatives, mooney_rivlin
 from eyefem.fem.mesh import merge
 from eyefem.fem.rigid import (
@@ -16,6 +16,7 @@ from eyefem.fem.rigid import (
     ring_segment,
     sphere,
 )
+from eyefem.fem.rigid_contact import RigidContact
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage, solve
 

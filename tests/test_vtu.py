@@ -14,9 +14,9 @@ import pytest
 
 from eyefem.fem import generators
 from eyefem.fem.bars import Bars
-from eyefem.fem.contact import RigidContact
 from eyefem.fem.materials import mooney_rivlin
 from eyefem.fem.rigid import plane
+from eyefem.fem.rigid_contact import RigidContact
 from eyefem.fem.surface import PressureLoad
 from eyefem.io.runner import Setup, cell_and_point_fields, run_setup
 from eyefem.solve.model import node_dofs, solid_model

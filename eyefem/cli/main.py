@@ -296,7 +296,7 @@ def main(argv=None) -> int:
     p.add_argument("--no-vtu", action="store_true", help="skip the VTU series")
     p.add_argument("--resume", action="store_true",
                    help="continue after the last completed stage (checkpoint in the output dir)")
-    p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, default)")
+    p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, default, fine, finer)")
     p.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
                    help="tissue constants preset (eyefem.eye.presets): override the case's "
                    "materials_preset; [materials] tables still override single tissues")

@@ -35,6 +35,9 @@ of the modelled part (1/8 of the whole for an octant) and the law holds unchange
 
 Several cavities: one term holds any number (one per entry of ``face_sets``) with
 vector params, one compiled kernel and one rank-one vector per cavity.
+
+Length: the cavity term, its low-rank tangent, closing and the pressure report share
+the volume kernel; about 420 lines.
 """
 
 from __future__ import annotations

@@ -17,10 +17,11 @@ import numpy as np
 
 from eyefem.fem import vessels
 from eyefem.fem.cavity import WATER_BULK, FluidCavity
-from eyefem.fem.contact import RigidContact, SurfaceContact
+from eyefem.fem.contact import SurfaceContact
 from eyefem.fem.materials import mooney_rivlin
 from eyefem.fem.mesh import merge
 from eyefem.fem.rigid import plane
+from eyefem.fem.rigid_contact import RigidContact
 from eyefem.fem.units import MMHG
 from eyefem.io.casefile import Field, positive
 from eyefem.io.output import plot_curves

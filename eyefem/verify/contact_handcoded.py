@@ -126,7 +126,7 @@ def _rigid_check(rng):
     import jax
     import jax.numpy as jnp
 
-    from eyefem.fem.contact import RigidContact
+    from eyefem.fem.rigid_contact import RigidContact
     from eyefem.verify.checks import CheckData
 
     n = rng.standard_normal(3)
