@@ -64,10 +64,10 @@ def cmd_run(args) -> int:
     from eyefem.io.casefile import check_material_names
 
     try:
-        manifest.check_writable(out)  # before building and solving
-        _say_where(case.path, out)
         setup = PROBLEMS[case.problem][1](case.parameters, case.materials)
         check_material_names(case, setup.model.mesh.materials)
+        manifest.check_writable(out)  # before solving; a rejected case leaves no folder
+        _say_where(case.path, out)
     except manifest.OutputError as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 4
