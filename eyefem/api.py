@@ -47,7 +47,8 @@ log = logging.getLogger(__name__)
 CACHED_SIMULATORS = 4
 """How many (case, mesh) simulators simulate() keeps (least recently used dropped)."""
 REMEMBERED_DESIGNS = 8
-"""How many converged designs each simulator remembers (for their backward passes)."""
+"""How many converged designs each simulator remembers (their states, and the gradients of
+single outcomes computed there)."""
 
 _simulators: collections.OrderedDict = collections.OrderedDict()
 _simulators_lock = threading.Lock()
@@ -192,11 +193,20 @@ class _Host:
         return np.array([res.outcomes[k] for k in OUTCOMES], dtype=np.float64)
 
     def cotangent_gradient(self, design: dict, cotangent) -> np.ndarray:
-        """d (cotangent . outcomes) / d design (len(design),), three adjoint solves."""
+        """d (cotangent . outcomes) / d design (len(design),): three adjoint solves. The
+        gradient of a single outcome (a one-hot cotangent: jax.grad of one outcome, a row of
+        jax.jacrev) is remembered with the design, so a jitted or repeated call reuses it."""
         entry = self._entry(design)
-        weights = dict(zip(OUTCOMES, np.asarray(cotangent, dtype=np.float64)))
+        weights = {k: float(w) for k, w in zip(OUTCOMES, np.asarray(cotangent, np.float64)) if w}
         with self.lock:
-            grad = self.sim.weighted_gradient(entry["result"], weights)
+            if len(weights) == 1:
+                (name, w), = weights.items()
+                cache = entry.setdefault("gradients", {})
+                if name not in cache:
+                    cache[name] = self.sim.gradients(entry["result"], [name])[name]
+                grad = {k: w * v for k, v in cache[name].items()}
+            else:
+                grad = self.sim.weighted_gradient(entry["result"], weights)
         return np.array([grad[k] for k in design], dtype=np.float64)
 
     def differentiable(self, names: tuple):

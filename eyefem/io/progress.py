@@ -42,7 +42,7 @@ class Progress:
     :meth:`start` and :meth:`close`.
     """
 
-    def __init__(self, stages: Sequence, completed: int = 0, *, interval: float = 5.0,
+    def __init__(self, stages: Sequence, completed: int = 0, *, interval: float = 15.0,
                  clock: Callable[[], float] = time.monotonic, logger=log):
         self.names = [s.name for s in stages]
         self.n_steps = [max(int(s.n_steps), 1) for s in stages]
