@@ -167,32 +167,36 @@ def cmd_cases(args) -> int:
     return 0
 
 
-def cmd_describe(args) -> int:
+def _known_problem(name: str):
+    """(fields, builder) of the problem ``name``, or None after printing the known ones."""
     from eyefem.catalog import problems
+
+    known = problems()
+    if name not in known:
+        print(f"eyefem: unknown problem '{name}'; known: {', '.join(sorted(known))}",
+              file=sys.stderr)
+        return None
+    return known[name]
+
+
+def cmd_describe(args) -> int:
     from eyefem.io.casefile import describe
 
-    PROBLEMS = problems()  # noqa: N806
-
-    if args.problem not in PROBLEMS:
-        print(f"eyefem: unknown problem '{args.problem}'; known: {', '.join(sorted(PROBLEMS))}",
-              file=sys.stderr)
+    found = _known_problem(args.problem)
+    if found is None:
         return 2
-    fields, builder = PROBLEMS[args.problem]
+    fields, builder = found
     print(f"{args.problem}: {(builder.__doc__ or '').strip().splitlines()[0]}\n[parameters]")
     print(describe(fields))
     return 0
 
 
 def cmd_new_case(args) -> int:
-    from eyefem.catalog import problems
     from eyefem.cli.dialogue import new_case
     from eyefem.io.casefile import CaseError
 
-    PROBLEMS = problems()  # noqa: N806
-
-    if args.problem not in PROBLEMS:
-        print(f"eyefem: unknown problem '{args.problem}'; known: {', '.join(sorted(PROBLEMS))}",
-              file=sys.stderr)
+    found = _known_problem(args.problem)
+    if found is None:
         return 2
     preset = {}
     for item in args.set or []:
@@ -202,7 +206,7 @@ def cmd_new_case(args) -> int:
         k, v = item.split("=", 1)
         preset[k.strip()] = v
     try:
-        fields, build = PROBLEMS[args.problem]
+        fields, build = found
         new_case(args.problem, fields, Path(args.output), preset=preset,
                  accept_defaults=args.yes, title=args.title or "",
                  check=getattr(build, "check", None), force=args.force)
