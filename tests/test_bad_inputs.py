@@ -266,6 +266,73 @@ def test_failed_run_clears_old_results_and_says_failed(tmp_path, capsys, old_res
     assert keep.read_text() == "mine\n"
 
 
+SHELL_PAST_ITS_LIMIT = """\
+[case]
+problem = "inflated_shell"
+[parameters]
+n_per_edge = 2
+n_thick = 1
+pressure_mmHg = 300.0
+steps = 5
+"""
+
+
+def test_load_past_a_limit_point_says_so_and_suggests_volume_control(tmp_path, capsys):
+    # a neo-Hookean shell (c10 = 0.0833 MPa, R/H = 11) carries at most about 140 mmHg
+    out = tmp_path / "out"
+    rc, err = _run(capsys, "run", _write(tmp_path, SHELL_PAST_ITS_LIMIT), "--out", out, "--no-vtu")
+    assert rc == 3
+    assert "limit point" in err and "pressure.p" in err and "volume control" in err
+    assert json.loads((out / "run.json").read_text())["status"] == "failed"
+    assert not (out / "summary.json").exists()
+
+
+def _floating_deck(tmp_path) -> Path:
+    """An FEBio deck of one brick whose base is held in z only, pushed sideways by a
+    pressure: it can slide along x and y and turn about z."""
+    from test_febio import _DECK
+
+    text = _DECK.format(version="4.0", mtype="Mooney-Rivlin", etype="hex8",
+                        conn="1,2,3,4,5,6,7,8", points="<pt>1,1</pt>")
+    text = text.replace("<x_dof>1</x_dof><y_dof>1</y_dof>", "<x_dof>0</x_dof><y_dof>0</y_dof>")
+    text = text[:text.index('    <bc name="pull"')] + "  " + text[text.index("</Boundary>"):]
+    text = text.replace('<NodeSet name="top">5:8</NodeSet>', '<NodeSet name="top">5:8</NodeSet>\n'
+                        '    <Surface name="side"><quad4 id="1">2,3,7,6</quad4></Surface>')
+    text = text.replace("  <LoadData>", '  <Loads><surface_load name="push" surface="side" '
+                        'type="pressure"><pressure lc="1">0.1</pressure></surface_load></Loads>\n'
+                        "  <LoadData>")
+    deck = tmp_path / "floating.feb"
+    deck.write_text(text)
+    return deck
+
+
+def test_singular_tangent_names_the_free_body_and_its_motions(tmp_path, capsys):
+    rc, err = _run(capsys, "import-feb", _floating_deck(tmp_path), "-o", tmp_path / "out",
+                   "--no-vtu")
+    assert rc == 3 and "singular" in err
+    assert "the body of 8 nodes (materials 'm'; terms 'solid', 'push')" in err.lower()
+    assert "translate along x, translate along y and rotate about z freely" in err
+    assert "rotate about x" not in err  # the base held in z stops it
+
+
+def test_materials_many_orders_apart_are_named():
+    from eyefem.fem.materials import mooney_rivlin
+    from eyefem.fem.mesh import Mesh
+    from eyefem.solve.diagnosis import stiffness_spread
+    from eyefem.solve.model import solid_model
+
+    nodes = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1, 2)], float)
+    hexes = np.array([[0, 1, 4, 3, 6, 7, 10, 9], [1, 2, 5, 4, 7, 8, 11, 10]])
+    mesh = Mesh(nodes, hexes, np.array([0, 1]), ("soft", "hard"))
+    model = solid_model(mesh, {"soft": mooney_rivlin("soft", 1e-4, 0.0),
+                               "hard": mooney_rivlin("hard", 1e3, 0.0)})
+    said = stiffness_spread(model, model.theta0())
+    assert "'soft' 0.0002 MPa against 'hard' 2e+03 MPa" in said and "1.0e+07" in said
+    even = solid_model(mesh, {"soft": mooney_rivlin("soft", 0.1, 0.0),
+                              "hard": mooney_rivlin("hard", 1.0, 0.0)})
+    assert stiffness_spread(even, even.theta0()) == ""
+
+
 def test_disk_full_while_writing_is_a_message(tmp_path, capsys, monkeypatch):
     import errno
 

@@ -18,6 +18,7 @@ from typing import Any, Callable, Sequence
 import jax
 import numpy as np
 
+from eyefem.solve.diagnosis import free_motions, limit_point, stiffness_spread
 from eyefem.solve.assembly import Assembler
 from eyefem.solve.model import Model, check_x64
 from eyefem.solve.newton import newton
@@ -113,6 +114,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
             model.term(name)
             theta_end[name] = {**theta[name], **p}
         t, dt, step, cuts, step_refs, prev = 0.0, 1.0 / stage.n_steps, 0, 0, [], None
+        path = [(0.0, q)]  # (load factor, state) of the stage's start and converged steps
         while t < 1.0 - 1e-12:
             t_new = min(1.0, t + dt)
             th = interpolate(theta_start, theta_end, t_new)
@@ -140,6 +142,8 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
                     msg = (f"stage '{stage.name}': step to t = {t_new:.4g} failed after {cuts - 1} "
                            f"cuts (last increment {dt:.3g}): {exc}. The last converged state "
                            f"(t = {t:.4g}) is kept")
+                    msg = " ".join([msg + "."] + _diagnosis(model, q, theta_start, theta_end, t,
+                                                            prescribed, stage, path, exc))
                     log.error(msg)
                     raise ConvergenceError(msg, q, interpolate(theta_start, theta_end, t), history) from None
                 dt *= 0.5
@@ -150,6 +154,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
             step_refs.append(done.fref)
             prev = (q, t)
             t, q, theta, model, its = t_new, done.q, th, done.model, done.iterations
+            path.append((t, q))
             last_solver = done.solver
             rec = StepRecord(stage.name, step, t, its, done.residual, time.perf_counter() - tic,
                              {} if done.status.balanced else
@@ -169,3 +174,19 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
         asm.model = model
     return Solution(model, q, theta, history, asm, last_solver,
                     stage.active if stage is not None else None)
+
+
+def _diagnosis(model, q, theta_start, theta_end, t, prescribed, stage, path, exc) -> list[str]:
+    """Sentences on why a stage failed at load factor t (eyefem.solve.diagnosis); a
+    diagnosis that itself fails is logged and left out, never masking the failure."""
+    theta = interpolate(theta_start, theta_end, t)
+    found = []
+    for check in (lambda: free_motions(model, q, theta, prescribed, stage.active),
+                  lambda: limit_point(path, stage),
+                  lambda: stiffness_spread(model, theta) if "singular" in str(exc)
+                  else ""):
+        try:
+            found.append(check())
+        except Exception as err:  # noqa: BLE001 - a diagnosis must not hide the failure
+            log.debug("failure diagnosis skipped: %r", err)
+    return [f for f in found if f]
