@@ -1,6 +1,7 @@
 """Command line: ``eyefem run CASE``, ``eyefem compare CASES``, ``eyefem verify-tangents``,
 ``eyefem cases``, ``eyefem describe PROBLEM``, ``eyefem new-case PROBLEM``,
-``eyefem export-feb CASE -o model.feb``, ``eyefem import-feb model.feb``.
+``eyefem export-feb CASE -o model.feb``, ``eyefem import-feb model.feb``,
+``eyefem sweep SWEEP.toml``.
 
 The entry point switches JAX to float64, keeps compiled kernels in a persistent cache
 (``EYEFEM_JAX_CACHE``, default ``~/.cache/eyefem/jax``; ``off`` disables it) and sets up
@@ -289,6 +290,67 @@ def cmd_import_feb(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    """``eyefem sweep SWEEP.toml``: every run of a sweep file as a Dask task (eyefem.study)."""
+    from eyefem.study.spec import SweepError, load_sweep
+
+    try:
+        sweep = load_sweep(args.sweep)
+    except SweepError as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2
+    from eyefem.study.sweep import check_dependencies, format_best, run_sweep
+
+    try:
+        check_dependencies()
+    except ImportError as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 2
+    for name in list(logging.root.manager.loggerDict):  # Dask's own INFO lines: quiet
+        if name.split(".")[0] == "distributed":
+            logging.getLogger(name).setLevel(logging.WARNING)
+    if args.workers is not None and args.workers < 1:
+        print(f"eyefem sweep: --workers {args.workers}; give at least 1", file=sys.stderr)
+        return 2
+    from eyefem.io import manifest
+
+    try:
+        res = run_sweep(sweep, out=args.out, scheduler=args.scheduler, workers=args.workers)
+    except manifest.OutputError as exc:
+        print(f"eyefem: {exc}", file=sys.stderr)
+        return 4
+    except OSError as exc:
+        where = f"the Dask scheduler {args.scheduler}" if args.scheduler else "the output folder"
+        print(f"eyefem sweep: {exc}; check {where}", file=sys.stderr)
+        return 4
+    except KeyboardInterrupt:
+        out = args.out or sweep.output
+        print(f"eyefem sweep: interrupted; {out}/results.csv holds the runs that finished; "
+              "the same command continues (completed runs are skipped)", file=sys.stderr)
+        return 130
+    from eyefem.study.plots import plot_sweep
+
+    pngs = plot_sweep(res.rows, sweep.varied, res.out_dir)
+    if args.uncertainty:
+        from eyefem.study.uncertainty import report
+
+        try:
+            print(report(sweep, res.rows, res.out_dir))
+        except ValueError as exc:
+            print(f"eyefem sweep --uncertainty: {exc}", file=sys.stderr)
+            return 2
+    print(f"\n{sweep.title}: {len(res.rows)} runs ({res.computed} computed now, {res.skipped} "
+          f"complete before), {res.failed} failed, {res.wall_s:.1f} s")
+    print(format_best(sweep, res.rows))
+    print(f"  table: {res.out_dir}/results.parquet, results.csv; runs in {res.out_dir}/runs/"
+          + (f"; plots: {', '.join(p.name for p in pngs)}" if pngs else ""))
+    if res.failed:
+        print(f"eyefem sweep: {res.failed} of {len(res.rows)} runs failed or did not converge; "
+              f"their messages are in {res.out_dir}/results.csv (column 'error')", file=sys.stderr)
+        return 3
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="eyefem", description=__doc__.splitlines()[0])
     ap.add_argument("-v", "--verbose", action="count", default=1)
@@ -341,6 +403,16 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--output", help="output directory (default results/<deck name>)")
     p.add_argument("--no-vtu", action="store_true", help="skip the VTU series")
     p.set_defaults(fn=cmd_import_feb)
+    p = sub.add_parser("sweep", help="run a parameter sweep (sweep file) on a Dask cluster")
+    p.add_argument("sweep", help="sweep file (docs/sweep.md)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="an existing Dask scheduler "
+                   "(tcp://host:8786); default: a local cluster")
+    p.add_argument("--workers", type=int, help="worker processes of the local cluster "
+                   "(default: the cores)")
+    p.add_argument("--out", help="output folder (default from the sweep file)")
+    p.add_argument("--uncertainty", action="store_true", help="also propagate the sampled "
+                   "distributions to first order (adjoint gradients) and compare")
+    p.set_defaults(fn=cmd_sweep)
     args = ap.parse_args(argv)
     _setup(args.verbose)
     try:

@@ -1,0 +1,218 @@
+"""Run a sweep on dask.distributed: every run a task, the table rewritten as runs finish.
+
+:func:`run_sweep` plans the runs (eyefem.study.spec.plan), skips those whose folder
+``runs/<index>_<hash8>/`` holds a record (row.json) of the same run hash with status
+'ok' or 'did-not-converge' (the same case and code would give the same answer), submits
+the rest to a Dask cluster (a LocalCluster of one-thread worker processes, or an
+existing scheduler), and as each task finishes writes the table (results.parquet,
+results.csv) and logs the progress. A run that fails is a row with its message; a worker
+that dies has its task re-run by Dask's scheduler (up to ``allowed_failures`` deaths of
+that task, then the row says so); an interrupted sweep keeps what finished, and the same
+command continues it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import time
+import uuid
+from pathlib import Path
+
+from eyefem.io import manifest
+from eyefem.study import table
+from eyefem.study.spec import PlannedRun, Sweep, plan
+from eyefem.study.task import read_record, run_case
+
+log = logging.getLogger(__name__)
+
+SKIP_STATUSES = ("ok", "did-not-converge")
+"""Statuses of a recorded run that a restarted sweep keeps (a 'failed' run, which may
+have failed for a passing reason such as a full disk, is run again)."""
+ALLOWED_FAILURES = 3
+"""Worker deaths a task may cause before the scheduler gives up on it (KilledWorker)."""
+MISSING_DEPENDENCY = ('eyefem sweep needs dask.distributed and pyarrow: '
+                      'pip install "eyefem[sweep]"')
+
+
+@dataclasses.dataclass
+class SweepResult:
+    """What a sweep did: its table rows, the folder, how many runs were computed now,
+    skipped (complete before), failed, and the wall time (s)."""
+
+    rows: list[dict]
+    out_dir: Path
+    computed: int
+    skipped: int
+    failed: int
+    wall_s: float
+
+
+def check_dependencies() -> None:
+    """ImportError with the install command when dask.distributed or pyarrow is missing."""
+    try:
+        import distributed  # noqa: F401
+        import pyarrow  # noqa: F401
+    except ImportError:
+        raise ImportError(MISSING_DEPENDENCY) from None
+
+
+def _fmt_s(s: float) -> str:
+    if not math.isfinite(s):
+        return "?"
+    s = round(s)
+    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else (
+        f"{s // 60}m{s % 60:02d}s" if s >= 60 else f"{s}s")
+
+
+def local_client(n_workers: int | None = None):
+    """A dask Client on a new LocalCluster: ``n_workers`` (default: the cores) worker
+    processes of one thread each (JAX and the sparse solvers are not shared between
+    threads of a run; a process per run keeps their caches apart)."""
+    from distributed import Client, LocalCluster
+
+    n = n_workers or os.cpu_count() or 1
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                           dashboard_address=":0")
+    return Client(cluster)
+
+
+def run_sweep(sweep: Sweep, *, out: str | Path | None = None, client=None,
+              scheduler: str | None = None, workers: int | None = None) -> SweepResult:
+    """Run the sweep's runs on a Dask cluster; returns the table and counts.
+
+    Args:
+      sweep: a validated sweep (eyefem.study.spec.load_sweep).
+      out: output folder (default: the sweep's ``output``).
+      client: a dask Client to use (kept open); else ``scheduler`` (an address of an
+        existing cluster; its workers must see ``out``, a shared file system), else a new
+        LocalCluster of ``workers`` processes (default: the cores), closed at the end.
+    """
+    check_dependencies()
+    import jax
+    from distributed import Client, as_completed
+
+    tic = time.perf_counter()
+    out_dir = manifest.check_writable(Path(out) if out is not None else sweep.output)
+    runs, invalid = plan(sweep)
+    overrides = {i: row for i, row in enumerate(sweep.rows)}
+    records: dict[int, dict] = {}
+    for i, row, msg in invalid:
+        records[i] = {"index": i, "status": "failed", "error": f"invalid case: {msg}",
+                      "wall_s": 0.0, "run_hash": "", "run_dir": ""}
+    todo: list[PlannedRun] = []
+    for r in runs:
+        prev = read_record(out_dir / "runs" / r.folder)
+        if prev and prev.get("run_hash") == r.run_hash and prev.get("status") in SKIP_STATUSES:
+            records[r.index] = prev
+        else:
+            todo.append(r)
+    skipped = len(runs) - len(todo)
+    log.info("sweep %s: %d runs (%d complete before, %d to run, %d invalid) -> %s",
+             sweep.path, len(sweep.rows), skipped, len(todo), len(invalid), out_dir)
+
+    def write_table():
+        rows = table.rows(records, overrides, sweep.varied, sweep.outcomes)
+        table.write(rows, out_dir)
+        return rows
+
+    rows = write_table()
+    computed = 0
+    if todo:
+        own = client is None
+        if own:
+            client = Client(scheduler) if scheduler else local_client(workers)
+        try:
+            n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+            cache = jax.config.jax_compilation_cache_dir or None
+            _allow_failures(client)
+            futures = {}
+            for r in todo:
+                f = client.submit(run_case, r.case_text, str((out_dir / "runs" / r.folder).resolve()),
+                                  run_hash=r.run_hash, index=r.index, gradients=sweep.gradients,
+                                  jax_cache=cache, pure=False,
+                                  key=f"eyefem-run-{r.index:04d}-{r.run_hash[:8]}-{uuid.uuid4().hex[:6]}")
+                futures[f] = r
+            log.info("sweep: %d runs submitted to %d workers (%s)", len(futures), n_workers,
+                     client.scheduler.address)
+            started = time.perf_counter()
+            failed = 0
+            for f in as_completed(futures):
+                r = futures[f]
+                try:
+                    rec = f.result()
+                except Exception as exc:  # noqa: BLE001 - KilledWorker, lost scheduler...
+                    rec = {"index": r.index, "run_hash": r.run_hash, "status": "failed",
+                           "error": f"{type(exc).__name__}: {exc}", "wall_s": math.nan,
+                           "run_dir": str(out_dir / "runs" / r.folder)}
+                records[r.index] = rec
+                computed += 1
+                failed += rec["status"] != "ok"
+                rows = write_table()
+                left = len(futures) - computed
+                per = (time.perf_counter() - started) / computed
+                eta = per * left if left else 0.0
+                log.info("sweep: %d/%d done (%d failed), %d running, %d queued; run %d %s in "
+                         "%s; ~%s left", computed, len(futures), failed, min(left, n_workers),
+                         max(0, left - n_workers), r.index, rec["status"],
+                         _fmt_s(rec.get("wall_s", math.nan)), _fmt_s(eta))
+                if rec["status"] != "ok":
+                    log.warning("sweep: run %d %s: %s", r.index, rec["status"],
+                                str(rec.get("error", ""))[:500])
+        finally:
+            if own:
+                cluster = getattr(client, "cluster", None)
+                client.close()
+                if cluster is not None:
+                    cluster.close()
+    n_failed = sum(r["status"] != "ok" for r in rows)
+    return SweepResult(rows, out_dir, computed, skipped, n_failed, time.perf_counter() - tic)
+
+
+def _allow_failures(client) -> None:
+    """Let a task survive ALLOWED_FAILURES deaths of its worker (the scheduler's
+    ``allowed_failures``) on a cluster this sweep talks to."""
+    def setter(dask_scheduler=None, n=ALLOWED_FAILURES):
+        dask_scheduler.allowed_failures = max(dask_scheduler.allowed_failures, n)
+
+    try:
+        client.run_on_scheduler(setter)
+    except Exception as exc:  # noqa: BLE001 - a scheduler that refuses keeps its own
+        log.debug("sweep: could not set allowed_failures: %s", exc)
+
+
+def best_designs(sweep: Sweep, rows: list[dict]) -> list[dict]:
+    """The ``sweep.best['show']`` best ok rows by the [best] outcome and goal."""
+    b = sweep.best
+    name = b["outcome"]
+    ok = [r for r in rows if r["status"] == "ok" and isinstance(r.get(name), float)
+          and math.isfinite(r[name])]
+    if not name or not ok:
+        return []
+
+    def score(r):
+        v = r[name]
+        return v if b["goal"] == "min" else -v if b["goal"] == "max" else abs(v - b["target"])
+
+    return sorted(ok, key=score)[: b["show"]]
+
+
+def format_best(sweep: Sweep, rows: list[dict]) -> str:
+    """A text table of the best designs (varied parameters, outcomes)."""
+    best = best_designs(sweep, rows)
+    if not best:
+        return "no successful run to rank"
+    b = sweep.best
+    goal = f"closest to {b['target']:g}" if b["goal"] == "target" else f"{b['goal']}imum"
+    cols = ["index", *sweep.varied] + [c for c in best[0] if c not in table.FIXED_COLUMNS
+                                        and c not in sweep.varied and not c.startswith("d_")]
+    width = {c: max(len(c), 12) for c in cols}
+    lines = [f"best designs by {b['outcome']} ({goal}):",
+             "  " + "  ".join(f"{c:>{width[c]}}" for c in cols)]
+    for r in best:
+        cells = [f"{r[c]:>{width[c]}.6g}" if isinstance(r[c], float) else f"{r[c]!s:>{width[c]}}"
+                 for c in cols]
+        lines.append("  " + "  ".join(cells))
+    return "\n".join(lines)
