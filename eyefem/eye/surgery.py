@@ -28,7 +28,8 @@ import numpy as np
 from eyefem.eye.bodies import BASE_TERMS, LoadPath, buckle_body
 from eyefem.eye.buckle_meshes import BAND_C10, RING_KINDS, SPONGE_C10, TIRE_C10
 from eyefem.eye.buckles import KINDS, Buckle, suture_anchor_frame
-from eyefem.eye.eyemodel import LEVELS, EyeGeometry, build_eye
+from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
+from eyefem.eye.eyemodel import LEVELS, build_eye
 from eyefem.eye.outcomes import outcomes, stage_summary
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import PRESETS, SEED_MATERIALS, preset_materials
@@ -127,7 +128,7 @@ SURGERY_FIELDS = [
           lambda v: v in ("facet", "nodal"), "'facet' or 'nodal'"),
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
-]
+] + BIOMETRY_FIELDS
 
 
 def _materials(materials, preset: str = "seed"):
@@ -146,7 +147,7 @@ def surgery(p, materials):
     buckle = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
     body = buckle_body(p, buckle)
     body.warn(p, buckle)
-    eye = build_eye(EyeGeometry(), p["mesh"])
+    eye = build_eye(eye_geometry(p), p["mesh"])
     g = eye.geometry
     mesh, band = body.with_mesh(_with_wetted_surface(eye.mesh), buckle, g, p)
     # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from eyefem.eye.eyemodel import LEVELS, EyeGeometry, build_eye
+from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
+from eyefem.eye.eyemodel import LEVELS, build_eye
 from eyefem.eye.presets import PRESETS, preset_materials
 from eyefem.fem.bars import Bars
 from eyefem.fem.cavity import WATER_BULK, FluidCavity, closing_hook
@@ -49,7 +50,7 @@ PV_FIELDS = [
     Field("steps_pressurise", int, 2, "load steps to the IOP", positive, ">= 1"),
     Field("liquid_bulk", float, WATER_BULK, "liquid bulk modulus, MPa", positive, "> 0"),
     Field("zonule_E", float, 100.0, "zonule Young's modulus, MPa", positive, "> 0"),
-]
+] + BIOMETRY_FIELDS
 
 
 def rigidity(dv_ul, p_mmhg, p0_mmhg) -> tuple[float, float, float]:
@@ -65,7 +66,7 @@ def rigidity(dv_ul, p_mmhg, p0_mmhg) -> tuple[float, float, float]:
 def pv_parts(p, materials=None):
     """The model and load path pieces: (model, pressurise Stage, held (dofs, values),
     active terms of the injection stage). ``materials``: overrides of single tissues."""
-    eye = build_eye(EyeGeometry(), p["mesh"])
+    eye = build_eye(eye_geometry(p), p["mesh"])
     mesh = eye.mesh
     faces = np.concatenate([mesh.face_set("eye/inner"), mesh.face_set("lens/surface")])
     mesh = mesh.replace(face_sets={**mesh.face_sets, "wetted": faces})

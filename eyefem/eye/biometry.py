@@ -1,0 +1,75 @@
+"""A patient's eye from the biometry a clinic measures: the case-file fields and the
+EyeGeometry they give.
+
+Measured (optical biometry, keratometry, pachymetry): axial length, anterior corneal
+radius, central corneal thickness, anterior chamber depth. Scleral thickness is rarely
+measured; its defaults are published averages (limbus 0.5, equator 0.4, posterior pole
+1.0 mm; eyefem.eye.eyemodel). The globe is scaled with the axial length: the scleral
+radius is 11.5 mm x axial length / 24 mm (an eye that is longer is larger, not only
+longer: a simplification of axial myopia, which stretches the posterior globe more), and
+the lens keeps its size, its anterior pole at the given depth behind the corneal apex.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from eyefem.eye.eyemodel import EyeGeometry
+from eyefem.io.casefile import Field, positive
+
+REFERENCE = EyeGeometry()
+"""The default eye (axial length 24 mm)."""
+
+BIOMETRY_FIELDS = [
+    Field("axial_length", float, REFERENCE.axial_length,
+          "axial length, corneal apex to the outer posterior pole, mm (the globe is scaled "
+          "with it)", positive, "> 0", warn=(20.0, 32.0), refuse=(14.0, 40.0), unit="mm",
+          slips=(("cm", 10.0),)),
+    Field("corneal_radius", float, REFERENCE.cornea_radius,
+          "anterior corneal radius of curvature (keratometry: 337.5 / K in dioptres), mm",
+          positive, "> 0", warn=(6.5, 9.5), refuse=(4.0, 14.0), unit="mm"),
+    Field("central_corneal_thickness", float, REFERENCE.cornea_thickness,
+          "central corneal thickness, mm", positive, "> 0", warn=(0.4, 0.7),
+          refuse=(0.1, 1.5), unit="mm", slips=(("um", 1e-3),)),
+    Field("anterior_chamber_depth", float,
+          REFERENCE.lens_centre_depth - REFERENCE.lens_thickness / 2,
+          "anterior chamber depth, corneal apex to the anterior lens pole, mm", positive,
+          "> 0", warn=(2.0, 4.5), refuse=(1.0, 6.0), unit="mm"),
+    Field("sclera_thickness_limbus", float, REFERENCE.sclera_limbus,
+          "scleral thickness at the limbus, mm", positive, "> 0", warn=(0.3, 0.9),
+          refuse=(0.1, 2.0), unit="mm", slips=(("um", 1e-3),)),
+    Field("sclera_thickness_equator", float, REFERENCE.sclera_equator,
+          "scleral thickness at the equator, mm", positive, "> 0", warn=(0.25, 0.8),
+          refuse=(0.1, 2.0), unit="mm", slips=(("um", 1e-3),)),
+    Field("sclera_thickness_pole", float, REFERENCE.sclera_pole,
+          "scleral thickness at the posterior pole, mm", positive, "> 0", warn=(0.6, 1.5),
+          refuse=(0.1, 3.0), unit="mm", slips=(("um", 1e-3),)),
+]
+"""Case-file fields of a patient's biometry (the surgery and pressure_volume problems)."""
+
+
+def eye_geometry(p: dict) -> EyeGeometry:
+    """The EyeGeometry of the biometry fields in parameters ``p`` (defaults where absent).
+
+    Raises ValueError (naming the fields) when the measurements do not make an eye: the
+    lens would reach the cornea or the corneal and scleral spheres would not meet."""
+    b = {f.name: p.get(f.name, f.default) for f in BIOMETRY_FIELDS}
+    scale = b["axial_length"] / REFERENCE.axial_length
+    if b["anterior_chamber_depth"] <= b["central_corneal_thickness"]:
+        raise ValueError(f"anterior_chamber_depth = {b['anterior_chamber_depth']} mm is not "
+                         f"beyond the cornea (central_corneal_thickness = "
+                         f"{b['central_corneal_thickness']} mm); the depth is measured from "
+                         "the corneal apex (epithelium) to the lens")
+    g = dataclasses.replace(
+        REFERENCE, axial_length=b["axial_length"],
+        scleral_radius=REFERENCE.scleral_radius * scale,
+        cornea_radius=b["corneal_radius"], cornea_thickness=b["central_corneal_thickness"],
+        sclera_limbus=b["sclera_thickness_limbus"], sclera_equator=b["sclera_thickness_equator"],
+        sclera_pole=b["sclera_thickness_pole"],
+        lens_centre_depth=b["anterior_chamber_depth"] + REFERENCE.lens_thickness / 2)
+    try:
+        g.limbus_angle  # noqa: B018 - raises if the corneal and scleral spheres do not meet
+    except ValueError as exc:
+        raise ValueError(f"axial_length = {b['axial_length']} mm with corneal_radius = "
+                         f"{b['corneal_radius']} mm: {exc}") from None
+    return g
