@@ -188,6 +188,22 @@ def test_failed_runs_are_rows_and_the_others_complete(client, tmp_path):
     assert again.computed == 0
 
 
+def test_cli_on_an_existing_scheduler(client, tmp_path, capsys):
+    """`eyefem sweep FILE --scheduler ADDRESS`: the table, the plots, the best designs."""
+    from eyefem.cli.main import main
+
+    f = write_sweep(tmp_path / "s", "[grid]\nparameters.stretch = [1.3, 1.5]\n"
+                    "[best]\noutcome = \"force_N\"\ngoal = \"target\"\ntarget = 60.0\n")
+    assert main(["-q", "sweep", str(f), "--scheduler", client.scheduler.address,
+                 "--out", str(tmp_path / "cli")]) == 0
+    printed = capsys.readouterr().out
+    assert "best designs by force_N (closest to 60)" in printed
+    best = printed.split("best designs by")[1].splitlines()[2].split()
+    assert best[:2] == ["1", "1.5"]  # stretch 1.5 pulls with ~60 N, 1.3 with ~40 N
+    assert (tmp_path / "cli" / "sweep_parameters_stretch.png").stat().st_size > 1000
+    assert len(table.read(tmp_path / "cli")) == 2
+
+
 @pytest.mark.parametrize("body, message", [
     ("[grid]\nparameters.strech = [1.2]\n", "did you mean 'stretch'"),
     ("[grid]\nstretch = [1.2]\n", "did you mean 'parameters.stretch'"),

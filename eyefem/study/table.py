@@ -1,7 +1,7 @@
 """The results table of a sweep: one row per run, written as Parquet and CSV.
 
 Columns: ``index``, ``status`` (ok, failed, did-not-converge, pending), ``error``,
-``wall_s``, ``run_hash``, ``run_dir``, then the varied parameters (their dotted paths),
+``wall_s``, ``run_hash``, ``run_dir`` (relative to the sweep folder), then the varied parameters (their dotted paths),
 the outcomes and the gradients (``d_<outcome>/d_<variable>``). Both files are written
 atomically (a temporary file renamed over the old one), so a reader never sees half a
 table, even when the sweep is interrupted while writing.
@@ -47,6 +47,8 @@ def rows(records: dict[int, dict], overrides: dict[int, dict], varied, outcomes)
                               "run_hash": "", "run_dir": ""})
         row = {k: rec.get(k, "") for k in FIXED_COLUMNS}
         row["index"] = i
+        if row["run_dir"]:
+            row["run_dir"] = f"runs/{Path(row['run_dir']).name}"
         row.update({p: overrides[i].get(p) for p in varied})
         missing = []
         for o in outcomes:
