@@ -58,3 +58,39 @@ def test_answers_that_clash_across_fields_write_nothing(tmp_path, capsys):
         err = capsys.readouterr().err
         assert words in err and "nothing written" in err
         assert not out.exists()
+
+
+def _surgery_prompts(tmp_path, first_answers, ask_all=False):
+    """(prompts asked, case written) of a surgery dialogue answered by ``first_answers``
+    and Enter to the rest."""
+    fields, build = PROBLEMS["surgery"]
+    prompts, answers = [], iter(first_answers)
+
+    def ask(prompt):
+        prompts.append(prompt.split(":")[0])
+        return next(answers, "")
+
+    path = new_case("surgery", fields, tmp_path / "s.toml", ask=ask, say=lambda m: None,
+                    check=build.check, questions=build.questions, ask_all=ask_all)
+    return prompts, load_case(path, SCHEMAS)
+
+
+def test_a_sponge_is_asked_only_what_applies_with_its_own_defaults(tmp_path):
+    prompts, case = _surgery_prompts(tmp_path, ["coarse", "sponge_radial"])
+    assert prompts[:2] == ["mesh", "buckle"]
+    assert "band_tension" not in prompts and "globe_torsion" not in prompts
+    assert "buckle_meridian_deg" in prompts and "axial_length" in prompts
+    p = case.parameters
+    assert (p["n_sutures"], p["suture_width"], p["tightening"]) == (2, 8.5, 0.0)  # cases 5, 6
+
+
+def test_an_encircling_buckle_is_not_asked_a_meridian(tmp_path):
+    prompts, case = _surgery_prompts(tmp_path, ["coarse", "tire_flat"])
+    assert "buckle_meridian_deg" not in prompts and "deformable_tightening" not in prompts
+    assert "band_tension" in prompts and "tightening" in prompts
+    assert case.parameters["n_sutures"] == 8 and len(prompts) < 20
+
+
+def test_new_case_all_asks_every_field(tmp_path):
+    prompts, _ = _surgery_prompts(tmp_path, ["coarse", "tire_flat"], ask_all=True)
+    assert prompts == [f.name for f in PROBLEMS["surgery"][0]]

@@ -210,7 +210,8 @@ def cmd_new_case(args) -> int:
         fields, build = found
         new_case(args.problem, fields, Path(args.output), preset=preset,
                  accept_defaults=args.yes, title=args.title or "",
-                 check=getattr(build, "check", None), force=args.force)
+                 check=getattr(build, "check", None), force=args.force,
+                 questions=getattr(build, "questions", None), ask_all=args.all)
     except CaseError as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
@@ -390,6 +391,8 @@ def main(argv=None) -> int:
     p.add_argument("--yes", action="store_true", help="accept the defaults of the rest")
     p.add_argument("--title", help="case title")
     p.add_argument("--force", action="store_true", help="overwrite an existing case file")
+    p.add_argument("--all", action="store_true", help="ask every field, the advanced ones and "
+                   "those that do not apply to the chosen buckle too")
     p.set_defaults(fn=cmd_new_case)
     p = sub.add_parser("export-feb", help="write a case's first stage as an FEBio 4 deck")
     p.add_argument("case", help="case file")

@@ -344,5 +344,32 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=Non
     return section, outside
 
 
+ADVANCED_FIELDS = frozenset({
+    "globe_torsion", "globe_rotation", "globe_translation", "globe_axial", "steps_pressurise",
+    "steps_tighten", "steps_suture", "contact_smoothing", "contact_normals", "n_segments",
+    "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
+    "sclera_thickness_equator", "sclera_thickness_pole"})
+"""Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all
+(``--all``): the orbit's hold, load steps, contact and material details."""
+
+SEGMENTAL_DEFAULTS = {"n_sutures": 2, "suture_width": 8.5, "tightening": 0.0}
+"""A segmental sponge's defaults in ``new-case`` (those of cases 5 and 6)."""
+
+
+def questions(values: dict) -> tuple[frozenset, dict]:
+    """What ``eyefem new-case surgery`` asks, given the answers so far (``values``, with
+    every field's default filled in): (names of the fields that do not apply to the chosen
+    buckle, or are advanced: not asked, kept at their defaults; the chosen buckle's own
+    defaults, name -> value)."""
+    segmental = values["buckle"].startswith("sponge")
+    skip = set(ADVANCED_FIELDS)
+    skip |= ({"band_tension", "deformable_tightening"} if segmental
+             else {"buckle_meridian_deg"})
+    if values["buckle_body"] == "rigid":
+        skip.add("deformable_tightening")
+    return frozenset(skip), (dict(SEGMENTAL_DEFAULTS) if segmental else {})
+
+
 surgery.check = check_parameters
+surgery.questions = questions
 PROBLEMS = {"surgery": (SURGERY_FIELDS, surgery)}
