@@ -300,16 +300,19 @@ def cmd_sweep(args) -> int:
     except SweepError as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
-    from eyefem.study.sweep import check_dependencies, format_best, run_sweep
+    from eyefem.study.sweep import (
+        check_dependencies,
+        format_best,
+        quiet_dask_logs,
+        run_sweep,
+    )
 
     try:
         check_dependencies()
     except ImportError as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
-    for name in list(logging.root.manager.loggerDict):  # Dask's own INFO lines: quiet
-        if name.split(".")[0] == "distributed":
-            logging.getLogger(name).setLevel(logging.WARNING)
+    quiet_dask_logs()
     if args.workers is not None and args.workers < 1:
         print(f"eyefem sweep: --workers {args.workers}; give at least 1", file=sys.stderr)
         return 2

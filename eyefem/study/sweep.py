@@ -59,6 +59,16 @@ def check_dependencies() -> None:
         raise ImportError(MISSING_DEPENDENCY) from None
 
 
+def quiet_dask_logs(level: int = logging.WARNING) -> None:
+    """Set Dask's own loggers (distributed.*, INFO by default: every connection, worker
+    start and close) to ``level``; for the entry points (CLI, notebooks)."""
+    import distributed  # noqa: F401 - creates its loggers
+
+    for name in list(logging.root.manager.loggerDict):
+        if name.split(".")[0] == "distributed":
+            logging.getLogger(name).setLevel(level)
+
+
 def _fmt_s(s: float) -> str:
     if not math.isfinite(s):
         return "?"
