@@ -57,7 +57,9 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
     logging.basicConfig(level=logging.WARNING)
     from eyefem.study.spec import load_sweep
-    from eyefem.study.sweep import run_sweep
+    from eyefem.study.sweep import quiet_dask_logs, run_sweep
+
+    quiet_dask_logs()
 
     with tempfile.TemporaryDirectory(prefix="eyefem-bench-sweep-") as tmp:
         tmp = Path(tmp)
