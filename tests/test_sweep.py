@@ -217,6 +217,8 @@ def test_cli_on_an_existing_scheduler(client, tmp_path, capsys):
     ("[samples]\nn = 4\nparameters.stretch = { dist = \"uniform\", low = 1.2, high = 1.5 }\n",
      "give an integer seed"),
     ("[sampels]\nn = 4\n", "did you mean 'samples'"),
+    ('gradients = ["tightening"]\n[grid]\nparameters.stretch = [1.2]\n',
+     "gradients need a surgery case"),
     ("", "nothing to vary"),
 ])
 def test_sweep_file_errors_name_the_fix(tmp_path, body, message):

@@ -303,6 +303,10 @@ def load_sweep(path: str | Path) -> Sweep:
         if base.problem != "surgery":
             raise SweepError(f"{path} [sweep]: gradients need a surgery case (eyefem.simulate); "
                              f"the base case's problem is '{base.problem}'; remove 'gradients'")
+        body = head_fixed_body(raw, base)
+        if body != "rigid":
+            raise SweepError(f"{path} [sweep]: gradients need a rigid buckle (eyefem.simulate); "
+                             f"the case has buckle_body = '{body}'; remove 'gradients'")
         for g in gradients:
             if g not in DESIGN_VARIABLES:
                 raise SweepError(f"{path} [sweep]: gradients: unknown design variable '{g}'"
@@ -389,6 +393,13 @@ def load_sweep(path: str | Path) -> Sweep:
     return Sweep(path, case_path, base, head.get("title", path.stem), outcomes, gradients,
                  Path(output), head.get("vtu", False), head.get("plots", False), fixed, rows,
                  tuple(varied), dists, best)
+
+
+def head_fixed_body(raw: dict, base: Case) -> str:
+    """The buckle body of a surgery sweep's runs: [set] parameters.buckle_body, else the
+    base case's."""
+    fixed = _flatten(raw.get("set", {}), "", lambda v: False)
+    return str(fixed.get("parameters.buckle_body", base.parameters.get("buckle_body", "rigid")))
 
 
 def _best(b: dict, outcomes, where: str) -> dict:

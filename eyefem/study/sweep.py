@@ -196,7 +196,9 @@ def _allow_failures(client) -> None:
 def best_designs(sweep: Sweep, rows: list[dict]) -> list[dict]:
     """The ``sweep.best['show']`` best ok rows by the [best] outcome and goal."""
     b = sweep.best
-    name = b["outcome"]
+    name = b["outcome"] or next((c for c in (rows[0] if rows else {}) if c not in
+                                 table.FIXED_COLUMNS and c not in sweep.varied
+                                 and not c.startswith("d_")), None)
     ok = [r for r in rows if r["status"] == "ok" and isinstance(r.get(name), float)
           and math.isfinite(r[name])]
     if not name or not ok:
@@ -214,7 +216,8 @@ def format_best(sweep: Sweep, rows: list[dict]) -> str:
     best = best_designs(sweep, rows)
     if not best:
         return "no successful run to rank"
-    b = sweep.best
+    b = {**sweep.best, "outcome": sweep.best["outcome"] or next(
+        c for c in best[0] if c not in table.FIXED_COLUMNS and c not in sweep.varied)}
     goal = f"closest to {b['target']:g}" if b["goal"] == "target" else f"{b['goal']}imum"
     cols = ["index", *sweep.varied] + [c for c in best[0] if c not in table.FIXED_COLUMNS
                                         and c not in sweep.varied and not c.startswith("d_")]
