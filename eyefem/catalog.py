@@ -12,9 +12,10 @@ def problems() -> dict:
     from eyefem.eye.surgery import PROBLEMS as surgery
     from eyefem.eye.validation import PROBLEMS as validation
     from eyefem.problems.examples import PROBLEMS as examples
+    from eyefem.problems.user_mesh import PROBLEMS as user_mesh
     from eyefem.problems.verification import PROBLEMS as verification
 
-    return {**verification, **examples, **surgery, **validation}
+    return {**verification, **examples, **surgery, **validation, **user_mesh}
 
 
 def schemas() -> dict:

@@ -69,6 +69,8 @@ class Field:
     refuse: tuple[float, float] | None = None
     unit: str = ""
     slips: tuple[tuple[str, float], ...] = ()
+    path: bool = False
+    """A file path (str), relative to the case file: resolved and checked at reading."""
 
 
 REQUIRED = object()
@@ -204,6 +206,15 @@ def load_case(path: str | Path, schemas: dict[str, list[Field]]) -> Case:
         raise CaseError(f"{path} [case]: problem '{problem}' is unknown{_suggest(problem, schemas)}; "
                         f"known problems: {', '.join(sorted(schemas))}")
     params = parse_section(raw.get("parameters", {}), schemas[problem], f"{path} [parameters]")
+    for f in schemas[problem]:
+        if f.path and params.get(f.name):
+            given = Path(params[f.name]).expanduser()
+            found = given if given.is_absolute() else (path.parent / given)
+            if not found.is_file():
+                raise CaseError(f"{path} [parameters]: field '{f.name}' = '{params[f.name]}': "
+                                f"no such file ({found.resolve()}); paths are relative to the "
+                                "case file")
+            params[f.name] = str(found.resolve())
     mats = {}
     for name, terms in raw.get("materials", {}).items():
         if not isinstance(terms, dict):

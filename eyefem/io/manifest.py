@@ -77,10 +77,14 @@ def _plain(obj):
 
 def case_key(problem: str, parameters: dict, materials: dict, solver) -> str:
     """A canonical text of the parsed case (problem, parameters with the mesh level,
-    materials, solver options): equal text <=> the same computation."""
+    materials, solver options, and the sha256 of every file a parameter names by its
+    absolute path: a user's mesh file): equal text <=> the same computation."""
+    files = {v: hashlib.sha256(Path(v).read_bytes()).hexdigest()
+             for v in parameters.values()
+             if isinstance(v, str) and Path(v).is_absolute() and Path(v).is_file()}
     return json.dumps({"problem": problem, "parameters": _plain(parameters),
-                       "materials": _plain(materials), "solver": _plain(solver)},
-                      sort_keys=True)
+                       "materials": _plain(materials), "solver": _plain(solver),
+                       **({"files": files} if files else {})}, sort_keys=True)
 
 
 def case_hash(key: str) -> str:
