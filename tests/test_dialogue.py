@@ -94,3 +94,12 @@ def test_an_encircling_buckle_is_not_asked_a_meridian(tmp_path):
 def test_new_case_all_asks_every_field(tmp_path):
     prompts, _ = _surgery_prompts(tmp_path, ["coarse", "tire_flat"], ask_all=True)
     assert prompts == [f.name for f in PROBLEMS["surgery"][0]]
+
+
+def test_a_mistyped_choice_gets_a_did_you_mean(tmp_path, capsys):
+    out = tmp_path / "c.toml"
+    assert cli_main(["-q", "new-case", "surgery", "-o", str(out), "--yes",
+                     "--set", "buckle=tire_flt"]) == 2
+    err = capsys.readouterr().err
+    assert "'tire_flt' is out of range" in err and "(did you mean 'tire_flat'?)" in err
+    assert not out.exists()

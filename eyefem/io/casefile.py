@@ -31,6 +31,7 @@ import dataclasses
 import difflib
 import logging
 import math
+import re
 import tomllib
 from pathlib import Path
 from typing import Any, Callable
@@ -139,8 +140,9 @@ def parse_section(values: dict, fields: list[Field], where: str) -> dict:
                             f"expected {f.type.__name__} ({f.doc})")
         check_finite(v, f.name, where)
         if f.check is not None and not f.check(v):
+            hint = _suggest(v, re.findall(r"'([^']+)'", f.check_doc)) if isinstance(v, str) else ""
             raise CaseError(f"{where}: field '{f.name}' = {v!r} is out of range: {f.check_doc} "
-                            f"({f.doc})")
+                            f"({f.doc}){hint}")
         if f.type in (int, float):
             plausibility(v, f, where)
         out[f.name] = v
