@@ -252,7 +252,7 @@ def test_samples_are_reproducible_and_stratified(tmp_path):
 def test_coarse_surgery_sweep_equals_serial_runs(client, tmp_path):
     """A 2 x 2 coarse surgery sweep (case 1: tightening x suture width) on 2 workers
     against the same cases run one after the other with `eyefem run`: slow (8 coarse
-    surgery runs, about 10 minutes on 2 cores)."""
+    surgery runs: 18 minutes on a shared 2-core machine)."""
     from eyefem.cli.main import main
 
     sweep = load_sweep(ROOT / "cases/sweeps/case1_coarse.toml")
