@@ -248,6 +248,31 @@ def test_samples_are_reproducible_and_stratified(tmp_path):
     assert strata == list(range(8))  # Latin hypercube: one sample per stratum
 
 
+def test_file_paths_of_the_base_case_stay_valid_in_the_runs(tmp_path):
+    """A user_mesh case names its mesh file relative to the case file: each run's case
+    (written elsewhere) names it by its absolute path, and the file's content is in the
+    run hash."""
+    meshio = pytest.importorskip("meshio")
+    import numpy as np
+
+    from eyefem.study.spec import plan
+
+    pts = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], float)
+    mesh_dir = tmp_path / "meshes"
+    mesh_dir.mkdir()
+    meshio.write(mesh_dir / "cube.vtu", meshio.Mesh(pts, [("hexahedron", [[0, 1, 3, 2, 4, 5, 7, 6]])]))
+    (tmp_path / "base.toml").write_text('[case]\nproblem = "user_mesh"\n[parameters]\n'
+                                        'mesh_file = "meshes/cube.vtu"\n')
+    f = tmp_path / "sweep.toml"
+    f.write_text('[sweep]\ncase = "base.toml"\n[grid]\nparameters.steps = [1, 2]\n')
+    runs, invalid = plan(load_sweep(f))
+    assert invalid == [] and len(runs) == 2
+    assert str((mesh_dir / "cube.vtu").resolve()) in runs[0].case_text
+    before = runs[0].run_hash
+    meshio.write(mesh_dir / "cube.vtu", meshio.Mesh(pts * 2, [("hexahedron", [[0, 1, 3, 2, 4, 5, 7, 6]])]))
+    assert plan(load_sweep(f))[0][0].run_hash != before  # a changed mesh file: a new run
+
+
 @pytest.mark.slow
 def test_coarse_surgery_sweep_equals_serial_runs(client, tmp_path):
     """A 2 x 2 coarse surgery sweep (case 1: tightening x suture width) on 2 workers

@@ -431,10 +431,21 @@ def _set(raw: dict, path: str, value) -> None:
 
 def case_raw(sweep: Sweep, overrides: dict) -> dict:
     """The base case's TOML data with the fixed and the run's overrides (a material not in
-    the base case gets a table with the overridden coefficient only)."""
+    the base case gets a table with the overridden coefficient only). File paths (a
+    user's mesh) are made absolute: the base case's relative to the base case, an
+    override's relative to the sweep file."""
     raw = copy.deepcopy(sweep.base.raw)
     raw.pop("output", None)
-    for p, v in {**sweep.fixed, **overrides}.items():
+    changes = {**sweep.fixed, **overrides}
+    for f in schemas()[sweep.base.problem]:  # file paths: absolute, the run's case lives elsewhere
+        p = f"parameters.{f.name}"
+        if not getattr(f, "path", False):
+            continue
+        if isinstance(changes.get(p), str) and changes[p]:
+            changes[p] = str((sweep.path.parent / Path(changes[p]).expanduser()).resolve())
+        elif sweep.base.parameters.get(f.name):
+            changes.setdefault(p, str(sweep.base.parameters[f.name]))
+    for p, v in changes.items():
         _set(raw, p, v)
     raw["output"] = {"vtu": sweep.vtu, "plots": sweep.plots}
     return raw
