@@ -7,6 +7,12 @@ iterations, total wall time of the load path and peak memory (max RSS).
     python benchmarks/bench_core.py                 # ~1,500 and ~12,000 hexahedra
     python benchmarks/bench_core.py --sizes 11:2    # n_per_edge:n_thick pairs
     python benchmarks/bench_core.py --sizes 32:2 --extras   # + cost of a cavity, of contact
+    python benchmarks/bench_core.py --sizes 20:5 --device gpu --no-path   # kernels on a GPU
+
+``--device gpu`` runs the element kernels on a GPU (a CUDA jaxlib); the sparse solve
+stays on the host. ``--no-path`` skips the 10-step load path and times the iteration at
+a 1% uniform dilation of the shell (for a quick kernel comparison where the linear
+solver is slow, e.g. SuperLU on a machine without PARDISO).
 
 With ``--extras``, at the converged inflated state the cost of one Newton iteration
 (contact search + residual + assembly + solve) is also measured with a closed fluid
@@ -88,7 +94,14 @@ def _extras(model, q, theta, pres, backend, repeats):
             "contact_ratio": rows["contact"] / rows["base"]}
 
 
-def bench(n_per_edge, n_thick, backend, repeats=5, extras=False):
+def _dilated_state(model):
+    """A 1% uniform dilation of the shell (the kernels' cost does not depend on the state)."""
+    q = np.zeros(model.n_dof)
+    q[: 3 * model.mesh.n_nodes] = 0.01 * model.mesh.nodes.ravel()
+    return q, model.theta0()
+
+
+def bench(n_per_edge, n_thick, backend, repeats=5, extras=False, path=True, solve_too=True):
     p = {f.name: f.default for f in SHELL_FIELDS}
     p.update(n_per_edge=n_per_edge, n_thick=n_thick)
     tic = time.perf_counter()
@@ -103,12 +116,14 @@ def bench(n_per_edge, n_thick, backend, repeats=5, extras=False):
     model.gradient(q, theta)
     model.hvp(q, q, theta)
     t_compile = time.perf_counter() - tic
-    opts = NewtonOptions(backend=backend)
     tic = time.perf_counter()
-    sol = solve(model, setup.stages, options=opts)
+    if path:
+        sol = solve(model, setup.stages, options=NewtonOptions(backend=backend))
+        its, steps = sum(r.iterations for r in sol.history), len(sol.history)
+        q, theta = sol.q, sol.theta
+    else:
+        (q, theta), its, steps = _dilated_state(model), 0, 0
     t_total = time.perf_counter() - tic
-    its = sum(r.iterations for r in sol.history)
-    q, theta = sol.q, sol.theta
     dofs, _ = setup.stages[0].prescribed
     pres = np.zeros(model.n_dof, bool)
     pres[dofs] = True
@@ -122,14 +137,15 @@ def bench(n_per_edge, n_thick, backend, repeats=5, extras=False):
         s = asm.solver(K, B, D, lr, backend)
         s.solve(-r[asm.free_primal], -r[asm.mult])
 
-    t_solve = _median(lin, max(2, repeats // 2))
+    t_solve = _median(lin, max(2, repeats // 2)) if solve_too else float("nan")
     extra = _extras(model, q, theta, pres, backend, repeats) if extras else {}
     return {**extra, 
         "n_elem": model.mesh.n_elem, "n_dof": model.n_dof, "backend": backend,
         "build_s": t_build, "compile_s": t_compile,
         "kernel_s": t_kernel, "assembly_s": t_asm_all - t_kernel, "solve_s": t_solve,
         "residual_s": t_grad, "iteration_s": t_asm_all + t_solve + t_grad,
-        "newton_iterations": its, "steps": len(sol.history), "total_s": t_total,
+        "newton_iterations": its, "steps": steps, "total_s": t_total,
+        "device": jax.devices()[0].platform,
         "peak_rss_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
 
@@ -141,13 +157,23 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--json", help="write the rows to this file")
     ap.add_argument("--extras", action="store_true", help="also the cost of a cavity and of contact")
+    ap.add_argument("--device", choices=("cpu", "gpu"), default="cpu",
+                    help="where the element kernels run (the solve stays on the host)")
+    ap.add_argument("--no-path", dest="path", action="store_false",
+                    help="skip the load path; time the iteration near the unloaded state")
+    ap.add_argument("--no-solve", dest="solve", action="store_false",
+                    help="with --no-path: leave the linear solve out (kernels and assembly only)")
     args = ap.parse_args()
+    from eyefem.solve.device import select_device
+
+    where = select_device(args.device)
     rows = []
     for s in args.sizes.split(","):
         a, b = (int(x) for x in s.split(":"))
-        rows.append(bench(a, b, args.backend, args.repeats, args.extras))
+        rows.append(bench(a, b, args.backend, args.repeats, args.extras, args.path,
+                          args.solve))
     print(f"machine: {platform.processor() or platform.machine()}, "
-          f"{__import__('os').cpu_count()} cores, jax {jax.__version__}")
+          f"{__import__('os').cpu_count()} cores, jax {jax.__version__}, kernels on {where}")
     keys = list(rows[0])
     print("| " + " | ".join(keys) + " |")
     print("|" + "---|" * len(keys))

@@ -537,3 +537,20 @@ def test_errors_doc_lists_the_case_file_errors():
 def test_case_error_is_a_value_error():  # the CLI's catch-all for bad input relies on it
     assert issubclass(CaseError, ValueError) and issubclass(manifest.OutputError, OSError)
 
+
+
+def test_device_gpu_without_a_gpu_is_a_message(tmp_path, capsys):
+    """``--device gpu`` on a machine where JAX has no GPU: exit 2 with what to install,
+    before any case is read (a missing case file is not reported first)."""
+    import jax
+
+    try:
+        jax.devices("gpu")
+        pytest.skip("this machine has a GPU: the refusal cannot be provoked")
+    except RuntimeError:
+        pass
+    rc = cli_main(["--device", "gpu", "run", str(tmp_path / "none.toml")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "JAX finds no GPU" in err and "jax[cuda12]" in err and "--device cpu" in err
+    assert "Traceback" not in err

@@ -862,3 +862,19 @@ def test_inflated_shell_with_odd_patches_warns(caplog):
     p.update(n_per_edge=3, n_thick=1)
     inflated_shell(p, {})
     assert "n_per_edge = 3 is odd" in caplog.text and "use an even n_per_edge" in caplog.text
+
+
+@pytest.mark.skipif("pardiso" not in available_backends(),
+                    reason="compares SuperLU with PARDISO, which this machine lacks")
+def test_superlu_and_pardiso_give_the_same_inflated_shell():
+    """The whole load path with the scipy SuperLU backend (the one of machines without
+    PARDISO) reaches the PARDISO solution: both converge to the force tolerance, so the
+    states agree far inside the discretisation error."""
+    from eyefem.problems.verification import SHELL_FIELDS, inflated_shell
+
+    p = {f.name: f.default for f in SHELL_FIELDS}
+    p.update(n_per_edge=4, n_thick=1, steps=2)
+    setup = inflated_shell(p, {})
+    a, b = (solve(setup.model, setup.stages, options=NewtonOptions(backend=k))
+            for k in ("superlu", "pardiso"))
+    assert np.abs(a.q - b.q).max() < 1e-8 * np.abs(b.q).max()

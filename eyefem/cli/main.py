@@ -18,8 +18,10 @@ import sys
 from pathlib import Path
 
 
-def _setup(verbose: int):
+def _setup(verbose: int, device: str = "cpu"):
     import jax
+
+    from eyefem.solve.device import select_device
 
     jax.config.update("jax_enable_x64", True)
     _compilation_cache(jax)
@@ -27,6 +29,10 @@ def _setup(verbose: int):
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(message)s",
                         datefmt="%H:%M:%S", stream=sys.stderr)
     logging.getLogger("jax").setLevel(logging.WARNING)
+    where = select_device(device)
+    if device != "cpu":
+        logging.getLogger("eyefem").info("element kernels on %s; the sparse solve on the host",
+                                         where)
 
 
 def _compilation_cache(jax):
@@ -83,6 +89,7 @@ def cmd_run(args) -> int:
                                      case.problem, setup.model.mesh.n_elem, setup.model.n_dof, out)
     try:
         res = run_setup(setup, out, case.solver, vtu=case.output["vtu"] and not args.no_vtu,
+                        xdmf=case.output["xdmf"] or args.xdmf,
                         plots=case.output["plots"], resume=args.resume,
                         key=manifest.case_key(case.problem, case.parameters, case.materials,
                                               case.solver))
@@ -316,10 +323,23 @@ def cmd_sweep(args) -> int:
     if args.workers is not None and args.workers < 1:
         print(f"eyefem sweep: --workers {args.workers}; give at least 1", file=sys.stderr)
         return 2
+    if args.uncertainty:  # refuse an input without a derivative before the runs, not after
+        from eyefem.study.uncertainty import sweep_distributions
+
+        try:
+            sweep_distributions(sweep)
+        except ValueError as exc:
+            print(f"eyefem sweep --uncertainty: {exc}", file=sys.stderr)
+            return 2
     from eyefem.io import manifest
 
+    def progress(line: str) -> None:  # -q: silent; else a line at most every few seconds
+        if args.verbose >= 0:
+            print(line, file=sys.stderr, flush=True)
+
     try:
-        res = run_sweep(sweep, out=args.out, scheduler=args.scheduler, workers=args.workers)
+        res = run_sweep(sweep, out=args.out, scheduler=args.scheduler, workers=args.workers,
+                        progress=progress)
     except manifest.OutputError as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 4
@@ -336,6 +356,7 @@ def cmd_sweep(args) -> int:
 
     pngs = plot_sweep(res.rows, sweep.varied, res.out_dir)
     if args.uncertainty:
+        from eyefem.solve.solver import ConvergenceError
         from eyefem.study.uncertainty import report
 
         try:
@@ -343,6 +364,11 @@ def cmd_sweep(args) -> int:
         except ValueError as exc:
             print(f"eyefem sweep --uncertainty: {exc}", file=sys.stderr)
             return 2
+        except ConvergenceError as exc:
+            print(f"eyefem sweep --uncertainty: the first-order solves did not converge: "
+                  f"{str(exc).splitlines()[0]}; the sweep's table is complete in "
+                  f"{res.out_dir}", file=sys.stderr)
+            return 3
     print(f"\n{sweep.title}: {len(res.rows)} runs ({res.computed} computed now, {res.skipped} "
           f"complete before), {res.failed} failed, {res.wall_s:.1f} s")
     print(format_best(sweep, res.rows))
@@ -359,11 +385,16 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="eyefem", description=__doc__.splitlines()[0])
     ap.add_argument("-v", "--verbose", action="count", default=1)
     ap.add_argument("-q", "--quiet", action="store_const", const=-1, dest="verbose")
+    ap.add_argument("--device", choices=("cpu", "gpu"), default="cpu",
+                    help="where the element kernels run (default cpu; gpu needs a CUDA "
+                    "jaxlib); the sparse solve stays on the host")
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("run", help="run a case file")
     p.add_argument("case")
     p.add_argument("--out", help="output directory (default from the case file)")
     p.add_argument("--no-vtu", action="store_true", help="skip the VTU series")
+    p.add_argument("--xdmf", action="store_true", help="also write the series as XDMF "
+                   "(<name>.xdmf; HDF5 arrays when h5py is installed)")
     p.add_argument("--resume", action="store_true",
                    help="continue after the last completed stage (checkpoint in the output dir)")
     p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, default, fine, finer)")
@@ -417,10 +448,18 @@ def main(argv=None) -> int:
                    "(default: the cores)")
     p.add_argument("--out", help="output folder (default from the sweep file)")
     p.add_argument("--uncertainty", action="store_true", help="also propagate the sampled "
-                   "distributions to first order (adjoint gradients) and compare")
+                   "distributions to first order (adjoint gradients; central differences, "
+                   "two more solves each, for inputs without one, such as biometry) and "
+                   "compare")
     p.set_defaults(fn=cmd_sweep)
     args = ap.parse_args(argv)
-    _setup(args.verbose)
+    from eyefem.solve.device import DeviceError
+
+    try:
+        _setup(args.verbose, args.device)
+    except DeviceError as exc:
+        print(f"eyefem {args.cmd}: {exc}", file=sys.stderr)
+        return 2
     try:
         return args.fn(args)
     except KeyboardInterrupt:

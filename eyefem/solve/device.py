@@ -1,0 +1,46 @@
+"""Where the element kernels run: the CPU (default) or a GPU.
+
+The energies and their derivatives are plain JAX, so they run on any device JAX has;
+the Newton step's sparse factorisation stays on the host (scipy / PARDISO) in every
+case, and the local gradients and Hessians are copied back to it once per iteration.
+Choose the device before any JAX work (entry points do it from ``--device``):
+
+    >>> from eyefem.solve.device import select_device
+    >>> select_device("cpu")   # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+DEVICES = ("cpu", "gpu")
+
+
+class DeviceError(RuntimeError):
+    """The device asked for is not available to JAX."""
+
+
+def select_device(name: str) -> str:
+    """Make ``name`` ("cpu" or "gpu") JAX's default device; return a description of it.
+
+    "cpu" keeps JAX off any accelerator (results then do not depend on the machine's
+    GPU); "gpu" needs a CUDA build of jaxlib (``pip install "jax[cuda12]"``) and a GPU,
+    and raises DeviceError saying so if JAX finds none.
+    """
+    import jax
+
+    if name not in DEVICES:
+        raise DeviceError(f"device {name!r} is not one of {', '.join(DEVICES)}")
+    if name == "cpu":
+        jax.config.update("jax_platforms", "cpu")
+        dev = jax.devices("cpu")[0]
+        jax.config.update("jax_default_device", dev)
+    else:
+        try:
+            dev = jax.devices("gpu")[0]
+        except RuntimeError as exc:
+            raise DeviceError(
+                "--device gpu: JAX finds no GPU on this machine "
+                f"({str(exc).splitlines()[0]}). Install a CUDA build of jaxlib "
+                "(pip install \"jax[cuda12]\") on a machine with an NVIDIA GPU, or run "
+                "with --device cpu (the default).") from None
+        jax.config.update("jax_default_device", dev)
+    return f"{dev.platform} ({getattr(dev, 'device_kind', dev.platform)})"
