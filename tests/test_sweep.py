@@ -1,6 +1,8 @@
 """Parameter sweeps on dask.distributed (eyefem.study): the table equals serial runs, a
-killed worker's run is re-run, a restart skips completed runs, failures are rows, and a
-wrong sweep file gets a message naming the fix.
+killed worker's run is re-run, a restart skips completed runs, failures are rows, a
+wrong sweep file gets a message naming the fix, the progress lines, and the gradient
+columns and first-order uncertainty (--uncertainty) against the closed form of the
+uniaxial test and central differences.
 
 The fast tests sweep the uniaxial verification problem (seconds per run) on one
 LocalCluster of 2 worker processes shared by the module.
@@ -37,13 +39,27 @@ c01 = {c01}
 STRETCHES = [1.2, 1.4, 1.6, 1.8]
 
 
-def write_sweep(folder: Path, body: str, c01: float = 5.0) -> Path:
+def write_sweep(folder: Path, body: str, c01: float = 5.0,
+                outcomes: str = '["force_N", "newton_iterations"]') -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "base.toml").write_text(UNIAXIAL.format(c01=c01))
     f = folder / "sweep.toml"
-    f.write_text('[sweep]\ncase = "base.toml"\noutcomes = ["force_N", "newton_iterations"]\n'
+    f.write_text(f'[sweep]\ncase = "base.toml"\noutcomes = {outcomes}\n'
                  f'output = "{(folder / "out").as_posix()}"\n' + body)
     return f
+
+
+def force(stretch, c10=25.0, c01=5.0):
+    """The uniaxial test's closed form (unit cube, incompressible Mooney-Rivlin), N: the
+    FE force equals it to roundoff (max_rel_error_force ~ 2e-14)."""
+    return 2 * (stretch - stretch**-2) * (c10 + c01 / stretch)
+
+
+def dforce(stretch, c10=25.0, c01=5.0):
+    """d force / d (stretch, c10, c01) of the closed form."""
+    return (2 * (1 + 2 * stretch**-3) * (c10 + c01 / stretch)
+            - 2 * (stretch - stretch**-2) * c01 / stretch**2,
+            2 * (stretch - stretch**-2), 2 * (stretch - stretch**-2) / stretch)
 
 
 GRID = f"[grid]\nparameters.stretch = {STRETCHES}\n"
@@ -188,14 +204,23 @@ def test_failed_runs_are_rows_and_the_others_complete(client, tmp_path):
 
 
 def test_cli_on_an_existing_scheduler(client, tmp_path, capsys):
-    """`eyefem sweep FILE --scheduler ADDRESS`: the table, the plots, the best designs."""
+    """`eyefem sweep FILE --scheduler ADDRESS`: the table, the plots, the best designs,
+    the progress lines on stderr (none with -q)."""
     from eyefem.cli.main import main
 
     f = write_sweep(tmp_path / "s", "[grid]\nparameters.stretch = [1.3, 1.5]\n"
                     "[best]\noutcome = \"force_N\"\ngoal = \"target\"\ntarget = 60.0\n")
     assert main(["-q", "sweep", str(f), "--scheduler", client.scheduler.address,
+                 "--out", str(tmp_path / "quiet")]) == 0
+    assert "runs done" not in capsys.readouterr().err  # -q: no progress
+    assert main(["sweep", str(f), "--scheduler", client.scheduler.address,
                  "--out", str(tmp_path / "cli")]) == 0
-    printed = capsys.readouterr().out
+    out, err = capsys.readouterr()
+    progress = [ln for ln in err.splitlines() if ln.startswith("sweep: ") and "runs done" in ln]
+    assert progress[0].startswith("sweep: 0/2 runs done (0 failed), ") and "~? left" in progress[0]
+    assert progress[-1].startswith("sweep: 2/2 runs done (0 failed), 0 running, 0 queued; ")
+    assert progress[-1].endswith("~0s left")
+    printed = out
     assert "best designs by force_N (closest to 60)" in printed
     best = printed.split("best designs by")[1].splitlines()[2].split()
     assert best[:2] == ["1", "1.5"]  # stretch 1.5 pulls with ~60 N, 1.3 with ~40 N
@@ -219,6 +244,13 @@ def test_cli_on_an_existing_scheduler(client, tmp_path, capsys):
     ("[sampels]\nn = 4\n", "did you mean 'samples'"),
     ('gradients = ["tightening"]\n[grid]\nparameters.stretch = [1.2]\n',
      "gradients need a surgery case"),
+    ('gradients = ["stretch"]\n[grid]\nparameters.stretch = [1.2]\n',
+     "give its path 'parameters.stretch' for central differences"),
+    ('gradients = ["parameters.steps"]\n[grid]\nparameters.stretch = [1.2]\n',
+     "'parameters.steps' is an integer parameter"),
+    ('gradients = ["solver.rtol"]\n[grid]\nparameters.stretch = [1.2]\n',
+     "'solver.rtol' is a solver option"),
+    ('fd_step = 0.5\n[grid]\nparameters.stretch = [1.2]\n', "fd_step = 0.5; give the relative"),
     ("", "nothing to vary"),
 ])
 def test_sweep_file_errors_name_the_fix(tmp_path, body, message):
@@ -291,3 +323,148 @@ def test_coarse_surgery_sweep_equals_serial_runs(client, tmp_path):
         ref = json.loads((tmp_path / f"serial{r['index']}" / "summary.json").read_text())
         for o in sweep.outcomes:
             assert math.isclose(r[o], ref[o], rel_tol=1e-9, abs_tol=1e-12), (o, r[o], ref[o])
+
+
+def test_progress_lines_at_most_every_interval():
+    """SweepProgress: a line at most every `interval` s (or forced), the counts and the
+    time left from the pace so far."""
+    from eyefem.study.sweep import SweepProgress
+
+    now = [100.0]
+    lines = []
+    meter = SweepProgress(10, lines.append, interval=5.0, clock=lambda: now[0])
+    assert meter.update(0, 0, 2, force=True)
+    now[0] += 2.0
+    assert not meter.update(1, 0, 2)  # 2 s after the last line: quiet
+    now[0] += 4.0
+    assert meter.update(3, 1, 2)  # 6 s: 3 runs in 6 s, 7 left -> 14 s
+    assert lines == ["sweep: 0/10 runs done (0 failed), 2 running, 8 queued; 0s elapsed, ~? left",
+                     "sweep: 3/10 runs done (1 failed), 2 running, 5 queued; 6s elapsed, ~14s left"]
+    assert meter.update(3, 1, 2, force=True) and len(lines) == 3
+
+
+def test_gradient_columns_match_the_closed_form_and_the_outcome_column(client, tmp_path):
+    """gradients by dotted paths of a non-surgery case: central differences of whole runs
+    (h = 1e-3 |x|). d force / d stretch against the closed form and against the central
+    difference of the table's force column over the grid's neighbours (+-1e-3): their
+    truncation errors are 9e-7 and 4e-7 relative (the force's roundoff, 1e-15, adds 1e-11),
+    so rtol 1e-5 holds with a margin of 10 and fails for a wrong step or factor. The force
+    is linear in c01: that column is exact to roundoff."""
+    d = 1e-3
+    stretches = [1.5 - d, 1.5, 1.5 + d]
+    body = ('gradients = ["parameters.stretch", "materials.rubber.c01"]\n'
+            f"[grid]\nparameters.stretch = {stretches}\n")
+    res = run_sweep(load_sweep(write_sweep(tmp_path / "s", body, outcomes='["force_N"]')),
+                    client=client)
+    assert [r["status"] for r in res.rows] == ["ok"] * 3, res.rows
+    rows = table.read(res.out_dir)
+    col, col_c01 = "d_force_N/d_parameters.stretch", "d_force_N/d_materials.rubber.c01"
+    assert {col, col_c01} <= set(rows[0])
+    f = [r["force_N"] for r in rows]
+    assert f[1] == pytest.approx(force(1.5), rel=1e-12)
+    from_column = (f[2] - f[0]) / (2 * d)
+    assert rows[1][col] == pytest.approx(from_column, rel=1e-5)
+    for r, lam in zip(rows, stretches):
+        dl, _, dc01 = dforce(lam)
+        assert r[col] == pytest.approx(dl, rel=2e-6), lam
+        assert r[col_c01] == pytest.approx(dc01, rel=1e-9), lam
+
+
+def test_uncertainty_first_order_against_the_closed_form(client, tmp_path, capsys):
+    """`eyefem sweep FILE --uncertainty` on the uniaxial test: the first-order mean and std
+    it writes (uncertainty.json) against the closed form's gradient (the force is linear in
+    c10 and c01: exact; the stretch by central differences, 1e-6 relative truncation), and
+    the sampled statistics against the closed form at the table's sampled parameters."""
+    import numpy as np
+
+    from eyefem.cli.main import main
+
+    body = ("[samples]\nn = 6\nseed = 2\n"
+            "parameters.stretch = { dist = \"uniform\", low = 1.4, high = 1.6 }\n"
+            "materials.rubber.c10 = { dist = \"normal\", mean = 25.0, std = 2.0 }\n"
+            "materials.rubber.c01 = { dist = \"lognormal\", median = 5.0, sigma = 0.2 }\n")
+    f = write_sweep(tmp_path / "s", body, outcomes='["force_N"]')
+    out = tmp_path / "uq"
+    assert main(["-q", "sweep", str(f), "--scheduler", client.scheduler.address,
+                 "--out", str(out), "--uncertainty"]) == 0
+    printed = capsys.readouterr().out
+    assert "| force_N |" in printed and "7 forward solves" in printed
+    assert "parameters.stretch (central differences, h = 0.0015)" in printed
+    uq = json.loads((out / "uncertainty.json").read_text())
+    fo, sa = uq["first_order"], uq["sampled"]
+    dl, dc10, dc01 = dforce(1.5)
+    terms = {"parameters.stretch": dl * 0.2 / math.sqrt(12), "materials.rubber.c10": dc10 * 2.0,
+             "materials.rubber.c01": dc01 * 5.0 * 0.2}  # lognormal: dy/dx x0 sigma
+    assert fo["mean"]["force_N"] == pytest.approx(force(1.5), rel=1e-12)
+    for k, t in terms.items():
+        assert fo["terms"]["force_N"][k] == pytest.approx(t, rel=2e-6), k
+    std = math.sqrt(sum(t * t for t in terms.values()))
+    assert fo["std"]["force_N"] == pytest.approx(std, rel=2e-6)
+    rows = table.read(out)
+    exact = np.array([force(r["parameters.stretch"], r["materials.rubber.c10"],
+                            r["materials.rubber.c01"]) for r in rows])
+    assert sa["n"]["force_N"] == 6
+    assert sa["mean"]["force_N"] == pytest.approx(exact.mean(), rel=1e-12)
+    assert sa["std"]["force_N"] == pytest.approx(exact.std(ddof=1), rel=1e-9)
+    assert (out / "uncertainty_hist.png").is_file() and (out / "uncertainty_tornado.png").is_file()
+
+
+@pytest.mark.parametrize("sampled, message", [
+    ("parameters.steps = { dist = \"uniform\", low = 2.0, high = 4.0 }",
+     "'parameters.steps' is an integer parameter; a derivative needs a real-valued"),
+    ("solver.rtol = { dist = \"uniform\", low = 1e-9, high = 1e-8 }",
+     "'solver.rtol' is a solver option, not an input of the model"),
+])
+def test_uncertainty_refuses_an_input_without_a_derivative_before_the_runs(
+        tmp_path, capsys, sampled, message):
+    from eyefem.cli.main import main
+
+    f = write_sweep(tmp_path / "s", f"[samples]\nn = 2\nseed = 1\n{sampled}\n")
+    assert main(["-q", "sweep", str(f), "--out", str(tmp_path / "out"), "--uncertainty"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and str(f) in err and "Traceback" not in err, err
+    assert not (tmp_path / "out").exists()  # refused before any run
+
+
+def test_biometry_is_propagated_by_central_differences(monkeypatch, tmp_path):
+    """parameters.axial_length of a surgery case changes the mesh: no adjoint; first_order
+    takes central differences of eyefem.simulate (two more solves) next to the adjoint of a
+    design variable. A stand-in simulate with a closed form (quadratic in the axial length
+    L, linear in c10) checks the propagation without a surgery solve."""
+    import jax.numpy as jnp
+
+    import eyefem.api
+    from eyefem.eye.variables import OUTCOMES
+    from eyefem.study.spec import Distribution
+    from eyefem.study.uncertainty import first_order, sweep_distributions
+
+    f = tmp_path / "sweep.toml"
+    f.write_text(f'[sweep]\ncase = "{(ROOT / "cases/surgery/case1.toml").as_posix()}"\n'
+                 '[set]\nparameters.mesh = "coarse"\n[samples]\nn = 4\nseed = 1\n'
+                 'parameters.axial_length = { dist = "normal", mean = 25.0, std = 1.0 }\n'
+                 'materials.sclera.c10 = { dist = "normal", mean = 0.0833, std = 0.0125 }\n')
+    dists = sweep_distributions(load_sweep(f))
+    assert dists == {"parameters.axial_length": Distribution("normal", 25.0, 1.0),
+                     "c10_sclera": Distribution("normal", 0.0833, 0.0125)}
+    lengths = []
+
+    def fake_simulate(case, design=None, *, mesh=None):
+        L = case.parameters["axial_length"]
+        lengths.append(L)
+        c = jnp.asarray(design.get("c10_sclera", 0.07))
+        return {o: 0.3 * (i + 1) * L**2 - 40.0 * c for i, o in enumerate(OUTCOMES)}
+
+    monkeypatch.setattr(eyefem.api, "simulate", fake_simulate)
+    fo = first_order(ROOT / "cases/surgery/case1.toml", dists)
+    h = 25.0e-3
+    assert sorted(lengths) == [25.0 - h, 25.0, 25.0, 25.0 + h]  # y0, the adjoint, +-h
+    assert fo["solves"] == 3 and fo["step"] == {"parameters.axial_length": h}
+    assert fo["method"] == {"parameters.axial_length": "central differences",
+                            "c10_sclera": "adjoint"}
+    for i, o in enumerate(OUTCOMES):
+        a = 0.3 * (i + 1)
+        assert fo["mean"][o] == pytest.approx(a * 625.0 - 40.0 * 0.0833, rel=1e-12)
+        dl = 2 * a * 25.0  # central differences of a quadratic: exact to roundoff
+        assert fo["gradient"][o]["parameters.axial_length"] == pytest.approx(dl, rel=1e-9)
+        assert fo["gradient"][o]["c10_sclera"] == pytest.approx(-40.0, rel=1e-12)
+        assert fo["std"][o] == pytest.approx(math.hypot(dl * 1.0, 40.0 * 0.0125), rel=1e-9)

@@ -5,7 +5,8 @@ A sweep file is TOML (docs/sweep.md)::
     [sweep]
     case = "../surgery/case1.toml"        # base case, relative to this file
     outcomes = ["iop_mmhg", "refraction_change_D"]
-    gradients = ["tightening"]            # optional, surgery cases (eyefem.simulate)
+    gradients = ["tightening"]            # optional: adjoint (surgery design variables)
+                                          # or central differences (dotted paths)
 
     [set]                                 # the same override in every run
     parameters.mesh = "coarse"
@@ -51,8 +52,12 @@ SWEEP_FIELDS = {
     "case": "base case file, relative to the sweep file (required)",
     "title": "title of the sweep",
     "outcomes": "names of the summary (or last recorded step) to record; default: every number",
-    "gradients": "design variables (eyefem.eye.variables.DESIGN_VARIABLES) to differentiate "
-                 "the outcomes by, with eyefem.simulate (surgery cases); default none",
+    "gradients": "inputs to differentiate the outcomes by: design variables "
+                 "(eyefem.eye.variables.DESIGN_VARIABLES) of a surgery case, by the adjoint "
+                 "(eyefem.simulate), or dotted paths (parameters.NAME, materials.NAME.cRS) "
+                 "of any case, by central differences (two more solves each); default none",
+    "fd_step": "relative step of the central differences: h = fd_step |x| (fd_step if x = 0); "
+               "default 1e-3",
     "output": "output folder, relative to the current folder; default results/sweeps/<stem>",
     "vtu": "write each run's VTU series (default false: saves disk)",
     "plots": "write each run's own plots (default false); the sweep's plots are always made",
@@ -67,6 +72,11 @@ lognormal: x = median * exp(sigma * z), z standard normal (sigma > 0: std of log
 METHODS = ("lhs", "random")
 BEST_GOALS = ("min", "max", "target")
 RUNNING_STATUSES = ("ok", "failed", "did-not-converge")
+FD_STEP = 1e-3
+"""Default relative step of the central differences (h = FD_STEP |x|): small enough for a
+truncation error of order 1e-6 relative on smooth outcomes, large enough that Newton's
+tolerance (rtol 1e-8) costs about 1e-5 relative."""
+ADJOINT, CENTRAL = "adjoint", "central differences"
 
 
 class SweepError(ValueError):
@@ -118,7 +128,8 @@ class Sweep:
     output (folder); vtu, plots (each run's own outputs); fixed (path -> value, every
     run); rows (one dict path -> value per run, before ``fixed``); varied (the paths
     that vary, in order); distributions (path -> Distribution, for sampled paths);
-    best (outcome, goal, target, show) for the table of best designs.
+    best (outcome, goal, target, show) for the table of best designs; fd_step (relative
+    step of the central-difference gradients).
     """
 
     path: Path
@@ -135,6 +146,7 @@ class Sweep:
     varied: tuple[str, ...]
     distributions: dict
     best: dict
+    fd_step: float = FD_STEP
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,6 +220,85 @@ def check_path(path: str, base: Case, where: str) -> None:
         hint = _suggest(path, cands)
     raise SweepError(f"{where}: unknown parameter '{path}'{hint}; give parameters.NAME, "
                      "materials.NAME.c10 (or another coefficient) or solver.NAME")
+
+
+def design_variable(path: str) -> str | None:
+    """The design variable (eyefem.eye.variables) a sweep path sets, or None:
+    materials.<m>.c10 -> c10_<m>; parameters.<name> -> <name> for a design variable."""
+    parts = path.split(".")
+    if len(parts) == 3 and parts[0] == "materials" and parts[2] == "c10":
+        name = f"c10_{parts[1]}"
+    elif len(parts) == 2 and parts[0] == "parameters":
+        name = parts[1]
+    else:
+        return None
+    return name if name in DESIGN_VARIABLES else None
+
+
+def differentiable_input(name: str, base: Case, body: str, where: str) -> tuple[str, str]:
+    """How the outcomes are differentiated by the input ``name``: (key, method).
+
+    A design variable (``tightening`` or its path ``parameters.tightening``,
+    ``materials.sclera.c10`` -> ``c10_sclera``) of a rigid-buckle surgery case: (design
+    variable, ADJOINT). Any other real-valued input given by its dotted path
+    (``parameters.axial_length``, ``materials.rubber.c01``): (path, CENTRAL), two more
+    solves at x +- h. SweepError (naming the input, the reason and the fix) otherwise.
+    ``body`` is the runs' buckle body (surgery cases)."""
+    surgery = base.problem == "surgery"
+    fields = {f.name: f for f in schemas()[base.problem]}
+    if "." not in name:
+        if name in DESIGN_VARIABLES:
+            if not surgery:
+                raise SweepError(f"{where}: '{name}' is a design variable of the surgery cases: "
+                                 "gradients need a surgery case (eyefem.simulate) for the "
+                                 f"adjoint; the base case's problem is '{base.problem}'; give "
+                                 "a dotted path (parameters.NAME, materials.NAME.cRS) for "
+                                 "central differences, or remove it")
+            key = name
+        elif name in fields:
+            raise SweepError(f"{where}: '{name}' is not a design variable (no adjoint "
+                             f"gradient); give its path 'parameters.{name}' for central "
+                             "differences (two more solves)")
+        else:
+            raise SweepError(f"{where}: unknown input '{name}'"
+                             f"{_suggest(name, list(DESIGN_VARIABLES) + list(fields))}; give a "
+                             f"design variable ({', '.join(DESIGN_VARIABLES)}) of a surgery "
+                             "case or a dotted path (parameters.NAME, materials.NAME.cRS)")
+    else:
+        check_path(name, base, where)
+        parts = name.split(".")
+        if parts[0] == "solver":
+            raise SweepError(f"{where}: '{name}' is a solver option, not an input of the model; "
+                             "it has no derivative: remove it")
+        kind = fields[parts[1]].type if parts[0] == "parameters" else float
+        if kind is not float:
+            what = {int: "an integer", str: "a text", bool: "a true/false"}.get(kind, "a list")
+            raise SweepError(f"{where}: '{name}' is {what} parameter; a derivative needs a "
+                             "real-valued (float) parameter: remove it")
+        key = (design_variable(name) if surgery else None) or name
+    if surgery and body != "rigid":
+        raise SweepError(f"{where}: '{name}': gradients need a rigid buckle (eyefem.simulate); "
+                         f"the case has buckle_body = '{body}'; set buckle_body = \"rigid\" "
+                         "or remove it")
+    return key, (ADJOINT if "." not in key else CENTRAL)
+
+
+def value_of(case: Case, path: str) -> float:
+    """The value of a dotted path (parameters.NAME, materials.NAME.cRS) in a parsed case;
+    ValueError naming the path when the case does not hold it."""
+    parts = path.split(".")
+    if parts[0] == "parameters" and parts[1] in case.parameters:
+        return float(case.parameters[parts[1]])
+    if parts[0] == "materials" and len(parts) == 3 and parts[1] in case.materials:
+        return float(np.asarray(case.materials[parts[1]].coeffs)[int(parts[2][1]),
+                                                                  int(parts[2][2])])
+    raise ValueError(f"{case.path}: '{path}' has no value in the case; give it in the case "
+                     "file (its own table for a material) to differentiate by it")
+
+
+def fd_step(x0: float, rel: float = FD_STEP) -> float:
+    """The step h of a central difference at x0: rel |x0|, or rel when x0 = 0."""
+    return rel * abs(x0) if x0 != 0 else rel
 
 
 def _distribution(spec, where: str) -> Distribution:
@@ -298,20 +389,18 @@ def load_sweep(path: str | Path) -> Sweep:
             raise SweepError(f"{path} [sweep]: {name} lists a name twice: {v}")
         return tuple(v)
 
-    outcomes, gradients = strings("outcomes"), strings("gradients")
-    if gradients:
-        if base.problem != "surgery":
-            raise SweepError(f"{path} [sweep]: gradients need a surgery case (eyefem.simulate); "
-                             f"the base case's problem is '{base.problem}'; remove 'gradients'")
-        body = head_fixed_body(raw, base)
-        if body != "rigid":
-            raise SweepError(f"{path} [sweep]: gradients need a rigid buckle (eyefem.simulate); "
-                             f"the case has buckle_body = '{body}'; remove 'gradients'")
-        for g in gradients:
-            if g not in DESIGN_VARIABLES:
-                raise SweepError(f"{path} [sweep]: gradients: unknown design variable '{g}'"
-                                 f"{_suggest(g, DESIGN_VARIABLES)}; known: "
-                                 f"{', '.join(DESIGN_VARIABLES)}")
+    outcomes, given = strings("outcomes"), strings("gradients")
+    body = head_fixed_body(raw, base)
+    gradients = tuple(dict.fromkeys(differentiable_input(g, base, body, f"{path} [sweep] "
+                                                         "gradients")[0] for g in given))
+    if len(gradients) != len(given):
+        raise SweepError(f"{path} [sweep]: gradients name one input twice (a design variable "
+                         f"and its path): {list(given)}")
+    step = head.get("fd_step", FD_STEP)
+    if isinstance(step, bool) or not isinstance(step, (int, float)) or not 0 < step <= 0.1:
+        raise SweepError(f"{path} [sweep]: fd_step = {step!r}; give the relative step of the "
+                         "central differences, a number in (0, 0.1], e.g. 1e-3")
+    if gradients and base.problem == "surgery":
         for o in outcomes:
             if o not in OUTCOMES:
                 raise SweepError(f"{path} [sweep]: gradients are of the surgery outcomes "
@@ -392,7 +481,7 @@ def load_sweep(path: str | Path) -> Sweep:
     best = _best(raw.get("best", {}), outcomes, f"{path} [best]")
     return Sweep(path, case_path, base, head.get("title", path.stem), outcomes, gradients,
                  Path(output), head.get("vtu", False), head.get("plots", False), fixed, rows,
-                 tuple(varied), dists, best)
+                 tuple(varied), dists, best, float(step))
 
 
 def head_fixed_body(raw: dict, base: Case) -> str:
@@ -451,12 +540,14 @@ def case_raw(sweep: Sweep, overrides: dict) -> dict:
     return raw
 
 
-def run_hash(case: Case, gradients=()) -> str:
+def run_hash(case: Case, gradients=(), rel_step: float = FD_STEP) -> str:
     """The hash naming a run: the parsed case (manifest.case_key), the code version and
-    the gradients asked for."""
+    the gradients asked for (with the step, when some are central differences)."""
     key = manifest.case_key(case.problem, case.parameters, case.materials, case.solver)
-    return manifest.case_hash(json.dumps({"case": key, "code_version": manifest.code_version(),
-                                          "gradients": sorted(gradients)}, sort_keys=True))
+    what = {"case": key, "code_version": manifest.code_version(), "gradients": sorted(gradients)}
+    if any("." in g for g in gradients):
+        what["fd_step"] = rel_step
+    return manifest.case_hash(json.dumps(what, sort_keys=True))
 
 
 def plan(sweep: Sweep) -> tuple[list[PlannedRun], list[tuple[int, dict, str]]]:
@@ -479,6 +570,6 @@ def plan(sweep: Sweep) -> tuple[list[PlannedRun], list[tuple[int, dict, str]]]:
             except CaseError as exc:
                 invalid.append((i, row, str(exc).replace(str(f), f"run {i}")))
                 continue
-            h = run_hash(case, sweep.gradients)
+            h = run_hash(case, sweep.gradients, sweep.fd_step)
             runs.append(PlannedRun(i, row, text, h, f"{i:04d}_{h[:8]}"))
     return runs, invalid

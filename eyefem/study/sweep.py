@@ -5,7 +5,9 @@
 'ok' or 'did-not-converge' (the same case and code would give the same answer), submits
 the rest to a Dask cluster (a LocalCluster of one-thread worker processes, or an
 existing scheduler), and as each task finishes writes the table (results.parquet,
-results.csv) and logs the progress. A run that fails is a row with its message; a worker
+results.csv). While the runs go, a progress line (done / failed / running / queued, the
+elapsed and the estimated time left) is emitted at most every ``progress_interval``
+seconds, and at the start and the end. A run that fails is a row with its message; a worker
 that dies has its task re-run by Dask's scheduler (up to ``allowed_failures`` deaths of
 that task, then the row says so); an interrupted sweep keeps what finished, and the same
 command continues it.
@@ -19,6 +21,7 @@ import math
 import os
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 from eyefem.io import manifest
@@ -33,6 +36,8 @@ SKIP_STATUSES = ("ok", "did-not-converge")
 have failed for a passing reason such as a full disk, is run again)."""
 ALLOWED_FAILURES = 3
 """Worker deaths a task may cause before the scheduler gives up on it (KilledWorker)."""
+PROGRESS_INTERVAL = 5.0
+"""Seconds between two progress lines of a sweep (at most one per interval)."""
 MISSING_DEPENDENCY = ('eyefem sweep needs dask.distributed and pyarrow: '
                       'pip install "eyefem[sweep]"')
 
@@ -77,6 +82,59 @@ def _fmt_s(s: float) -> str:
         f"{s // 60}m{s % 60:02d}s" if s >= 60 else f"{s}s")
 
 
+class SweepProgress:
+    """The progress of a sweep's runs: one line at most every ``interval`` seconds.
+
+    Args:
+      total: the runs to compute (those not complete before).
+      emit: where a line goes (a callable taking the text).
+      interval: the least time between two lines, s (``force`` overrides it).
+      clock: the time source, s (for tests).
+
+    The time left is the elapsed time per finished run times the runs left (the runs
+    finish at the pace of the cluster, several at a time); '?' before the first."""
+
+    def __init__(self, total: int, emit: Callable[[str], None], interval: float = PROGRESS_INTERVAL,
+                 clock: Callable[[], float] = time.monotonic):
+        self.total, self.emit, self.interval, self.clock = total, emit, float(interval), clock
+        self.t0 = clock()
+        self.last = -math.inf
+
+    def line(self, done: int, failed: int, running: int) -> str:
+        """The progress text after ``done`` finished runs (``failed`` of them not ok)."""
+        elapsed = self.clock() - self.t0
+        left = self.total - done
+        eta = 0.0 if not left else elapsed / done * left if done else math.nan
+        return (f"sweep: {done}/{self.total} runs done ({failed} failed), {running} running, "
+                f"{max(0, left - running)} queued; {_fmt_s(elapsed)} elapsed, ~{_fmt_s(eta)} left")
+
+    def due(self) -> bool:
+        """Whether ``interval`` has passed since the last line."""
+        return self.clock() - self.last >= self.interval
+
+    def update(self, done: int, failed: int, running: int, *, force: bool = False) -> bool:
+        """Emit the line if ``interval`` has passed since the last one (or ``force``);
+        returns whether it did."""
+        if not force and not self.due():
+            return False
+        self.last = self.clock()
+        self.emit(self.line(done, failed, running))
+        return True
+
+
+def _running(client, pending, fallback: int) -> int:
+    """How many of the ``pending`` futures a worker is executing now: per worker, the
+    tasks it is processing, at most its threads; ``fallback`` if the scheduler does not
+    say."""
+    keys = {f.key for f in pending}
+    try:
+        nthreads = client.nthreads()
+        return sum(min(sum(k in keys for k in ks), nthreads.get(w, 1))
+                   for w, ks in client.processing().items())
+    except Exception:  # noqa: BLE001 - a busy or lost scheduler: the estimate will do
+        return min(len(pending), fallback)
+
+
 def local_client(n_workers: int | None = None):
     """A dask Client on a new LocalCluster: ``n_workers`` (default: the cores) worker
     processes of one thread each (JAX and the sparse solvers are not shared between
@@ -90,7 +148,9 @@ def local_client(n_workers: int | None = None):
 
 
 def run_sweep(sweep: Sweep, *, out: str | Path | None = None, client=None,
-              scheduler: str | None = None, workers: int | None = None) -> SweepResult:
+              scheduler: str | None = None, workers: int | None = None,
+              progress: Callable[[str], None] | None = None,
+              progress_interval: float = PROGRESS_INTERVAL) -> SweepResult:
     """Run the sweep's runs on a Dask cluster; returns the table and counts.
 
     Args:
@@ -99,10 +159,12 @@ def run_sweep(sweep: Sweep, *, out: str | Path | None = None, client=None,
       client: a dask Client to use (kept open); else ``scheduler`` (an address of an
         existing cluster; its workers must see ``out``, a shared file system), else a new
         LocalCluster of ``workers`` processes (default: the cores), closed at the end.
+      progress: where the progress lines go (default: this module's logger at INFO).
+      progress_interval: the least time between two progress lines, s.
     """
     check_dependencies()
     import jax
-    from distributed import Client, as_completed
+    from distributed import Client, wait
 
     tic = time.perf_counter()
     out_dir = manifest.check_writable(Path(out) if out is not None else sweep.output)
@@ -142,35 +204,43 @@ def run_sweep(sweep: Sweep, *, out: str | Path | None = None, client=None,
             for r in todo:
                 f = client.submit(run_case, r.case_text, str((out_dir / "runs" / r.folder).resolve()),
                                   run_hash=r.run_hash, index=r.index, gradients=sweep.gradients,
+                                  outcomes=sweep.outcomes, fd_step=sweep.fd_step,
                                   jax_cache=cache, pure=False,
                                   key=f"eyefem-run-{r.index:04d}-{r.run_hash[:8]}-{uuid.uuid4().hex[:6]}")
                 futures[f] = r
             log.info("sweep: %d runs submitted to %d workers (%s)", len(futures), n_workers,
                      client.scheduler.address)
-            started = time.perf_counter()
             failed = 0
-            for f in as_completed(futures):
-                r = futures[f]
+            meter = SweepProgress(len(futures), progress or log.info, progress_interval)
+            pending = set(futures)
+            meter.update(0, 0, _running(client, pending, n_workers), force=True)
+            while pending:
                 try:
-                    rec = f.result()
-                except Exception as exc:  # noqa: BLE001 - KilledWorker, lost scheduler...
-                    rec = {"index": r.index, "run_hash": r.run_hash, "status": "failed",
-                           "error": f"{type(exc).__name__}: {exc}", "wall_s": math.nan,
-                           "run_dir": str(out_dir / "runs" / r.folder)}
-                records[r.index] = rec
-                computed += 1
-                failed += rec["status"] != "ok"
-                rows = write_table()
-                left = len(futures) - computed
-                per = (time.perf_counter() - started) / computed
-                eta = per * left if left else 0.0
-                log.info("sweep: %d/%d done (%d failed), %d running, %d queued; run %d %s in "
-                         "%s; ~%s left", computed, len(futures), failed, min(left, n_workers),
-                         max(0, left - n_workers), r.index, rec["status"],
-                         _fmt_s(rec.get("wall_s", math.nan)), _fmt_s(eta))
-                if rec["status"] != "ok":
-                    log.warning("sweep: run %d %s: %s", r.index, rec["status"],
-                                str(rec.get("error", ""))[:500])
+                    done, pending = wait(pending, timeout=progress_interval,
+                                         return_when="FIRST_COMPLETED")
+                except TimeoutError:  # nothing finished: a progress line all the same
+                    done = set()
+                for f in sorted(done, key=lambda f: futures[f].index):
+                    r = futures[f]
+                    try:
+                        rec = f.result()
+                    except Exception as exc:  # noqa: BLE001 - KilledWorker, lost scheduler...
+                        rec = {"index": r.index, "run_hash": r.run_hash, "status": "failed",
+                               "error": f"{type(exc).__name__}: {exc}", "wall_s": math.nan,
+                               "run_dir": str(out_dir / "runs" / r.folder)}
+                    records[r.index] = rec
+                    computed += 1
+                    failed += rec["status"] != "ok"
+                    log.debug("sweep: run %d %s in %s", r.index, rec["status"],
+                              _fmt_s(rec.get("wall_s", math.nan)))
+                    if rec["status"] != "ok":
+                        log.warning("sweep: run %d %s: %s", r.index, rec["status"],
+                                    str(rec.get("error", ""))[:500])
+                if done:
+                    rows = write_table()
+                if meter.due() or not pending:  # ask the scheduler only for a line
+                    meter.update(computed, failed, _running(client, pending, n_workers)
+                                 if pending else 0, force=True)
         finally:
             if own:
                 cluster = getattr(client, "cluster", None)

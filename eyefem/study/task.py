@@ -2,17 +2,21 @@
 
 :func:`run_case` writes the run's case file into its folder, runs it as ``eyefem run``
 does (the problem's builder, :func:`eyefem.io.runner.run_setup`, ``summary.json``),
-optionally differentiates the surgery outcomes with :func:`eyefem.simulate`, and writes
-``row.json``: the record that the results table and a restarted sweep read. Failures are
+optionally differentiates the outcomes (:func:`gradients_of`: the adjoint of
+:func:`eyefem.simulate` for a surgery case's design variables, central differences for
+any other real-valued input), and writes ``row.json``: the record that the results table
+and a restarted sweep read. Failures are
 returned as data (status ``failed`` or ``did-not-converge`` with the message), never
 raised, so Dask re-runs a task only when its worker died.
 """
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import math
+import tempfile
 import time
 import traceback
 from pathlib import Path
@@ -45,25 +49,108 @@ def design_point(case, setup, names) -> dict:
     return out
 
 
-def gradients_of(case, setup, names) -> dict:
-    """d outcome / d variable for every surgery outcome and each design variable in
-    ``names``, at the case's design: one eyefem.simulate forward solve and a jax.jacrev
-    (three adjoint solves per outcome). Keys 'd_<outcome>/d_<variable>'."""
+def case_with(case, overrides: dict, folder: Path, name: str):
+    """The parsed case with ``overrides`` (dotted path -> value) applied to its TOML, written
+    as ``folder/<name>.toml`` and read back (validated) with load_case. File paths of the
+    case (a user's mesh) stay the resolved ones."""
+    import tomli_w
+
+    from eyefem.catalog import schemas
+    from eyefem.io.casefile import load_case
+    from eyefem.study.spec import _set
+
+    raw = copy.deepcopy(case.raw)
+    for f in schemas()[case.problem]:
+        if getattr(f, "path", False) and case.parameters.get(f.name):
+            _set(raw, f"parameters.{f.name}", str(case.parameters[f.name]))
+    for p, v in overrides.items():
+        _set(raw, p, v)
+    f = Path(folder) / f"{name}.toml"
+    f.write_text(tomli_w.dumps(raw), encoding="utf-8")
+    return load_case(f, schemas())
+
+
+def solve_case(case, out: Path, setup=None):
+    """Run a parsed case into ``out`` as ``eyefem run`` does (its problem's builder and
+    run_setup); returns run_setup's result."""
+    from eyefem.catalog import problems
+    from eyefem.io import manifest
+    from eyefem.io.casefile import check_material_names
+    from eyefem.io.runner import run_setup
+
+    if setup is None:
+        setup = problems()[case.problem][1](case.parameters, case.materials)
+    check_material_names(case, setup.model.mesh.materials)
+    return run_setup(setup, out, case.solver, vtu=case.output["vtu"], plots=case.output["plots"],
+                     key=manifest.case_key(case.problem, case.parameters, case.materials,
+                                           case.solver))
+
+
+def outcomes_of(case, out: Path) -> dict:
+    """The numbers of a run of a case (no VTU, no plots) in ``out``: those recorded at the
+    last converged step, overridden by those of the summary (as the results table reads
+    an outcome)."""
+    Path(out).mkdir(parents=True, exist_ok=True)
+    quiet = case_with(case, {"output": {"vtu": False, "plots": False}}, out, "case")
+    res = solve_case(quiet, Path(out) / "run")
+    return {**(_numbers(res.rows[-1]) if res.rows else {}), **_numbers(res.summary)}
+
+
+def gradients_of(case, setup, names, *, outcomes=(), values=None,
+                 fd_step: float | None = None) -> dict:
+    """d outcome / d input at the case, keys 'd_<outcome>/d_<input>' (units: the
+    outcome's per the input's).
+
+    ``names``: design variables of a rigid-buckle surgery case (the adjoint: one
+    eyefem.simulate forward solve and a jax.jacrev, three adjoint solves per outcome,
+    every surgery outcome) and dotted paths (parameters.NAME, materials.NAME.cRS) of any
+    case (central differences (y(x + h) - y(x - h)) / 2h, h = fd_step |x|: two more
+    solves each; a surgery case's by eyefem.simulate, any other by a run of the case).
+    ``outcomes``: the outcomes of a non-surgery case to differentiate (default: every
+    number of ``values``, the run's summary at x, as the results table records)."""
     import jax
 
-    from eyefem.api import simulate
+    from eyefem.study.spec import FD_STEP, value_of
+    from eyefem.study.spec import fd_step as step_at
 
-    x0 = design_point(case, setup, names)
-    jac = jax.jacrev(lambda d: simulate(case, d))(x0)
-    return {f"d_{o}/d_{v}": float(jac[o][v]) for o in jac for v in names}
+    adjoint = [n for n in names if "." not in n]
+    central = [n for n in names if "." in n]
+    out: dict[str, float] = {}
+    surgery = case.problem == "surgery"
+    if surgery:
+        from eyefem.api import simulate
+    if adjoint:
+        x0 = design_point(case, setup, adjoint)
+        jac = jax.jacrev(lambda d: simulate(case, d))(x0)
+        out.update({f"d_{o}/d_{v}": float(jac[o][v]) for o in jac for v in adjoint})
+    if not central:
+        return out
+    names_y = list(outcomes) or [k for k in (values or {}) if k != "wall_s"]
+    with tempfile.TemporaryDirectory(prefix="eyefem-fd-") as tmp:
+        for p in central:
+            x = value_of(case, p)
+            h = step_at(x, fd_step or FD_STEP)
+            ys = []
+            for sign, tag in ((1, "plus"), (-1, "minus")):
+                shifted = case_with(case, {p: x + sign * h}, tmp, f"{p}_{tag}")
+                if surgery:
+                    ys.append(simulate(shifted, {}))
+                else:
+                    ys.append(outcomes_of(shifted, Path(tmp) / f"{p}_{tag}"))
+            for o in (list(ys[0]) if surgery else names_y):
+                if o in ys[0] and o in ys[1]:
+                    out[f"d_{o}/d_{p}"] = (ys[0][o] - ys[1][o]) / (2 * h)
+    return out
 
 
 def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
-             gradients: tuple = (), jax_cache: str | None = None) -> dict:
+             gradients: tuple = (), outcomes: tuple = (), fd_step: float | None = None,
+             jax_cache: str | None = None) -> dict:
     """Run one case (TOML text) into ``run_dir``; returns (and writes as row.json) the
     record: index, run_hash, status ('ok', 'failed', 'did-not-converge'), error, wall_s,
     summary (the numbers of summary.json), last_step (the numbers recorded at the last
-    converged step), gradients, run_dir, worker (host:pid)."""
+    converged step), gradients (:func:`gradients_of` by ``gradients`` of ``outcomes``,
+    central differences with the relative step ``fd_step``), run_dir, worker (host:pid)."""
     import os
     import socket
 
@@ -75,9 +162,8 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
     from eyefem.catalog import problems, schemas
     from eyefem.io import manifest
-    from eyefem.io.casefile import check_material_names, load_case
+    from eyefem.io.casefile import load_case
     from eyefem.io.output import write_text
-    from eyefem.io.runner import run_setup
     from eyefem.solve.solver import ConvergenceError
 
     out = Path(run_dir)
@@ -91,17 +177,15 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
         write_text(out / CASE_FILE, case_text)
         case = load_case(out / CASE_FILE, schemas())
         setup = problems()[case.problem][1](case.parameters, case.materials)
-        check_material_names(case, setup.model.mesh.materials)
-        res = run_setup(setup, out, case.solver, vtu=case.output["vtu"],
-                        plots=case.output["plots"],
-                        key=manifest.case_key(case.problem, case.parameters, case.materials,
-                                              case.solver))
+        res = solve_case(case, out, setup)
         summary = {"case": str(case.path), "title": case.title, **res.summary}
         write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
         rec["summary"] = _numbers(res.summary)
         rec["last_step"] = _numbers(res.rows[-1]) if res.rows else {}
         if gradients:
-            rec["gradients"] = gradients_of(case, setup, tuple(gradients))
+            rec["gradients"] = gradients_of(
+                case, setup, tuple(gradients), outcomes=tuple(outcomes), fd_step=fd_step,
+                values=rec["summary"])
     except ConvergenceError as exc:
         rec.update(status="did-not-converge", error=f"ConvergenceError: {exc}")
     except Exception as exc:  # noqa: BLE001 - a failed run is data; the sweep goes on

@@ -2,9 +2,13 @@
 
 Two ways, compared by ``eyefem sweep FILE --uncertainty`` (docs/uncertainty.md):
 
-- **first order** (:func:`first_order`): one forward solve and the adjoint gradients
-  (eyefem.simulate + jax.jacrev) at the centre of the distributions. For independent
-  inputs x_i with standard deviations s_i, an outcome y has
+- **first order** (:func:`first_order`): one forward solve and the gradients at the
+  centre of the distributions: by the adjoint (eyefem.simulate + jax.jacrev) for the
+  design variables of a rigid-buckle surgery case; by central differences for any other
+  real-valued input (biometry such as ``parameters.axial_length``, which changes the
+  mesh, or any parameter or material coefficient of a non-surgery case): two more solves
+  per such input, at x0 +- h, h = fd_step |x0|. For independent inputs x_i with standard
+  deviations s_i, an outcome y has
 
       mean(y) ~ y(x0),   std(y) ~ sqrt(sum_i (dy/dx_i s_i)^2),
 
@@ -28,45 +32,92 @@ from pathlib import Path
 
 import numpy as np
 
-from eyefem.eye.variables import DESIGN_VARIABLES, OUTCOMES
-from eyefem.study.spec import Distribution, Sweep, case_raw
+from eyefem.eye.variables import OUTCOMES
+from eyefem.study.spec import (
+    ADJOINT,
+    CENTRAL,
+    FD_STEP,
+    Distribution,
+    Sweep,
+    SweepError,
+    case_raw,
+    design_variable,  # noqa: F401 - re-exported (was defined here)
+    differentiable_input,
+    fd_step,
+)
 
 
-def design_variable(path: str) -> str | None:
-    """The design variable (eyefem.eye.variables) a sweep path sets, or None:
-    materials.<m>.c10 -> c10_<m>; parameters.<name> -> <name> for a design variable."""
-    parts = path.split(".")
-    if len(parts) == 3 and parts[0] == "materials" and parts[2] == "c10":
-        name = f"c10_{parts[1]}"
-    elif len(parts) == 2 and parts[0] == "parameters":
-        name = parts[1]
-    else:
-        return None
-    return name if name in DESIGN_VARIABLES else None
+def method_of(key: str) -> str:
+    """How first_order differentiates by an input key: ADJOINT for a design variable
+    name, CENTRAL for a dotted path."""
+    return CENTRAL if "." in key else ADJOINT
 
 
-def first_order(case, dists: dict[str, Distribution], outcomes=tuple(OUTCOMES)) -> dict:
-    """First-order mean and std of the outcomes of a surgery case.
+def first_order(case, dists: dict[str, Distribution], outcomes=None, *,
+                rel_step: float = FD_STEP) -> dict:
+    """First-order mean and std of the outcomes of a case.
 
     Args:
-      case: a case-file path or Case (eyefem.simulate).
-      dists: design variable -> Distribution (independent inputs).
-      outcomes: the outcome names (eyefem.eye.variables.OUTCOMES).
+      case: a case-file path or Case.
+      dists: input -> Distribution (independent inputs); an input is a design variable
+        of a rigid-buckle surgery case (the adjoint of eyefem.simulate) or a dotted path
+        (parameters.NAME, materials.NAME.cRS) of any case (central differences: two more
+        solves each, by eyefem.simulate for a surgery case, else by a run of the case).
+      outcomes: the outcome names (default: OUTCOMES for a surgery case, else every
+        number of the run at the centre).
+      rel_step: relative step of the central differences, h = rel_step |x0|.
 
-    Returns: {"centre": {var: x0}, "mean": {outcome: y(x0)}, "std": {outcome: std},
-    "gradient": {outcome: {var: dy/dx}}, "terms": {outcome: {var: dy/dx s}}}.
+    Returns: {"centre": {input: x0}, "method": {input: "adjoint" | "central
+    differences"}, "step": {input: h}, "solves": forward solves done, "mean": {outcome:
+    y(x0)}, "std": {outcome: std}, "gradient": {outcome: {input: dy/dx}}, "terms":
+    {outcome: {input: dy/dx s}}}.
     """
     import jax
 
-    from eyefem.api import simulate
+    from eyefem.api import load_case, simulate
+    from eyefem.study.task import case_with, outcomes_of
 
-    x0 = {v: d.centre for v, d in dists.items()}
-    y0 = simulate(case, x0)
-    jac = jax.jacrev(lambda d: simulate(case, d))(x0)
-    res = {"centre": x0, "mean": {}, "std": {}, "gradient": {}, "terms": {}}
+    case = load_case(case) if isinstance(case, (str, Path)) else case
+    surgery = case.problem == "surgery"
+    adjoint = {v: d for v, d in dists.items() if method_of(v) == ADJOINT}
+    central = {p: d for p, d in dists.items() if method_of(p) == CENTRAL}
+    if adjoint and not surgery:
+        raise ValueError(f"{case.path}: adjoint gradients by {', '.join(adjoint)} need a surgery "
+                         f"case (eyefem.simulate); the case's problem is '{case.problem}'; give "
+                         "dotted paths (parameters.NAME, materials.NAME.cRS) for central "
+                         "differences")
+    x0 = {v: d.centre for v, d in adjoint.items()}
+    steps = {p: fd_step(d.centre, rel_step) for p, d in central.items()}
+    res = {"centre": {v: d.centre for v, d in dists.items()},
+           "method": {v: method_of(v) for v in dists}, "step": steps, "solves": 1,
+           "mean": {}, "std": {}, "gradient": {}, "terms": {}}
+    with tempfile.TemporaryDirectory(prefix="eyefem-uq-") as tmp:
+        def solve(c, tag):
+            return simulate(c, x0) if surgery else outcomes_of(c, Path(tmp) / tag)
+
+        centre = (case_with(case, {p: d.centre for p, d in central.items()}, tmp, "centre")
+                  if central else case)
+        y0 = solve(centre, "centre")
+        outcomes = list(outcomes) if outcomes else (list(OUTCOMES) if surgery else
+                                                    [k for k in y0 if k != "wall_s"])
+        missing = [o for o in outcomes if o not in y0]
+        if missing:
+            raise ValueError(f"{case.path}: outcome '{missing[0]}' is not a number of the run; "
+                             f"known: {', '.join(sorted(y0))}")
+        grad = {o: {} for o in outcomes}
+        if adjoint:
+            jac = jax.jacrev(lambda d: simulate(centre, d))(x0)
+            for o in outcomes:
+                grad[o].update({v: float(jac[o][v]) for v in adjoint})
+        for p, d in central.items():
+            ys = [solve(case_with(centre, {p: d.centre + sign * steps[p]}, tmp, f"{p}_{tag}"),
+                        f"{p}_{tag}") for sign, tag in ((1, "plus"), (-1, "minus"))]
+            res["solves"] += 2
+            for o in outcomes:
+                grad[o][p] = float(ys[0][o] - ys[1][o]) / (2 * steps[p])
     for o in outcomes:
-        g = {v: float(jac[o][v]) for v in dists}
-        terms = {v: g[v] * (x0[v] if d.kind == "lognormal" else 1.0) * d.linear_std()
+        g = {v: grad[o][v] for v in dists}
+        terms = {v: g[v] * (d.centre if d.kind == "lognormal" else 1.0) * d.linear_std()
                  for v, d in dists.items()}
         res["mean"][o] = float(y0[o])
         res["std"][o] = math.sqrt(sum(t * t for t in terms.values()))
@@ -88,21 +139,24 @@ def sampled(rows: list[dict], outcomes) -> dict:
 
 
 def sweep_distributions(sweep: Sweep) -> dict[str, Distribution]:
-    """The sweep's sampled distributions by design variable; ValueError for a sampled
-    path that is not a design variable (no gradient) or a sweep without samples."""
-    if sweep.base.problem != "surgery":
-        raise ValueError(f"{sweep.path}: first-order uncertainty needs a surgery case "
-                         f"(eyefem.simulate); the base case is '{sweep.base.problem}'")
+    """The sweep's sampled distributions by input: a design variable name (adjoint) for
+    a design variable of a rigid-buckle surgery case, else the sampled dotted path
+    (central differences). ValueError (naming the file, the parameter, the reason and
+    the fix) for a sweep without samples or a sampled input that cannot be
+    differentiated (a solver option, an integer parameter)."""
     if not sweep.distributions:
-        raise ValueError(f"{sweep.path}: no [samples] distributions to propagate")
+        raise ValueError(f"{sweep.path}: --uncertainty propagates the [samples] distributions; "
+                         "the sweep has none: add a [samples] section (docs/uncertainty.md)")
+    body = str(sweep.fixed.get("parameters.buckle_body",
+                               sweep.base.parameters.get("buckle_body", "rigid")))
     out = {}
     for p, d in sweep.distributions.items():
-        v = design_variable(p)
-        if v is None:
-            raise ValueError(f"{sweep.path} [samples] {p}: not a design variable, so it has no "
-                             "adjoint gradient; sample materials.<m>.c10 or parameters.<name> "
-                             f"for a name in {', '.join(DESIGN_VARIABLES)}")
-        out[v] = d
+        try:
+            key, _ = differentiable_input(p, sweep.base, body, f"{sweep.path} [samples]")
+        except SweepError as exc:
+            raise ValueError(f"{exc} (--uncertainty needs the derivative of the outcomes by "
+                             "every sampled input)") from None
+        out[key] = d
     return out
 
 
@@ -173,11 +227,17 @@ def plot(fo: dict, rows: list[dict], outcomes, dists: dict, out_dir: Path) -> li
 
 
 def report(sweep: Sweep, rows: list[dict], out_dir: Path) -> str:
-    """Compare first-order and sampled statistics of a sampled surgery sweep; writes
-    uncertainty.json and the two plots in ``out_dir`` and returns a Markdown table."""
+    """Compare first-order and sampled statistics of a sampled sweep; writes
+    uncertainty.json and the two plots in ``out_dir`` and returns a Markdown table (and
+    how each input was differentiated)."""
+    from eyefem.study.plots import outcome_columns
+
     dists = sweep_distributions(sweep)
-    outcomes = [o for o in (sweep.outcomes or OUTCOMES) if o in OUTCOMES]
-    fo = first_order(planned_case(sweep), dists, outcomes)
+    if sweep.base.problem == "surgery":
+        outcomes = [o for o in (sweep.outcomes or OUTCOMES) if o in OUTCOMES]
+    else:
+        outcomes = list(sweep.outcomes) or outcome_columns(rows, sweep.varied)
+    fo = first_order(planned_case(sweep), dists, outcomes, rel_step=sweep.fd_step)
     sa = sampled(rows, outcomes)
     Path(out_dir, "uncertainty.json").write_text(json.dumps(
         {"inputs": {v: d.describe() for v, d in dists.items()}, "first_order": fo,
@@ -188,4 +248,8 @@ def report(sweep: Sweep, rows: list[dict], out_dir: Path) -> str:
     for o in outcomes:
         lines.append(f"| {o} | {fo['mean'][o]:.4g} | {sa['mean'][o]:.4g} | {fo['std'][o]:.3g} "
                      f"| {sa['std'][o]:.3g} | {sa['n'][o]} |")
+    how = [f"{v} ({m}" + (f", h = {fo['step'][v]:.3g}" if v in fo["step"] else "") + ")"
+           for v, m in fo["method"].items()]
+    lines.append(f"\nfirst order: {fo['solves']} forward solves; derivatives by "
+                 + ", ".join(how))
     return "\n".join(lines)
