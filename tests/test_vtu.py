@@ -215,3 +215,94 @@ def test_buckle_gap_only_over_the_footprint_and_its_surface(shape):
     else:  # tube of radius 2 around an axis 14 - d from the centre
         c = np.linalg.norm(pts - (R + 2.0 - d) * np.array([1.0, 0, 0]), axis=1)
         assert c.min() >= 0.0 and pts[:, 0].min() == pytest.approx(R - d, abs=0.5)
+
+
+def _xdmf_frames(path):
+    """(points, hexahedra, [(time, point_data, cell_data name -> array)]) of an XDMF series
+    read back with meshio's TimeSeriesReader."""
+    from meshio.xdmf import TimeSeriesReader
+
+    with TimeSeriesReader(path) as r:
+        points, cells = r.read_points_cells()
+        frames = []
+        for k in range(r.num_steps):
+            t, pd, cd = r.read_data(k)
+            frames.append((t, pd, {n: v[0] for n, v in cd.items()}))
+    return points, cells[0].data, frames
+
+
+def _assert_xdmf_matches_vtu(out, name):
+    """The XDMF series of ``out`` holds the main VTU frames: same times (monotone), same
+    reference mesh, the same point and cell fields with the same values (NaN included)."""
+    main = [e for e in _pvd(out / f"{name}.pvd") if e[2] == name]
+    points, hexes, frames = _xdmf_frames(out / f"{name}.xdmf")
+    times = [t for t, _, _ in frames]
+    assert times == [e[0] for e in main] and times == sorted(times) and times[0] == 0.0
+    for (t, pd, cd), e in zip(frames, main):
+        m = meshio.read(out / e[3])
+        np.testing.assert_array_equal(points, m.points)
+        np.testing.assert_array_equal(hexes, m.cells[0].data)
+        assert set(pd) == set(m.point_data) and set(cd) == set(m.cell_data), t
+        for k, v in m.point_data.items():
+            np.testing.assert_allclose(pd[k], v, rtol=1e-15, atol=0.0, equal_nan=True,
+                                       err_msg=f"point field {k} at time {t}")
+        for k, v in m.cell_data.items():
+            np.testing.assert_allclose(cd[k], v[0], rtol=1e-15, atol=0.0, equal_nan=True,
+                                       err_msg=f"cell field {k} at time {t}")
+
+
+@pytest.fixture(scope="module", params=["XML", "HDF"])
+def cube_xdmf_run(request, tmp_path_factory):
+    """The cube run with both series; its XDMF arrays as XML text or in HDF5 (h5py)."""
+    if request.param == "HDF":
+        pytest.importorskip("h5py", reason="the HDF5 XDMF series needs h5py")
+    out = tmp_path_factory.mktemp(f"cube-xdmf-{request.param}")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("eyefem.io.output.xdmf_data_format", lambda: request.param)
+        run_setup(_cube_setup(), out, plots=False, xdmf=True)
+    assert (out / "cube.h5").is_file() == (request.param == "HDF")
+    return out
+
+
+def test_xdmf_series_holds_the_vtu_frames(cube_xdmf_run):
+    _assert_xdmf_matches_vtu(cube_xdmf_run, "cube")
+    _, _, frames = _xdmf_frames(cube_xdmf_run / "cube.xdmf")
+    assert np.all(np.isnan(frames[1][1]["load_pressure_MPa"]))  # inactive in 'pull'
+    assert frames[-1][2]["cauchy"].shape == (1, 9)
+
+
+def test_xdmf_series_survives_a_resume(cube_xdmf_run, tmp_path):
+    """--resume keeps the XDMF frames of the completed stages (here: all of them)."""
+    import shutil
+
+    out = tmp_path / "resumed"
+    shutil.copytree(cube_xdmf_run, out)
+    with pytest.MonkeyPatch.context() as mp:
+        fmt = "HDF" if (out / "cube.h5").is_file() else "XML"
+        mp.setattr("eyefem.io.output.xdmf_data_format", lambda: fmt)
+        run_setup(_cube_setup(), out, plots=False, xdmf=True, resume=True)
+    _assert_xdmf_matches_vtu(out, "cube")
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".cube")) == []
+
+
+@pytest.mark.parametrize("how", ["--xdmf", "[output] xdmf"])
+def test_run_writes_xdmf_from_the_flag_or_the_case_file(tmp_path, how):
+    """`eyefem run --xdmf` or the case file's `xdmf = true`: a small sheet's series, one
+    frame per step after the undeformed one, without the VTU series."""
+    from eyefem.cli.main import main
+
+    case = tmp_path / "sheet.toml"
+    case.write_text('[case]\nproblem = "equibiaxial_sheet"\n[parameters]\nside = 2.0\n'
+                    "thickness = 0.5\nn_side = 2\nn_thick = 1\nstretch = 1.5\nsteps = 3\n"
+                    "[materials.rubber]\nc10 = 0.1\n"
+                    + ("[output]\nxdmf = true\n" if how.startswith("[") else ""))
+    out = tmp_path / "out"
+    args = ["-q", "run", str(case), "--out", str(out), "--no-vtu"]
+    assert main(args + (["--xdmf"] if how == "--xdmf" else [])) == 0
+    (path,) = out.glob("*.xdmf")
+    assert not list(out.glob("*.pvd"))
+    points, hexes, frames = _xdmf_frames(path)
+    assert hexes.shape == (4, 8) and len(frames) == 4
+    assert [t for t, _, _ in frames] == pytest.approx([0.0, 1 / 3, 2 / 3, 1.0])
+    u = frames[-1][1]["displacement"]
+    assert np.abs(u).max() == pytest.approx(0.5 * points[:, 0].max(), rel=1e-9)

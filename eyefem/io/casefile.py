@@ -152,6 +152,8 @@ def parse_section(values: dict, fields: list[Field], where: str) -> dict:
 OUTPUT_FIELDS = [
     Field("directory", str, "", "output directory; default results/<case file stem>"),
     Field("vtu", bool, True, "write a VTU time series (ParaView .pvd)"),
+    Field("xdmf", bool, False, "also write the mesh's frames as one XDMF time series "
+          "(<name>.xdmf, arrays in <name>.h5 when h5py is installed)"),
     Field("plots", bool, True, "write PNG plots"),
 ]
 

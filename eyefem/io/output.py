@@ -1,4 +1,4 @@
-"""Result files: VTU time series (ParaView), CSV tables and PNG plots, all written atomically.
+"""Result files: VTU and XDMF time series (ParaView), CSV tables and PNG plots, written atomically.
 
 Every file is first written under a temporary name in the same directory and then
 renamed, so an interrupted or failed run never leaves a half-written file: what is
@@ -14,8 +14,9 @@ import io
 import logging
 import os
 import tempfile
+import xml.etree.ElementTree as ET
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -209,6 +210,133 @@ class SeriesWriter:
                       part.cell_data, field_data, cell_type=part.cell_type)
             self.entries.append((time, fname))
         write_pvd(self.dir / f"{self.name}.pvd", self.entries, self._parts())
+
+
+def xdmf_data_format() -> str:
+    """The XDMF data format :class:`XdmfSeriesWriter` uses by default: "HDF" (arrays in an
+    HDF5 file beside the .xdmf) when h5py is importable, else "XML" (arrays as text)."""
+    import importlib.util
+
+    return "HDF" if importlib.util.find_spec("h5py") is not None else "XML"
+
+
+class XdmfSeriesWriter:
+    """The main hexahedral dataset of every frame as one XDMF time series, ``<name>.xdmf``
+    (and with data_format "HDF" its arrays in ``<name>.h5``), through meshio's
+    ``meshio.xdmf.TimeSeriesWriter``: the mesh once (reference coordinates), then per frame
+    the same point and cell fields as the VTU frames (a (3, 3) tensor as 9 components).
+
+    The .xdmf is rewritten atomically after every frame (its HDF5 arrays are flushed
+    first), so it lists complete frames only. "XML" rewrites every array each time: use
+    "HDF" (install h5py) for long series of large meshes. ``entries`` lists (time, label)
+    of the frames written. Field data and further parts (buckle, sutures) are VTU-only.
+
+    Args:
+      directory: output directory (created).
+      name: base name of the files.
+      data_format: "HDF" or "XML"; None: :func:`xdmf_data_format`.
+    """
+
+    def __init__(self, directory: Path, name: str = "result", data_format: str | None = None):
+        self.dir = Path(directory)
+        self.name = name
+        self.data_format = data_format or xdmf_data_format()
+        if self.data_format not in ("HDF", "XML"):
+            raise ValueError(f"XdmfSeriesWriter '{name}': data_format '{self.data_format}'; "
+                             "use 'HDF' (needs h5py) or 'XML'")
+        self.entries: list[tuple[float, str]] = []
+        self._writer = None
+
+    @property
+    def path(self) -> Path:
+        """The .xdmf file."""
+        return self.dir / f"{self.name}.xdmf"
+
+    @property
+    def h5_path(self) -> Path:
+        """The HDF5 file of the arrays (data_format "HDF")."""
+        return self.dir / f"{self.name}.h5"
+
+    def _open(self, nodes, hexes):
+        from meshio.xdmf import TimeSeriesWriter
+
+        self.dir.mkdir(parents=True, exist_ok=True)
+        w = TimeSeriesWriter(self.path, data_format=self.data_format)
+        if self.data_format == "HDF":
+            import h5py
+
+            # meshio's __enter__ would put the .h5 in the current directory; the .xdmf
+            # refers to it by its bare name, i.e. beside itself
+            w.h5_filename = str(self.h5_path)
+            w.h5_file = h5py.File(self.h5_path, "w")
+        hexes = np.asarray(hexes)
+        w.write_points_cells(np.asarray(nodes, np.float64), [("hexahedron", hexes)])
+        self._writer, self._n_cells = w, len(hexes)
+
+    def add(self, time: float, nodes, hexes, point_data: Mapping, cell_data: Mapping,
+            field_data=None, parts=None):
+        """Append one frame at ``time`` (monotone) and rewrite the .xdmf. Args as
+        :meth:`SeriesWriter.add`; nodes and hexes are written with the first frame only,
+        field_data and parts are ignored."""
+        if self.entries and time < self.entries[-1][0]:
+            raise ValueError(f"XdmfSeriesWriter '{self.name}': time {time} after "
+                             f"{self.entries[-1][0]}; frame times must not decrease")
+        if self._writer is None:
+            self._open(nodes, hexes)
+        n_cells = self._n_cells
+
+        def plain(v):
+            v = np.asarray(v)
+            return v.astype(np.int32) if v.dtype == bool else v
+
+        cd = {k: [plain(v).reshape(n_cells, -1) if np.ndim(v) > 2 else plain(v)]
+              for k, v in cell_data.items()}
+        self._writer.write_data(float(time), point_data={k: plain(v) for k, v in point_data.items()},
+                                cell_data=cd)
+        if self.data_format == "HDF":
+            self._writer.h5_file.flush()
+        with atomic_path(self.path) as tmp:
+            ET.ElementTree(self._writer.xdmf_file).write(tmp)
+        self.entries.append((float(time), f"{self.path.name}#{len(self.entries)}"))
+
+    def resume(self, until: float):
+        """Continue the series of an earlier run: copy its frames with time <= ``until``
+        (the end of the last completed stage) into a fresh series; none if it has no
+        readable series."""
+        from meshio.xdmf import TimeSeriesReader
+
+        self.close()
+        self.entries = []
+        if not self.path.is_file():
+            log.warning("%s: no XDMF series of the earlier run; the XDMF series starts at the "
+                        "resumed stage", self.path)
+            return
+        old = self.path.with_name(f".{self.name}.resumed.xdmf")
+        os.replace(self.path, old)
+        moved = []
+        if self.h5_path.is_file():
+            os.replace(self.h5_path, old.with_suffix(".h5"))
+            moved.append(old.with_suffix(".h5"))
+            text = old.read_text().replace(f"{self.h5_path.name}:/", f"{old.stem}.h5:/")
+            old.write_text(text)
+        try:
+            with TimeSeriesReader(old) as r:
+                points, cells = r.read_points_cells()
+                for k in range(r.num_steps):
+                    t, pd, cd = r.read_data(k)
+                    if t > until + 1e-9:
+                        break
+                    self.add(t, points, cells[0].data, pd, {n: v[0] for n, v in cd.items()})
+        finally:
+            for p in (old, *moved):
+                with contextlib.suppress(FileNotFoundError):
+                    os.remove(p)
+
+    def close(self):
+        """Close the HDF5 file (the .xdmf is complete after every frame)."""
+        if self._writer is not None and self.data_format == "HDF":
+            self._writer.h5_file.close()
+        self._writer = None
 
 
 def plot_curves(path: Path, x, curves: Mapping[str, tuple], *, xlabel: str, ylabel: str,

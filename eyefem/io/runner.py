@@ -1,4 +1,4 @@
-"""Running a problem: solve its load path, write history CSV, VTU series and plots.
+"""Running a problem: solve its load path, write history CSV, VTU/XDMF series and plots.
 
 A problem builder returns a :class:`Setup`: the model, the stages, a ``probe`` giving
 the scalar quantities recorded at every converged step, and a ``finish`` that
@@ -11,13 +11,14 @@ import contextlib
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from eyefem.io import checkpoint, manifest
-from eyefem.io.output import Part, SeriesWriter, write_csv
+from eyefem.io.output import Part, SeriesWriter, XdmfSeriesWriter, write_csv
 from eyefem.io.progress import Progress
 from eyefem.solve.model import Model
 from eyefem.solve.solver import ACCEPTED_FLAGS, NewtonOptions, Solution, Stage, solve
@@ -115,6 +116,22 @@ def term_parts(model: Model, q, theta, active=None) -> dict[str, Part]:
     return parts
 
 
+class SeriesGroup:
+    """Several series writers (VTU, XDMF) fed the same frames; ``entries`` are the first
+    writer's."""
+
+    def __init__(self, writers):
+        self.writers = list(writers)
+
+    @property
+    def entries(self) -> list:
+        return self.writers[0].entries
+
+    def add(self, *args, **kwargs):
+        for w in self.writers:
+            w.add(*args, **kwargs)
+
+
 def add_frame(writer: SeriesWriter, model: Model, q, theta, stages, index: int, t: float):
     """Write the state q of stage ``stages[index]`` at load factor t in [0, 1] as one
     frame at time index + t: the mesh with :func:`cell_and_point_fields`, the terms'
@@ -146,9 +163,12 @@ def write_step(writer: SeriesWriter, setup: Setup, stage_name: str, t: float, mo
 
 
 def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOptions(), *,
-              vtu: bool = True, plots: bool = True, key: str = "", resume: bool = False
-              ) -> RunResult:
+              vtu: bool = True, plots: bool = True, key: str = "", resume: bool = False,
+              xdmf: bool = False) -> RunResult:
     """Solve a setup, writing outputs after each converged step (atomically).
+
+    ``vtu`` writes the ParaView series ``<name>.pvd`` (vtu/*.vtu); ``xdmf`` the same
+    frames of the mesh as ``<name>.xdmf`` (eyefem.io.output.XdmfSeriesWriter).
 
     After every completed stage a checkpoint is written to ``out_dir``; with
     ``resume=True`` the run continues after the last completed stage of the checkpoint
@@ -158,6 +178,8 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     release = manifest.acquire(out_dir)  # a second run into out_dir is refused
     rows: list[dict] = []
     writer = SeriesWriter(out_dir, setup.name)
+    xwriter = XdmfSeriesWriter(out_dir, setup.name) if xdmf else None
+    frames = SeriesGroup(([writer] if vtu else []) + ([xwriter] if xdmf else []))
     tic = time.perf_counter()
     case_hash = manifest.case_hash(key)
     key = checkpoint.fingerprint(key, setup.name, setup.model.n_dof, len(setup.stages))
@@ -168,11 +190,15 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
             rows[:] = ck["rows"]
             writer.entries = list(ck["vtu_entries"])
             q0, theta0, completed = ck["q"], ck["theta"], ck["starts"]
+            if xwriter is not None:
+                xwriter.resume(until=ck["stage"] + 1)  # frame times: stage index + t
             (out_dir / "summary.json").unlink(missing_ok=True)
             log.info("resuming %s after stage %d ('%s') from %s", setup.name, ck["stage"] + 1,
                      setup.stages[ck["stage"]].name, out_dir / checkpoint.FILENAME)
         else:
             manifest.clear_outputs(out_dir)
+            for old in (f"{setup.name}.xdmf", f"{setup.name}.h5"):  # an older run's XDMF
+                (out_dir / old).unlink(missing_ok=True)
         mesh = setup.model.mesh
         run = manifest.write(out_dir, {
             "format": manifest.FORMAT, "code_version": manifest.code_version(),
@@ -202,8 +228,8 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
         if logged:
             log.info("    %s", ", ".join(logged))
         write_csv(out_dir / f"{setup.name}_history.csv", rows)
-        if vtu:
-            write_step(writer, setup, rec.stage, rec.t, model, q, theta)
+        if frames.writers:
+            write_step(frames, setup, rec.stage, rec.t, model, q, theta)
         progress.step(rec.stage, rec.step, rec.t)
 
     def on_stage_end(i, model, q, theta, starts):
@@ -226,6 +252,8 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
         raise
     finally:
         progress.close()
+        if xwriter is not None:
+            xwriter.close()
         release()
     summary["wall_s"] = time.perf_counter() - tic
     summary["newton_iterations"] = int(sum(r.iterations for r in sol.history))
