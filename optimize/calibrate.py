@@ -50,10 +50,12 @@ class PressureVolumeFit:
     Args:
       mesh: eye mesh level. inject_ul, steps: injected volume (uL) in equal steps.
       iop_mmhg: closing pressure. names: the sclera terms fitted (keys of TERM_INDEX).
+      options: NewtonOptions of every solve (default: the solver's); a finite-difference
+        check of the gradients needs tighter ones (tests/test_validation.py).
     """
 
     def __init__(self, mesh="coarse", inject_ul=100.0, steps=5, iop_mmhg=15.0,
-                 names=("c10", "c30")):
+                 names=("c10", "c30"), options=None):
         from eyefem.eye.presets import WALL_RATIOS
         from eyefem.eye.validation import PV_FIELDS, pv_parts
 
@@ -69,6 +71,7 @@ class PressureVolumeFit:
         self.cav = self.model.term("cavity")
         self._cache = None
         self.n_solves = 0
+        self.options = options
 
     def theta(self, x):
         """theta0 with the wall terms x (len(names),) MPa (sclera; the rest by ratio)."""
@@ -84,18 +87,19 @@ class PressureVolumeFit:
         """(pressures (steps,) mmHg, stage-1 solution, injection solutions); cached on x."""
         from eyefem.fem.cavity import close_cavity
         from eyefem.fem.units import MMHG
-        from eyefem.solve.solver import Stage, solve
+        from eyefem.solve.solver import NewtonOptions, Stage, solve
 
         x = np.asarray(x, float)
         if self._cache is not None and np.array_equal(self._cache[0], x):
             return self._cache[1]
         tic = time.perf_counter()
-        sol1 = solve(self.model, [self.stage1], theta=self.theta(x))
+        opts = self.options or NewtonOptions()
+        sol1 = solve(self.model, [self.stage1], theta=self.theta(x), options=opts)
         model, q, th = close_cavity(self.model, sol1.q, sol1.theta, "cavity", "iop")
         sols, P = [], []
         for v in self.dv:
             sol = solve(model, [Stage("inject", 1, self.held, params={"cavity": {"dv": v}},
-                                      active=self.active)], q0=q, theta=th)
+                                      active=self.active)], q0=q, theta=th, options=opts)
             q, th = sol.q, sol.theta
             sols.append(sol)
             P.append(float(self.cav.pressures(q, th["cavity"])[0][0]) / MMHG)
