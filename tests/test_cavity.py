@@ -259,3 +259,17 @@ def test_tangent_without_pressure_stiffness_drops_exactly_the_follower_hessian(c
     assert eig.min() < -1e-6 * abs(eig).max() and eig.max() > 1e-6 * abs(eig).max()
     assert model.term("cav").pressure_stiffness and model.term("iop").pressure_stiffness
     assert not model.term("solid").pressure_stiffness
+
+
+def test_closing_message_prints_numbers_not_arrays(closed_shell, caplog):
+    """The log line of a closed cavity prints numbers ('P = 15 mmHg'), not arrays
+    ('P = [15.] mmHg'). (Closed again here, after the load was released: P = 0.)"""
+    import re
+
+    from eyefem.fem.cavity import close_cavity
+
+    model, q, theta, _, _ = closed_shell
+    with caplog.at_level("INFO", logger="eyefem.fem.cavity"):
+        close_cavity(model, q, theta, "cav", "iop")
+    line = next(r.getMessage() for r in caplog.records if "closed at" in r.getMessage())
+    assert "[" not in line and re.search(r"P = [-0-9.e+]+ mmHg, V = [0-9.e+]+ mm\^3$", line), line

@@ -283,8 +283,7 @@ class FluidCavity(Term):
         cav = self.data["cav"]
         object.__setattr__(self, "_faces_of", [np.nonzero(cav == i)[0] for i in range(n)])
         log.info("cavity '%s': %d cavit%s, %d wetted faces, reference volume %s mm^3",
-                 self.name, n, "y" if n == 1 else "ies", len(faces),
-                 np.array2string(v0[:5], precision=5) + (" ..." if n > 5 else ""))
+                 self.name, n, "y" if n == 1 else "ies", len(faces), _numbers(v0, "%.6g"))
 
     @property
     def n_cavities(self) -> int:
@@ -406,7 +405,7 @@ def close_cavity(model, q, theta, cavity: str, pressure_term: str | None = None,
     if pressure_term is not None and release_load:
         theta[pressure_term] = {**theta[pressure_term], "p": 0.0}
     log.info("cavity '%s' closed at P = %s mmHg, V = %s mm^3", cavity,
-             np.array2string(P[:5] / MMHG, precision=4), np.array2string(V[:5], precision=6))
+             _numbers(np.asarray(P) / MMHG, "%.4g"), _numbers(V, "%.7g"))
     return model, q, theta
 
 
@@ -417,3 +416,11 @@ def closing_hook(cavity: str, pressure_term: str | None = None, **kwargs):
         return close_cavity(model, q, theta, cavity, pressure_term, **kwargs)
 
     return hook
+
+
+def _numbers(values, fmt: str, most: int = 5) -> str:
+    """'4846.79' for one value, '1, 2, 3 ...' for several (log messages print numbers,
+    not arrays)."""
+    v = np.ravel(np.asarray(values, float))
+    out = ", ".join(fmt % x for x in v[:most])
+    return out + (" ..." if len(v) > most else "")
