@@ -100,7 +100,7 @@ def test_case_file_runs_with_its_mesh_beside_it(tmp_path, capsys):
 
 @pytest.mark.parametrize("edit, words", [
     (('mesh_file = "block.msh"', 'mesh_file = "nothere.msh"'), "no such file"),
-    (('fixed = ["z0"]', 'fixed = ["z_0"]'), "node set 'z_0' is not in the mesh (did you mean"),
+    (('fixed = ["z0"]', 'fixed = ["z_0"]'), "block.msh (did you mean 'z0'?)"),
     (("[materials.hard]\nc10 = 0.5\n", ""), "materials ['hard'] have no [materials.NAME]"),
     (('fixed = ["z0"]\ndisplaced = "z1"', 'displaced = ""'), "nothing holds the mesh"),
 ])

@@ -40,12 +40,12 @@ USER_MESH_FIELDS = [
 ]
 
 
-def _named(name: str, sets: dict, kind: str) -> np.ndarray:
+def _named(name: str, sets: dict, kind: str, mesh_file) -> np.ndarray:
     if name not in sets:
         close = difflib.get_close_matches(name, list(sets), n=1)
         hint = f" (did you mean '{close[0]}'?)" if close else ""
-        raise ValueError(f"{kind} '{name}' is not in the mesh{hint}; the mesh has: "
-                         f"{', '.join(sorted(sets))}")
+        raise ValueError(f"{kind} '{name}' is not in the mesh file {mesh_file}{hint}; it "
+                         f"has: {', '.join(sorted(sets))}")
     return sets[name]
 
 
@@ -62,11 +62,11 @@ def user_mesh(p, materials):
     for comps, names in (("xyz", p["fixed"]), ("x", p["fixed_x"]), ("y", p["fixed_y"]),
                          ("z", p["fixed_z"])):
         for name in names:
-            d = node_dofs(_named(str(name), mesh.node_sets, "node set"), comps)
+            d = node_dofs(_named(str(name), mesh.node_sets, "node set", p["mesh_file"]), comps)
             dofs.append(d)
             vals.append(np.zeros(len(d)))
     if p["displaced"]:
-        nodes = _named(p["displaced"], mesh.node_sets, "node set")
+        nodes = _named(p["displaced"], mesh.node_sets, "node set", p["mesh_file"])
         for k, c in enumerate("xyz"):
             if c not in p["displaced_components"]:
                 continue
@@ -81,7 +81,7 @@ def user_mesh(p, materials):
     v = v[first]
     terms, params = (), {}
     if p["pressure_surface"]:
-        _named(p["pressure_surface"], mesh.face_sets, "face set")
+        _named(p["pressure_surface"], mesh.face_sets, "face set", p["mesh_file"])
         terms = (PressureLoad("pressure", mesh, p["pressure_surface"], 0.0),)
         params = {"pressure": {"p": p["pressure"]}}
     model = solid_model(mesh, mats, terms)
