@@ -89,6 +89,11 @@ def test_an_encircling_buckle_is_not_asked_a_meridian(tmp_path):
     assert "buckle_meridian_deg" not in prompts and "deformable_tightening" not in prompts
     assert "band_tension" in prompts and "tightening" in prompts
     assert case.parameters["n_sutures"] == 8 and len(prompts) < 20
+    # a new case gets the calibrated tissues; a case file without the field, the seed's
+    assert case.parameters["materials_preset"] == "physiological"
+    assert "materials_preset" in prompts
+    seed_field = next(f for f in PROBLEMS["surgery"][0] if f.name == "materials_preset")
+    assert seed_field.default == "seed"
 
 
 def test_new_case_all_asks_every_field(tmp_path):

@@ -46,6 +46,22 @@ def _compilation_cache(jax):
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
 
 
+def _with_preset(case, preset: str):
+    """The case with the material preset ``preset`` (``--materials``): its
+    materials_preset set and its own tables of the preset's tissues dropped (said)."""
+    import dataclasses
+
+    from eyefem.eye.presets import tissues_replaced
+
+    kept, dropped = tissues_replaced(case.materials, preset)
+    if dropped:
+        logging.getLogger("eyefem").warning(
+            "--materials %s replaces the case file's [materials] tables of %s", preset,
+            ", ".join(dropped))
+    return dataclasses.replace(case, parameters={**case.parameters, "materials_preset": preset},
+                               materials=kept)
+
+
 def cmd_run(args) -> int:
     from eyefem.catalog import problems, schemas
     from eyefem.io.casefile import CaseError, load_case
@@ -63,7 +79,7 @@ def cmd_run(args) -> int:
                 raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; drop --mesh")
             case.parameters["mesh"] = args.mesh
         if args.materials:  # a material preset (eyefem.eye.presets) instead of the case's
-            case.parameters["materials_preset"] = args.materials
+            case = _with_preset(case, args.materials)
     except (CaseError, ValueError, KeyError) as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
@@ -399,8 +415,8 @@ def main(argv=None) -> int:
                    help="continue after the last completed stage (checkpoint in the output dir)")
     p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, default, fine, finer)")
     p.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
-                   help="tissue constants preset (eyefem.eye.presets): override the case's "
-                   "materials_preset; [materials] tables still override single tissues")
+                   help="tissue constants preset (eyefem.eye.presets): replaces the case's "
+                   "materials_preset and its own [materials] tables of the eye's tissues")
     p.set_defaults(fn=cmd_run)
     p = sub.add_parser("compare", help="run several cases and tabulate/plot their outcomes")
     p.add_argument("cases", nargs="+", help="case files")

@@ -54,3 +54,26 @@ def preset_terms(name: str) -> dict[str, dict[str, float]]:
 def preset_materials(name: str) -> dict[str, MooneyRivlin]:
     """Tissue -> MooneyRivlin of the preset ``name``."""
     return {t: MooneyRivlin.from_terms(t, terms) for t, terms in preset_terms(name).items()}
+
+
+def with_overrides(preset: str, materials: dict | None, log=None) -> dict[str, MooneyRivlin]:
+    """The preset's tissues with a case's [materials] tables applied on top; each table
+    that replaces a tissue of a preset other than the seed's is said on ``log``
+    (a calibrated tissue silently restated as a seed table is the likely mistake)."""
+    out = preset_materials(preset)
+    replaced = sorted(t for t in (materials or {}) if t in out)
+    if replaced and preset != "seed" and log is not None:
+        log.warning("the case file's [materials] tables of %s replace the '%s' preset's "
+                    "constants of those tissues (drop the tables to use the preset)",
+                    ", ".join(replaced), preset)
+    return {**out, **(materials or {})}
+
+
+def tissues_replaced(materials: dict, preset: str) -> tuple[dict, list[str]]:
+    """A case's [materials] tables without those of the tissues the preset ``preset``
+    defines: (the tables kept, the tissue names dropped). For a preset named on the
+    command line (``eyefem run --materials``), which must win over a case file that
+    restates another preset's constants as tables (cases 1-6 restate the seed's)."""
+    preset_terms(preset)  # an unknown preset is an error here too
+    dropped = sorted(t for t in materials if t in SEED_MATERIALS)
+    return {k: v for k, v in materials.items() if k not in SEED_MATERIALS}, dropped

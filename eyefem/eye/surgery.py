@@ -25,14 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
+from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
 from eyefem.eye.bodies import BASE_TERMS, LoadPath, buckle_body
 from eyefem.eye.buckle_meshes import BAND_C10, RING_KINDS, SPONGE_C10, TIRE_C10
 from eyefem.eye.buckles import KINDS, Buckle, suture_anchor_frame
-from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
 from eyefem.eye.eyemodel import LEVELS, build_eye
 from eyefem.eye.outcomes import outcomes, stage_summary
 from eyefem.eye.parts import SurgeryParts
-from eyefem.eye.presets import PRESETS, SEED_MATERIALS, preset_materials
+from eyefem.eye.presets import PRESETS, SEED_MATERIALS, with_overrides
 from eyefem.fem.bars import Bars
 from eyefem.fem.cavity import WATER_BULK, FluidCavity
 from eyefem.fem.materials import MooneyRivlin
@@ -132,12 +132,10 @@ SURGERY_FIELDS = [
 
 
 def _materials(materials, preset: str = "seed"):
-    out = preset_materials(preset)
-    out["band"] = MooneyRivlin.from_terms("band", {"c10": BAND_C10})  # a deformable band,
-    out["tire"] = MooneyRivlin.from_terms("tire", {"c10": TIRE_C10})  # tire,
-    out["sponge"] = MooneyRivlin.from_terms("sponge", {"c10": SPONGE_C10})  # ... or sponge
-    out.update(materials or {})
-    return out
+    bodies = {"band": MooneyRivlin.from_terms("band", {"c10": BAND_C10}),  # a deformable band,
+              "tire": MooneyRivlin.from_terms("tire", {"c10": TIRE_C10}),  # tire,
+              "sponge": MooneyRivlin.from_terms("sponge", {"c10": SPONGE_C10})}  # or sponge
+    return with_overrides(preset, {**bodies, **(materials or {})}, log)
 
 
 def surgery(p, materials):
@@ -355,6 +353,11 @@ ADVANCED_FIELDS = frozenset({
 SEGMENTAL_DEFAULTS = {"n_sutures": 2, "suture_width": 8.5, "tightening": 0.0}
 """A segmental sponge's defaults in ``new-case`` (those of cases 5 and 6)."""
 
+NEW_CASE_DEFAULTS = {"materials_preset": "physiological"}
+"""``new-case``'s defaults for every buckle: a new case gets the calibrated tissues (the
+field's own default, for case files that leave it out, stays the seed's, so that the
+seed's cases 1-6 reproduce)."""
+
 
 def questions(values: dict) -> tuple[frozenset, dict]:
     """What ``eyefem new-case surgery`` asks, given the answers so far (``values``, with
@@ -367,7 +370,7 @@ def questions(values: dict) -> tuple[frozenset, dict]:
              else {"buckle_meridian_deg"})
     if values["buckle_body"] == "rigid":
         skip.add("deformable_tightening")
-    return frozenset(skip), (dict(SEGMENTAL_DEFAULTS) if segmental else {})
+    return frozenset(skip), {**NEW_CASE_DEFAULTS, **(SEGMENTAL_DEFAULTS if segmental else {})}
 
 
 surgery.check = check_parameters

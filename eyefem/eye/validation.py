@@ -16,13 +16,14 @@ volume over the injected points, P0 fixed at the closing pressure (the baseline 
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
 from eyefem.eye.eyemodel import LEVELS, build_eye
-from eyefem.eye.presets import PRESETS, preset_materials
+from eyefem.eye.presets import PRESETS, with_overrides
 from eyefem.fem.bars import Bars
 from eyefem.fem.cavity import WATER_BULK, FluidCavity, closing_hook
 from eyefem.fem.surface import PressureLoad
@@ -33,6 +34,8 @@ from eyefem.io.output import plot_curves, write_csv
 from eyefem.io.runner import Setup
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage
+
+log = logging.getLogger(__name__)
 
 PALLIKARIS_K = 0.0126
 """Ocular rigidity of living human eyes, 1/uL, in P = P0 exp(K dV) (Pallikaris et al. 2005)."""
@@ -70,7 +73,7 @@ def pv_parts(p, materials=None):
     mesh = eye.mesh
     faces = np.concatenate([mesh.face_set("eye/inner"), mesh.face_set("lens/surface")])
     mesh = mesh.replace(face_sets={**mesh.face_sets, "wetted": faces})
-    mats = {**preset_materials(p["materials_preset"]), **(materials or {})}
+    mats = with_overrides(p["materials_preset"], materials, log)
     unknown = sorted(set(materials or {}) - set(mesh.materials))
     if unknown:
         raise ValueError(f"materials {unknown} are not tissues of the eye mesh; it has "
