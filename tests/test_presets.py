@@ -46,3 +46,18 @@ def test_a_table_over_a_calibrated_tissue_is_said(caplog):
     with caplog.at_level(logging.WARNING):
         _materials({"sclera": sclera}, "seed")  # cases 1-6: the seed's own values, no word
     assert "replace" not in caplog.text
+
+
+def test_a_post_surgery_iop_above_perfusion_is_said(caplog):
+    """Case 1 on the coarse physiological eye ends at 632 mmHg (closed cavity, stiff
+    wall): the run must say why such a number comes out, and the seed cases (31-45
+    mmHg on the default mesh) must not."""
+    from eyefem.eye.surgery import warn_high_iop
+
+    with caplog.at_level(logging.WARNING):
+        assert warn_high_iop(632.0)
+    assert "632 mmHg" in caplog.text and "cavity is closed" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert not warn_high_iop(44.8) and not warn_high_iop(float("nan"))
+    assert caplog.text == ""

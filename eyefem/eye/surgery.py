@@ -184,9 +184,25 @@ def surgery(p, materials):
                     "buckle_body": p.get("buckle_body", "rigid")})
         if rows:
             out.update({k: rows[-1][k] for k in body.summary_outcomes})
+        warn_high_iop(out["iop_mmhg"])
         return out
 
     return Setup("surgery", model, body.stages(parts, path), probe, finish, parts=parts)
+
+
+def warn_high_iop(iop_mmhg: float) -> bool:
+    """Say (log warning) and return True when the post-surgery IOP (mmHg) is above
+    IOP_PERFUSION_MMHG."""
+    if not iop_mmhg > IOP_PERFUSION_MMHG:
+        return False
+    log.warning(
+        "IOP after the surgery is %.0f mmHg, above the ~%.0f mmHg at which the central "
+        "retinal artery stops perfusing the retina. The model's cavity is closed (no "
+        "aqueous outflow, choroidal blood expulsion, drainage or paracentesis), so the "
+        "buckle's indentation compresses the whole contents; with the physiological "
+        "preset's stiff wall that takes a high pressure (docs/validation.md, "
+        "Limitations). Less tightening lowers it.", iop_mmhg, IOP_PERFUSION_MMHG)
+    return True
 
 
 def _with_wetted_surface(mesh):
@@ -352,6 +368,10 @@ ADVANCED_FIELDS = frozenset({
 
 SEGMENTAL_DEFAULTS = {"n_sutures": 2, "suture_width": 8.5, "tightening": 0.0}
 """A segmental sponge's defaults in ``new-case`` (those of cases 5 and 6)."""
+
+IOP_PERFUSION_MMHG = 60.0
+"""Post-surgery IOP above which a run warns: about the pressure at which the central
+retinal artery stops perfusing the retina (the ophthalmic artery's diastolic pressure)."""
 
 NEW_CASE_DEFAULTS = {"materials_preset": "physiological"}
 """``new-case``'s defaults for every buckle: a new case gets the calibrated tissues (the
