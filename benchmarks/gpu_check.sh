@@ -4,8 +4,9 @@
 #   bash benchmarks/gpu_check.sh OUTDIR
 #
 # Needs a CUDA jaxlib and a GPU. Runs, each on --device cpu and then --device gpu:
-#   1. bench_core at 1,536 hexahedra (8:4) and 12,000 hexahedra (20:5, FEBio's mesh of
-#      docs/performance.md), one Newton iteration's parts at a 1% dilation (--no-path);
+#   1. bench_core at 1,536 hexahedra (8:4, with the host's linear solve) and 12,000
+#      hexahedra (20:5, FEBio's mesh of docs/performance.md, kernels, residual and
+#      assembly only: --no-solve), one Newton iteration's parts at a 1% dilation;
 #   2. coarse surgical case 1 end to end (eyefem --device ... run), and compares the two
 #      runs' outcomes (float64 on both: they must agree to round-off).
 # Writes OUTDIR/log.txt, OUTDIR/core_*.json and OUTDIR/case1_*_summary.json.
@@ -21,7 +22,7 @@ for dev in cpu gpu; do
     --device $dev --json "$out/core_small_$dev.json" | tail -3 || { echo "small $dev failed"; exit 1; }
 done
 for dev in cpu gpu; do
-  timeout 200 python3 benchmarks/bench_core.py --sizes 20:5 --no-path --repeats 3 \
+  timeout 200 python3 benchmarks/bench_core.py --sizes 20:5 --no-path --no-solve --repeats 3 \
     --device $dev --json "$out/core_20_5_$dev.json" | tail -3 || echo "20:5 $dev failed"
 done
 for dev in gpu cpu; do
