@@ -17,7 +17,7 @@ log = logging.getLogger(__name__)
 
 UNSETTLED_REPAIRS = 3
 """A step whose state, converged with the contact pairs frozen, changes pairing for the
-third time and leaves below contact_cycle_rtol x the reference unbalanced is accepted
+third time and leaves below contact_cycle_rtol x the load unbalanced is accepted
 as on a contact cycle (NewtonOptions.contact_cycle_rtol)."""
 
 
@@ -27,7 +27,7 @@ def has_contact(model: Model) -> bool:
 
 
 def settle_pairing(model: Model, q, theta, active, asm, opts: NewtonOptions, fref: float,
-                   nf: float, it: int, flips: list, solver):
+                   load: float, nf: float, it: int, flips: list, solver):
     """A state converged with the contact pairs frozen, re-paired at q (n_dof,).
 
     Returns (StepResult, None) when it stands: balanced re-paired (to contact_rtol), or a
@@ -35,21 +35,23 @@ def settle_pairing(model: Model, q, theta, active, asm, opts: NewtonOptions, fre
     less than contact_cycle_rtol unbalanced (flagged CONTACT_CYCLE, at the pairing it is in
     equilibrium with). Else (None, (re-paired model, its residual (n_dof,), its free force
     residual)): Newton goes on from it; ``flips`` (the forces earlier re-pairings left)
-    gets this one."""
+    gets this one. ``load``: the force the state carries, N (the bounds are relative to
+    it); ``fref``: the step's progress reference, passed on to the result."""
     free = asm.free_primal
     rep, r2, nf2, fc = repaired(model, q, theta, active, free)
-    bound = max(fref, fc)
+    bound = max(load, fc)
     if nf2 <= opts.contact_rtol * bound + opts.atol:
         asm.model = rep
-        return StepResult(rep, q, it, nf2, solver, fref), None
+        return StepResult(rep, q, it, nf2, solver, fref, load_N=load), None
     cycles = any(abs(nf2 - f) <= 0.01 * nf2 for f in flips)
     if (cycles or len(flips) + 1 >= UNSETTLED_REPAIRS) and nf2 <= opts.contact_cycle_rtol * bound:
         log.warning("contact pairing %s at convergence (nodes %s flip between facets): accepted "
                     "with the pairing it is in equilibrium with; re-paired, %.3e N is left "
-                    "unbalanced (%.1e of the reference %.3e N)", "cycles" if cycles else
+                    "unbalanced (%.1e of the load %.3e N)", "cycles" if cycles else
                     f"has not settled after {len(flips) + 1} re-pairings",
                     node_list(repaired_nodes(model, rep)), nf2, nf2 / bound, bound)
-        return StepResult(model, q, it, nf, solver, fref, StepStatus.CONTACT_CYCLE, nf2), None
+        return StepResult(model, q, it, nf, solver, fref, StepStatus.CONTACT_CYCLE, nf2,
+                          load), None
     flips.append(nf2)
     if log.isEnabledFor(logging.DEBUG):
         node, f_node = largest_nodal_force(r2, free, model.mesh.n_nodes)

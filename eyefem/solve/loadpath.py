@@ -160,8 +160,8 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
                              {} if done.status.balanced else
                              {ACCEPTED_FLAGS[done.status]: True, "unbalanced_N": done.unbalanced_N})
             history.append(rec)
-            log.info("stage %-12s step %3d  t = %.4f  iterations %2d  |r| = %.2e N  (%.2f s)",
-                     stage.name, step, t, its, done.residual, rec.wall)
+            log.info("stage %-12s step %3d  t = %.4f  iterations %2d  |r| = %.2e N of %.2e N "
+                     "(%.2f s)", stage.name, step, t, its, done.residual, done.load_N, rec.wall)
             if on_step is not None:
                 on_step(rec, model, q, theta)
             if cuts and its <= options.grow_iterations:

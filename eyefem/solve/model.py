@@ -118,6 +118,18 @@ class Model:
             r += np.asarray(self._kernel(t, "grad")(q, theta[t.name], t.data, t.dofs))
         return r
 
+    def gradient_and_load(self, q, theta, dofs, active=None) -> tuple[np.ndarray, float]:
+        """The residual (n_dof,) as :meth:`gradient`, and the load the state carries on
+        ``dofs`` (N): the largest norm over the terms of a term's force on those dofs (at
+        equilibrium the forces of the terms balance, and the largest of them is the scale
+        of the forces in play, whatever the step's first residual was)."""
+        r, load = np.zeros(self.n_dof), 0.0
+        for t in self._active(active):
+            g = np.asarray(self._kernel(t, "grad")(q, theta[t.name], t.data, t.dofs))
+            load = max(load, float(np.linalg.norm(g[dofs])))
+            r += g
+        return r, load
+
     def hvp(self, q, v, theta, active=None) -> np.ndarray:
         """Tangent-vector product K v (n_dof,) by forward-over-reverse autodiff."""
         r = np.zeros(self.n_dof)

@@ -46,11 +46,12 @@ class _Iterate:
 
     model: Model
     q: np.ndarray
-    fref: float
+    fref: float  # the progress reference: the step's first residual (module docstring)
+    load: float = 0.0  # the force the current iterate carries, N (the tolerances' scale)
     solver: object = None
     frozen: bool = False  # contact pairs frozen
     history: list = dataclasses.field(default_factory=list)  # force residuals, N
-    best: tuple | None = None  # (force residual, q, model, paired earlier) of the best iterate
+    best: tuple | None = None  # (force residual, q, model, paired earlier, load) of the best
     flips: list = dataclasses.field(default_factory=list)  # forces left by re-pairings
 
 
@@ -59,13 +60,17 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
     """Solve one load step from q (n_dof,), the state at the previous step.
 
     dq_prescribed (n_dof,): the increment of the prescribed dofs (zero elsewhere), taken
-    with the consistent linear predictor. The force tolerance is relative to the largest
-    of the step's first out-of-balance force, the reactions and ``fscale`` (the stage's
-    typical step force), so a cut step is not held to a tighter absolute tolerance than
-    a full one. Contact pairs are re-paired every iteration until frozen
-    (NewtonOptions.contact_freeze). A step that stalls below ``stall_rtol`` x the
-    reference is accepted unless it is ``final`` (it ends a stage). The returned model
-    carries the step's pairing. Raises StepFailed (the load path cuts the step)."""
+    with the consistent linear predictor. The force tolerance is relative to the load the
+    iterate carries (:meth:`Model.gradient_and_load` on the free dofs, or the reactions if
+    larger), so it means the same in every step: a step whose first residual is huge (a
+    volume injected into a stiff cavity, a stiff band moved by its ends) is not accepted
+    at a residual its first one made look small. The globalisation and the contact freeze
+    measure progress against the step's reference, the largest of its first out-of-balance
+    force, the reactions and ``fscale`` (the stage's typical step reference). Contact pairs
+    are re-paired every iteration until frozen (NewtonOptions.contact_freeze). A step that
+    stalls below ``stall_rtol`` x the load is accepted unless it is ``final`` (it ends a
+    stage). The returned model carries the step's pairing. Raises StepFailed (the load path
+    cuts the step)."""
     free, mult = asm.free_primal, asm.mult
     s = _Iterate(model, q.copy(), fscale)
     asm.model = model  # after a failed try the assembler holds that try's contact pairing
@@ -76,19 +81,21 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         if paired_here:
             s.model = s.model.update(s.q, theta)
         asm.model = s.model
-        r = s.model.gradient(s.q, theta, active)
+        r, fload = s.model.gradient_and_load(s.q, theta, free, active)
         if not np.all(np.isfinite(r)):
             raise StepFailed("non-finite residual (an element inverted?)")
         rf, rm, nf = r[free], r[mult], np.linalg.norm(r[free])
-        s.fref = max(s.fref, nf if it == 0 else 0.0, np.linalg.norm(r[asm.prescribed]))
+        reactions = np.linalg.norm(r[asm.prescribed])
+        s.fref = max(s.fref, nf if it == 0 else 0.0, reactions)
+        s.load = max(fload, reactions)
         nm = np.linalg.norm(rm) / vref if len(rm) else 0.0
-        log.debug("  iter %d |r_u| %.3e (ref %.3e) |r_vol| %.3e%s", it, nf, s.fref, nm,
-                  " (pairs frozen)" if s.frozen else "")
-        if nf <= opts.rtol * s.fref + opts.atol and nm <= opts.vtol:
+        log.debug("  iter %d |r_u| %.3e (load %.3e, ref %.3e) |r_vol| %.3e%s", it, nf, s.load,
+                  s.fref, nm, " (pairs frozen)" if s.frozen else "")
+        if nf <= opts.rtol * s.load + opts.atol and nm <= opts.vtol:
             if not s.frozen:
-                return StepResult(s.model, s.q, it, nf, s.solver, s.fref)
-            done, goes_on = settle_pairing(s.model, s.q, theta, active, asm, opts, s.fref, nf,
-                                           it, s.flips, s.solver)
+                return StepResult(s.model, s.q, it, nf, s.solver, s.fref, load_N=s.load)
+            done, goes_on = settle_pairing(s.model, s.q, theta, active, asm, opts, s.fref,
+                                           s.load, nf, it, s.flips, s.solver)
             if done is not None:
                 return done
             s.model, r, nf = goes_on
@@ -97,9 +104,10 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
             s.frozen = True
         s.history.append(nf)
         if nm <= opts.stall_vtol and (s.best is None or nf < s.best[0]):
-            s.best = (nf, s.q, s.model, not paired_here)
+            s.best = (nf, s.q, s.model, not paired_here, s.load)
         stalled = _stalled(s.history, opts.stall_iterations)
-        if not final and stalled and s.best is not None and s.best[0] <= opts.stall_rtol * s.fref:
+        if (not final and stalled and s.best is not None
+                and s.best[0] <= opts.stall_rtol * s.best[4]):
             accepted = _accept_stall(s, asm, theta, active, opts, it)
             if accepted is not None:
                 return accepted
@@ -111,14 +119,14 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
             log.debug("  stalled with the pairs re-paired at every iterate: pairs frozen")
             s.frozen, s.history = True, []
         if opts.stall_cut and stalled and min(s.history) <= opts.modified_newton * s.fref:
-            raise StepFailed(f"stalled at |r_u| = {nf:.3e} N (reference {s.fref:.3e} N, volume "
+            raise StepFailed(f"stalled at |r_u| = {nf:.3e} N (load {s.load:.3e} N, volume "
                              f"residual {nm:.2e}) after {it} iterations")
         if it == opts.max_iter:
             break
         s.q, s.solver = globalised_update(s.model, asm, s.q, theta, active, opts, rf, rm, nf, nm,
                                           s.fref, vref, s.frozen)
     raise StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
-                     f"reference {s.fref:.3e} N, volume residual {nm:.2e})")
+                     f"load {s.load:.3e} N, volume residual {nm:.2e})")
 
 
 def _predict(s: _Iterate, asm: Assembler, theta, dq_prescribed, opts: NewtonOptions, active):
@@ -145,19 +153,19 @@ def _accept_stall(s: _Iterate, asm: Assembler, theta, active, opts: NewtonOption
     """A stalled step's best iterate, flagged STALLED; None if it was found with the pairs
     frozen and re-paired is out of balance by more than stall_repair_rtol (the pairs are
     then released and Newton goes on)."""
-    nf_best, q_best, model_best, paired_earlier = s.best
+    nf_best, q_best, model_best, paired_earlier, load = s.best
     note, unbalanced = "", nf_best
     if paired_earlier:  # in balance with earlier pairs: accepted if nearly so re-paired
         _, _, nf2, fc = repaired(model_best, q_best, theta, active, asm.free_primal)
-        if nf2 > opts.stall_repair_rtol * max(s.fref, fc):
+        if nf2 > opts.stall_repair_rtol * max(load, fc):
             log.debug("  stalled; its best iterate, re-paired, is %.3e N out of balance: "
                       "pairs released", nf2)
             s.frozen, s.history, s.best = False, [], None
             return None
         note, unbalanced = f"; re-paired, {nf2:.3e} N out of balance", max(nf_best, nf2)
     log.warning("step accepted on a stall: |r_u| = %.3e N, the best of %d iterations (%.1e of "
-                "the reference %.3e N; tolerance %.1e)%s", nf_best, it, nf_best / s.fref,
-                s.fref, opts.rtol, note)
+                "the load %.3e N it carries; tolerance %.1e)%s", nf_best, it, nf_best / load,
+                load, opts.rtol, note)
     asm.model = model_best
     return StepResult(model_best, q_best, it, nf_best, s.solver, s.fref, StepStatus.STALLED,
-                      unbalanced)
+                      unbalanced, load)

@@ -11,8 +11,9 @@ class NewtonOptions:
     docs/formulation.md and CHANGELOG.md).
 
     Convergence:
-      rtol: force residual tolerance, relative to the step's reference force (the largest
-        of its first out-of-balance force, the reactions and the stage's typical step force).
+      rtol: force residual tolerance, relative to the load the state carries (the largest
+        of the terms' forces on the free dofs and the reactions, evaluated at the iterate;
+        StepResult.load_N), so it means the same in every step of every stage.
       vtol: constraint (volume) residual tolerance, relative to the solid volume.
       atol: absolute force tolerance, N.
 
@@ -32,10 +33,10 @@ class NewtonOptions:
 
     Globalisation (eyefem.solve.globalisation):
       line_search: backtrack on the residual norm when a full step does not lower it.
-      modified_newton: above this x the reference force, an indefinite tangent is shifted
-        to positive definite (a descent direction); below it the tangent is exact.
+      modified_newton: above this x the step's first residual, an indefinite tangent is
+        shifted to positive definite (a descent direction); below it the tangent is exact.
       pressure_stiffness: keep the follower pressures' load stiffness in the tangent above
-        modified_newton x the reference too (off: only near convergence).
+        modified_newton x the first residual too (off: only near convergence).
       restore: restore the trial points' cavity volumes to their linear prediction when a
         full step does not lower the residual (second-order correction).
       max_step: a step moving a node more than this (mm) whose line search fails is solved
@@ -44,16 +45,16 @@ class NewtonOptions:
 
     Contact (eyefem.solve.contact_strategy):
       contact_freeze: contact pairs are re-paired every iteration until the force residual
-        falls below this x the reference, then frozen (quadratic convergence); a converged
-        state is re-paired once more.
-      contact_rtol: after that re-pairing the residual must be below this x max(reference,
-        contact force), else Newton goes on.
+        falls below this x the step's first residual, then frozen (quadratic convergence);
+        a converged state is re-paired once more.
+      contact_rtol: after that re-pairing the residual must be below this x the load,
+        else Newton goes on.
       contact_cycle_rtol: a pairing that cycles (the same force left by two re-pairings) or
         has not settled after UNSETTLED_REPAIRS re-pairings is accepted, flagged, when the
-        force it leaves is below this x max(reference, contact force).
+        force it leaves is below this x the load.
       contact_lookahead: re-solve a Newton step with the penalty model of the contact nodes
         it would push into contact from out of the penalty's reach.
-      contact_curvature: above this x the reference force, penalty contacts use their
+      contact_curvature: above this x the step's first residual, penalty contacts use their
         Gauss-Newton tangent (without the surface's curvature term); 0: always exact.
 
     Stalls (a step whose best residual of its last ``stall_iterations`` is not 10% below
@@ -61,9 +62,9 @@ class NewtonOptions:
       stall_iterations: the window of iterations that decides a stall.
       stall_rtol, stall_vtol: a stalled step inside a stage (never its last) is accepted,
         flagged, at its best iterate when its force residual is below stall_rtol x the
-        reference (and its volume residual below stall_vtol).
+        load (and its volume residual below stall_vtol).
       stall_repair_rtol: a best iterate found with the pairs frozen is accepted only if,
-        re-paired, its force residual is below this x the reference (default: no bound;
+        re-paired, its force residual is below this x the load (default: no bound;
         the warning says the force).
       stall_cut: cut a stalled step that is not accepted at once, instead of iterating on
         to max_iter.

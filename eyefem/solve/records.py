@@ -41,10 +41,13 @@ class StepResult:
       iterations: Newton iterations.
       residual: free force residual, N.
       solver: the last factorised tangent (None if no linear solve was needed).
-      fref: the step's reference force, N (the tolerances are relative to it).
+      fref: the step's progress reference, N (its first out-of-balance force; the
+        thresholds of the globalisation and the contact freeze are relative to it).
       status: how the step ended.
       unbalanced_N: the force a step accepted without converging leaves out of balance
         (its residual on a stall; re-paired, on a contact cycle), N; 0 when converged.
+      load_N: the force the state carries, N (the largest of the terms' forces on the free
+        dofs and the reactions): the tolerances are relative to it.
     """
 
     model: Model
@@ -55,6 +58,7 @@ class StepResult:
     fref: float
     status: StepStatus = StepStatus.CONVERGED
     unbalanced_N: float = 0.0
+    load_N: float = 0.0
 
 
 ACCEPTED_FLAGS = {StepStatus.STALLED: "stalled", StepStatus.CONTACT_CYCLE: "contact_cycle"}
