@@ -7,7 +7,6 @@ PNG plot, and returns the largest relative error.
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,7 @@ import numpy as np
 from eyefem.fem import generators
 from eyefem.fem.materials import MooneyRivlin, invariant_derivatives, mooney_rivlin
 from eyefem.fem.surface import PressureLoad
+from eyefem.fem.terms import OrbitSpring
 from eyefem.fem.units import MMHG
 from eyefem.io.casefile import Field, positive
 from eyefem.io.output import plot_curves, write_csv
@@ -22,7 +22,6 @@ from eyefem.io.runner import Setup
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage
 
-log = logging.getLogger(__name__)
 
 
 def _material(materials, default):
@@ -313,8 +312,8 @@ def inflated_disk(p, materials):
 SHELL_FIELDS = [
     Field("inner_radius", float, 11.0, "inner radius, mm", positive, "> 0"),
     Field("thickness", float, 1.0, "wall thickness, mm", positive, "> 0"),
-    Field("n_per_edge", int, 12, "elements per cube-sphere patch edge (even: see "
-          "shell_rigid_constraints)", positive, "> 0"),
+    Field("n_per_edge", int, 12, "elements per cube-sphere patch edge (odd: the rigid "
+          "motions are held by springs, shell_rigid_spring)", positive, "> 0"),
     Field("n_thick", int, 2, "elements through the thickness", positive, "> 0"),
     Field("pressure_mmHg", float, 15.0, "final internal pressure, mmHg", positive, "> 0"),
     Field("steps", int, 10, "load steps", positive, "> 0"),
@@ -327,11 +326,33 @@ def shell_rigid_constraints(mesh):
     expansion be only when those nodes lie on the axes: an even ``n_per_edge`` of a
     cube-sphere shell. With an odd one they lie off the axes and hold part of their radial
     motion (measured at n_per_edge 5: outer radial displacements scatter by 57% against 7%
-    at 6, tangential drift 0.03 mm against 3e-4 mm), so :func:`inflated_shell` warns."""
+    at 6, tangential drift 0.03 mm against 3e-4 mm): use :func:`shell_rigid_spring`."""
     X = mesh.nodes
     out = mesh.node_set("outer")
     px, mx, py = (out[np.argmax(X[out] @ d)] for d in np.eye(3)[[0, 0, 1]] * [[1], [-1], [1]])
     return np.concatenate([node_dofs([px, mx], "yz"), node_dofs([py], "xz")])
+
+
+def shell_rigid_spring(mesh, k=1.0) -> OrbitSpring:
+    """Springs on the mean translation and the best-fit rotation of the outer nodes nearest
+    the six axis directions (four around each axis at an odd ``n_per_edge``, one on it at
+    an even one): stiffness k N/mm, k R^2 N mm/rad (R: their radius). The node set is as
+    symmetric as the shell, so a symmetric expansion has no net translation or rotation
+    on it and the springs carry no force, whatever n_per_edge; and since the loads of a
+    closed pressurised surface have no net force or moment, at equilibrium the springs'
+    force is zero too: they remove the rigid motions and hold nothing else
+    (eyefem.fem.terms.OrbitSpring; its ``force_N`` and ``moment_Nmm`` report it)."""
+    X = mesh.nodes
+    out = mesh.node_set("outer")
+    e = X[out] / np.linalg.norm(X[out], axis=1)[:, None]
+    picked = []
+    for d in np.vstack([np.eye(3), -np.eye(3)]):
+        c = e @ d
+        picked.append(out[c >= c.max() - 1e-9])
+    nodes = np.unique(np.concatenate(picked))
+    r = float(np.linalg.norm(X[nodes], axis=1).mean())
+    return OrbitSpring("rigid_motion", nodes, X[nodes], k_rot=(k * r * r,) * 3, k_trans=k,
+                       k_axial=k)
 
 
 def inflated_shell(p, materials):
@@ -342,15 +363,15 @@ def inflated_shell(p, materials):
     thickness and radius and l the mid-surface stretch.
     """
     mat = _material(materials, mooney_rivlin("sclera", 0.0833, 0.0))
-    if p["n_per_edge"] % 2:
-        log.warning("inflated_shell: n_per_edge = %d is odd: no node lies on the axes, so the "
-                    "six constraints against rigid motion hold part of the expansion (radial "
-                    "displacements scatter); use an even n_per_edge", p["n_per_edge"])
     mesh = generators.spherical_shell(p["inner_radius"], p["thickness"], p["n_per_edge"],
                                       p["n_thick"], material=mat.name)
     press = PressureLoad("pressure", mesh, "inner", 0.0)
-    model = solid_model(mesh, {mat.name: mat}, (press,))
-    d = shell_rigid_constraints(mesh)
+    if p["n_per_edge"] % 2:  # no node on the axes: springs on the rigid motions
+        model = solid_model(mesh, {mat.name: mat}, (press, shell_rigid_spring(mesh)))
+        d = np.zeros(0, np.int64)
+    else:  # six dofs of nodes on the axes (the FEBio comparison's supports)
+        model = solid_model(mesh, {mat.name: mat}, (press,))
+        d = shell_rigid_constraints(mesh)
     stages = [Stage("inflate", p["steps"], (d, np.zeros(len(d))),
                     params={"pressure": {"p": p["pressure_mmHg"] * MMHG}})]
     outer = mesh.node_set("outer")
