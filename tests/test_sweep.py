@@ -203,6 +203,28 @@ def test_failed_runs_are_rows_and_the_others_complete(client, tmp_path):
     assert again.computed == 0
 
 
+def test_runs_go_to_the_device_asked_for(client, tmp_path):
+    """``device`` reaches the workers: "cpu" is recorded in each run's row.json, and "gpu"
+    on workers without one fails every run with what to install (a restart on the CPU
+    then runs them)."""
+    import jax
+
+    sweep = load_sweep(write_sweep(tmp_path / "s", "[[list]]\nparameters.stretch = 1.3\n"))
+    res = run_sweep(sweep, client=client, device="cpu")
+    row = json.loads(next((tmp_path / "s" / "out" / "runs").glob("*/row.json")).read_text())
+    assert res.rows[0]["status"] == "ok" and row["device"].startswith("cpu")
+    try:
+        jax.devices("gpu")
+        pytest.skip("the CPU half passed; this machine has a GPU, so the refusal cannot "
+                    "be provoked")
+    except RuntimeError:
+        pass
+    sweep = load_sweep(write_sweep(tmp_path / "g", "[[list]]\nparameters.stretch = 1.4\n"))
+    res = run_sweep(sweep, client=client, device="gpu")
+    assert res.rows[0]["status"] == "failed" and "JAX finds no GPU" in res.rows[0]["error"]
+    assert run_sweep(sweep, client=client).rows[0]["status"] == "ok"
+
+
 def test_cli_on_an_existing_scheduler(client, tmp_path, capsys):
     """`eyefem sweep FILE --scheduler ADDRESS`: the table, the plots, the best designs,
     the progress lines on stderr (none with -q)."""

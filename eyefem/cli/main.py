@@ -355,7 +355,7 @@ def cmd_sweep(args) -> int:
 
     try:
         res = run_sweep(sweep, out=args.out, scheduler=args.scheduler, workers=args.workers,
-                        progress=progress)
+                        progress=progress, device=args.device)
     except manifest.OutputError as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 4

@@ -150,7 +150,7 @@ def local_client(n_workers: int | None = None):
 def run_sweep(sweep: Sweep, *, out: str | Path | None = None, client=None,
               scheduler: str | None = None, workers: int | None = None,
               progress: Callable[[str], None] | None = None,
-              progress_interval: float = PROGRESS_INTERVAL) -> SweepResult:
+              progress_interval: float = PROGRESS_INTERVAL, device: str = "cpu") -> SweepResult:
     """Run the sweep's runs on a Dask cluster; returns the table and counts.
 
     Args:
@@ -161,6 +161,8 @@ def run_sweep(sweep: Sweep, *, out: str | Path | None = None, client=None,
         LocalCluster of ``workers`` processes (default: the cores), closed at the end.
       progress: where the progress lines go (default: this module's logger at INFO).
       progress_interval: the least time between two progress lines, s.
+      device: where each run's element kernels run ("cpu" or "gpu", as ``eyefem --device``);
+        a worker without a GPU fails its runs with a message.
     """
     check_dependencies()
     import jax
@@ -205,7 +207,7 @@ def run_sweep(sweep: Sweep, *, out: str | Path | None = None, client=None,
                 f = client.submit(run_case, r.case_text, str((out_dir / "runs" / r.folder).resolve()),
                                   run_hash=r.run_hash, index=r.index, gradients=sweep.gradients,
                                   outcomes=sweep.outcomes, fd_step=sweep.fd_step,
-                                  jax_cache=cache, pure=False,
+                                  jax_cache=cache, device=device, pure=False,
                                   key=f"eyefem-run-{r.index:04d}-{r.run_hash[:8]}-{uuid.uuid4().hex[:6]}")
                 futures[f] = r
             log.info("sweep: %d runs submitted to %d workers (%s)", len(futures), n_workers,

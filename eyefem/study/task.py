@@ -145,12 +145,14 @@ def gradients_of(case, setup, names, *, outcomes=(), values=None,
 
 def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
              gradients: tuple = (), outcomes: tuple = (), fd_step: float | None = None,
-             jax_cache: str | None = None) -> dict:
+             jax_cache: str | None = None, device: str = "cpu") -> dict:
     """Run one case (TOML text) into ``run_dir``; returns (and writes as row.json) the
     record: index, run_hash, status ('ok', 'failed', 'did-not-converge'), error, wall_s,
     summary (the numbers of summary.json), last_step (the numbers recorded at the last
     converged step), gradients (:func:`gradients_of` by ``gradients`` of ``outcomes``,
-    central differences with the relative step ``fd_step``), run_dir, worker (host:pid)."""
+    central differences with the relative step ``fd_step``), run_dir, worker (host:pid),
+    device (where the element kernels ran: ``device`` "cpu" or "gpu",
+    eyefem.solve.device; a worker without the GPU asked for fails the run, saying so)."""
     import os
     import socket
 
@@ -169,9 +171,12 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
     out = Path(run_dir)
     rec = {"index": index, "run_hash": run_hash, "status": "ok", "error": "", "wall_s": math.nan,
            "summary": {}, "last_step": {}, "gradients": {}, "run_dir": str(out),
-           "worker": f"{socket.gethostname()}:{os.getpid()}"}
+           "worker": f"{socket.gethostname()}:{os.getpid()}", "device": ""}
     tic = time.perf_counter()
     try:
+        from eyefem.solve.device import select_device
+
+        rec["device"] = select_device(device)
         manifest.check_writable(out)
         (out / ROW_FILE).unlink(missing_ok=True)
         write_text(out / CASE_FILE, case_text)
