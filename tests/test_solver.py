@@ -841,8 +841,8 @@ def test_inflated_shell_expands_evenly_at_any_patch_size(n, spread):
     rigid motions of the nodes nearest the axes (shell_rigid_spring), which carry no
     force at equilibrium. Either way the outer radial displacement is uniform to the
     mesh's own non-uniformity (measured: 10.4, 11.0, 8.3, 7.1% at n = 3, 4, 5, 6) and
-    nothing drifts sideways (measured <= 0.4%; the off-axis constraints used at odd n
-    until 2026-11-26 gave 57% scatter at n = 5)."""
+    nothing drifts sideways (measured <= 0.4%; dof constraints on the off-axis nodes at
+    odd n gave 57% scatter at n = 5)."""
     from eyefem.problems.verification import SHELL_FIELDS, inflated_shell
 
     p = {f.name: f.default for f in SHELL_FIELDS}
