@@ -23,7 +23,6 @@ from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage
 
 
-
 def _material(materials, default):
     if not materials:
         return default
