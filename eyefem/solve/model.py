@@ -113,20 +113,18 @@ class Model:
 
     def gradient(self, q, theta, active=None) -> np.ndarray:
         """Residual dPi/dq (n_dof,) (internal minus external forces; constraint values)."""
-        r = np.zeros(self.n_dof)
-        for t in self._active(active):
-            r += np.asarray(self._kernel(t, "grad")(q, theta[t.name], t.data, t.dofs))
-        return r
+        return self.gradient_and_load(q, theta, None, active)[0]
 
     def gradient_and_load(self, q, theta, dofs, active=None) -> tuple[np.ndarray, float]:
         """The residual (n_dof,) as :meth:`gradient`, and the load the state carries on
-        ``dofs`` (N): the largest norm over the terms of a term's force on those dofs (at
-        equilibrium the forces of the terms balance, and the largest of them is the scale
-        of the forces in play, whatever the step's first residual was)."""
+        ``dofs`` (N; 0 for None): the largest norm over the terms of a term's force on those
+        dofs (at equilibrium the forces of the terms balance, and the largest of them is
+        the scale of the forces in play, whatever the step's first residual was)."""
         r, load = np.zeros(self.n_dof), 0.0
         for t in self._active(active):
             g = np.asarray(self._kernel(t, "grad")(q, theta[t.name], t.data, t.dofs))
-            load = max(load, float(np.linalg.norm(g[dofs])))
+            if dofs is not None:
+                load = max(load, float(np.linalg.norm(g[dofs])))
             r += g
         return r, load
 
