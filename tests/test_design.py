@@ -126,7 +126,7 @@ def test_orbit_spring_holds_rotations_and_shifts_with_the_given_stiffnesses():
     """The orbit's hold: a small rigid rotation delta about the x, y or z axis through the
     equatorial ring's centre stores 1/2 K delta^2 (K the case's globe_rotation or
     globe_torsion, N mm/rad), a lateral shift s stores 1/2 K_t s^2 (globe_translation,
-    N/mm), an axial one 1/2 K_z s^2 (globe_axial; nothing with the default 0); a
+    N/mm), an axial one 1/2 K_z s^2 (globe_axial; nothing with 0); a
     deformation symmetric about x = 0 and y = 0 (radial, axial) stores nothing. The
     gradient against the planar ring's hand-coded modes: twist (-y, x, 0) / sum rho^2,
     tilt about x (0, 0, y) / sum y^2, shifts 1/n."""

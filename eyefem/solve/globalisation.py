@@ -285,7 +285,10 @@ def globalised_update(model, asm, q, theta, active, opts: NewtonOptions, rf, rm,
         # near-singular tangent: the soft retina's tangential modes): damp the step
         far, shift = True, min(mu for mu in SHIFTS if mu > max(shift, solver.shift))
         if log.isEnabledFor(logging.DEBUG):
-            norms = np.linalg.norm(dq[:model.n_u].reshape(-1, 3), axis=1)
+            moves = dq[:model.n_u].reshape(-1, 3)
+            norms = np.linalg.norm(moves, axis=1)
             log.debug("  line search failed on a %.3g mm step (at node %d; nodes over "
-                      "half of it: %d): shift %g", longest, int(np.argmax(norms)),
-                      int(np.sum(norms > 0.5 * longest)), shift)
+                      "half of it: %d; mean motion %s mm, a rigid shift if near the "
+                      "longest): shift %g", longest, int(np.argmax(norms)),
+                      int(np.sum(norms > 0.5 * longest)),
+                      np.array2string(moves.mean(axis=0), precision=3), shift)
