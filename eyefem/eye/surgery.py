@@ -128,6 +128,10 @@ SURGERY_FIELDS = [
           "sclera: 'facet' (its flat faces) or 'nodal' (the quadratic Nagata patches through "
           "them with the nodes' normals: no jump of the contact normal at facet edges)",
           lambda v: v in ("facet", "nodal"), "'facet' or 'nodal'"),
+    Field("ridge_flank", float, 1.0, "width of each flank of a rigid ridged tire's ridge "
+          "(a quintic shoulder inside the ridge's 3 mm base), mm: narrower flanks have "
+          "shoulders sharper than the scleral elements can follow (docs/surgery.md)",
+          lambda v: 0.05 <= v <= 1.5, "0.05 to 1.5 mm"),
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
 ] + BIOMETRY_FIELDS
@@ -369,6 +373,7 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=Non
 ADVANCED_FIELDS = frozenset({
     "globe_torsion", "globe_rotation", "globe_translation", "globe_axial", "steps_pressurise",
     "steps_tighten", "steps_suture", "contact_smoothing", "contact_normals", "n_segments",
+    "ridge_flank",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
     "sclera_thickness_equator", "sclera_thickness_pole"})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all

@@ -11,8 +11,11 @@ the buckle toward the posterior), inner surface radius
 
     S(a) = R - k b(a) + lift(a) - d,      g = S(a) - r   (g < 0: penetration)
 
-with b the ridge shape (1 on the ridge, quintic smoothstep flanks 0.5 mm wide, 0 beyond:
-twice differentiable, so the response to a buckle shift is smooth) and k its
+with b the ridge shape (1 on the ridge, quintic smoothstep flanks ``ridge_flank`` wide
+inside its edges, 0 beyond: twice differentiable, so the response to a buckle shift is
+smooth; the shoulders' curvature, about 5.8 k / flank^2, is a negative tangential
+stiffness of a node pressed on them, so flanks much narrower than the scleral elements
+make the tangent near-singular) and k its
 current protrusion (param "ridge", ramped from 0 when the tire is seated on its flat
 base), lift the upturned edges (0.3 mm over the last 0.5 mm, growing cubically
 beyond, so contact fades out smoothly past the edge) and d the radial tightening (the
@@ -67,11 +70,12 @@ def smooth_penetration(g, eps):
     return eps * jnp.logaddexp(-g / eps, 0.0)
 
 
-def ring_profile(a, width, ridge, ridge_width):
+def ring_profile(a, width, ridge, ridge_width, flank=1.0):
     """Inner-surface offset of a ring above R (mm) at across-coordinates a (jax or numpy):
-    -ridge on the ridge, 0 on the flat base, rising at the edges."""
+    -ridge on the ridge, 0 on the flat base, rising at the edges; the ridge's flanks span
+    ``flank`` mm inside its edges at +-ridge_width / 2."""
     aa = jnp.abs(a)
-    t = jnp.clip((aa - (ridge_width / 2 - 0.5)) / 0.5, 0.0, 1.0)
+    t = jnp.clip((aa - (ridge_width / 2 - flank)) / flank, 0.0, 1.0)
     bump = jnp.where(ridge_width > 0, 1.0 - t**3 * (10.0 - 15.0 * t + 6.0 * t**2), 0.0)
     lift = 0.3 * (jnp.maximum(aa - (width / 2 - 0.5), 0.0) / 0.5) ** 3
     return -ridge * bump + lift
@@ -90,7 +94,8 @@ class BuckleContact(Term):
       radius: R, the scleral radius the buckle was fitted to, mm.
       theta_b: polar angle of the buckle centre line, rad (ring) ; for a sponge its
         centre direction n0 (3,), meridian tangent m0 (3,) and axis (3,).
-      width, ridge, ridge_width: ring profile, mm; sponge_radius, sponge_length: mm.
+      width, ridge, ridge_width, ridge_flank: ring profile, mm; sponge_radius,
+        sponge_length: mm.
       modulus: Young's modulus of the sclera (default penalty), MPa; penalty: N/mm.
       smoothing: eps of the smoothed penetration, mm.
       extra_dof: global dof of the buckle's free radial motion (mm, inward), or -1.
@@ -109,6 +114,7 @@ class BuckleContact(Term):
     width: float = 2.5
     ridge: float = 0.0
     ridge_width: float = 0.0
+    ridge_flank: float = 1.0
     sponge_radius: float = 2.5
     sponge_length: float = 10.0
     modulus: float = 0.5
@@ -140,7 +146,7 @@ class BuckleContact(Term):
                                             "ridge": np.zeros(1), "dr": np.zeros(1),
                                             "rot": np.zeros(1)})
         geo = np.array([self.radius, self.theta_b, self.width, self.ridge, self.ridge_width,
-                        self.sponge_radius, self.sponge_length])
+                        self.sponge_radius, self.sponge_length, self.ridge_flank])
         object.__setattr__(self, "data", {
             "X": self.mesh.nodes[nodes], "alpha": np.full(len(nodes), alpha),
             "area": np.maximum(area, 1e-12), "geo": geo,
@@ -152,7 +158,7 @@ class BuckleContact(Term):
     def gaps(self, q_loc, params, data):
         """Signed gaps (n,), mm (negative: penetration)."""
         x = rotate_z(data["X"] + q_loc[:, :3], -params["rot"][0])
-        R, th, w, _, rw, rs, L = (data["geo"][i] for i in range(7))
+        R, th, w, _, rw, rs, L, fl = (data["geo"][i] for i in range(8))
         R = R + params["dr"][0]
         d, s = params["d"][0], params["s"][0]
         if self.extra_dof >= 0:
@@ -162,7 +168,7 @@ class BuckleContact(Term):
             rho = jnp.sqrt(x[:, 0] ** 2 + x[:, 1] ** 2 + 1e-30)  # finite gradient on the axis
             tau = jnp.arctan2(rho, x[:, 2])
             a = R * (tau - th) - s
-            prof = ring_profile(a, w, params["ridge"][0], rw)
+            prof = ring_profile(a, w, params["ridge"][0], rw, fl)
             return R + prof - d - r
         n0, m0, t = data["frame"][0], data["frame"][1], data["frame"][2]
         if self.curved:
@@ -272,7 +278,7 @@ class BuckleContact(Term):
         if self.shape == "ring":
             a = np.linspace(-self.width / 2, self.width / 2, n_across + 1)
             r = R + np.asarray(ring_profile(a, self.width, float(params["ridge"][0]),
-                                            self.ridge_width)) - d
+                                            self.ridge_width, self.ridge_flank)) - d
             tau = self.theta_b + (a + s) / R
             U, T = np.meshgrid(u, tau, indexing="ij")
             rr = np.broadcast_to(r, U.shape)
