@@ -36,6 +36,22 @@ def test_ring_gap_is_the_closed_form_radial_distance(shell):
     assert float(ring_profile(2.0, 7.0, 0.75, 3.0)) == pytest.approx(0.0)
 
 
+@pytest.mark.parametrize("flank", [0.5, 1.0])
+def test_ridge_flank_sets_the_shoulders_width_and_curvature(flank):
+    """The ridge falls over ``flank`` mm inside its 3 mm base, half way at its middle, and
+    its shoulders' curvature peaks at the quintic smoothstep's 10 / sqrt(3) x ridge /
+    flank^2 (what makes narrow flanks a negative tangential stiffness)."""
+    prof = lambda a: float(ring_profile(a, 7.0, 0.75, 3.0, flank))  # noqa: E731
+    assert prof(1.5 - flank - 1e-9) == pytest.approx(-0.75)
+    assert prof(1.5 - flank / 2) == pytest.approx(-0.375, rel=1e-12)
+    assert prof(1.5 + 1e-9) == pytest.approx(0.0, abs=1e-12)
+    a = np.linspace(1.5 - flank, 1.5, 20001)
+    h = a[1] - a[0]
+    p = np.asarray(ring_profile(a, 7.0, 0.75, 3.0, flank))
+    curvature = np.abs(np.diff(p, 2)) / h**2
+    assert curvature.max() == pytest.approx(10 / np.sqrt(3) * 0.75 / flank**2, rel=1e-4)
+
+
 def test_ring_gap_is_invariant_under_rotation_about_the_axis(shell):
     t = _ring(shell)
     rng = np.random.default_rng(0)

@@ -258,3 +258,12 @@ def test_buckle_contact_smoothing_automatic_by_buckle_kind_or_as_given(buckle, g
     setup = surgery(default_parameters(mesh="coarse", buckle=buckle, contact_smoothing=given),
                     None)
     assert setup.model.term("buckle").smoothing == expected
+
+
+@pytest.mark.parametrize("given", [None, 0.5])
+def test_ridged_tire_flank_default_or_as_given(given):
+    from eyefem.eye.surgery import surgery
+
+    kw = {} if given is None else {"ridge_flank": given}
+    setup = surgery(default_parameters(mesh="coarse", buckle="tire_ridged", **kw), None)
+    assert setup.model.term("buckle").ridge_flank == (1.0 if given is None else given)
