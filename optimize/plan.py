@@ -272,6 +272,7 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     from eyefem.catalog import schemas
     from eyefem.cli.dialogue import write_case
+    from eyefem.cli.main import with_material_preset
     from eyefem.eye.design import SurgerySimulator
     from eyefem.io.casefile import CaseError, load_case
     from eyefem.io.output import write_csv, write_text
@@ -280,6 +281,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m optimize.plan", description=__doc__.split("\n")[0])
     ap.add_argument("case", help="surgery case file (TOML)")
     ap.add_argument("--mesh", help="override the case's eye mesh level (coarse, medium, default, fine, finer)")
+    ap.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
+                    help="tissue constants preset (as eyefem run --materials): replaces the "
+                    "case's materials_preset and its own [materials] tables of the eye's tissues")
     ap.add_argument("--vars", default="tightening,suture_width,buckle_shift",
                     help="comma-separated design variables to optimise")
     ap.add_argument("--target-indentation", type=float, help="indentation target, mm")
@@ -302,6 +306,8 @@ def main(argv=None) -> int:
         case = load_case(a.case, schemas())
         if case.problem != "surgery":
             raise CaseError(f"{a.case}: problem '{case.problem}'; the planner needs a surgery case")
+        if a.materials:
+            case = with_material_preset(case, a.materials)
         params = dict(case.parameters)
         if a.mesh:
             params["mesh"] = a.mesh

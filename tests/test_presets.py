@@ -7,7 +7,7 @@ import logging
 import numpy as np
 
 from eyefem.catalog import schemas
-from eyefem.cli.main import _with_preset
+from eyefem.cli.main import with_material_preset
 from eyefem.eye.presets import PHYSIOLOGICAL_SCLERA, SEED_MATERIALS, tissues_replaced
 from eyefem.eye.surgery import _materials
 from eyefem.fem.materials import MooneyRivlin
@@ -20,7 +20,7 @@ def test_a_command_line_preset_replaces_the_case_tables_of_the_eye(caplog):
     case = load_case("cases/surgery/case1.toml", schemas())
     assert set(SEED_MATERIALS) <= set(case.materials)
     with caplog.at_level(logging.WARNING, logger="eyefem"):
-        new = _with_preset(case, "physiological")
+        new = with_material_preset(case, "physiological")
     assert new.parameters["materials_preset"] == "physiological"
     assert not set(SEED_MATERIALS) & set(new.materials)
     assert "replaces the case file's [materials] tables of choroid, ciliary_body, cornea" in caplog.text

@@ -46,7 +46,7 @@ def _compilation_cache(jax):
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
 
 
-def _with_preset(case, preset: str):
+def with_material_preset(case, preset: str):
     """The case with the material preset ``preset`` (``--materials``): its
     materials_preset set and its own tables of the preset's tissues dropped (said)."""
     import dataclasses
@@ -79,7 +79,7 @@ def cmd_run(args) -> int:
                 raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; drop --mesh")
             case.parameters["mesh"] = args.mesh
         if args.materials:  # a material preset (eyefem.eye.presets) instead of the case's
-            case = _with_preset(case, args.materials)
+            case = with_material_preset(case, args.materials)
     except (CaseError, ValueError, KeyError) as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
