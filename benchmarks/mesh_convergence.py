@@ -11,6 +11,8 @@ at every level, so the refinement is in-plane only.
         --levels coarse,medium,default,fine --runs /tmp/conv --out /tmp/conv/report \
         --images docs/images
     python benchmarks/mesh_convergence.py ... --no-run     # tabulate existing runs only
+    python benchmarks/mesh_convergence.py ... --no-run --fill-stress   # runs made before
+                                            # the peak scleral stress was an outcome
 
 Each run goes to RUNS/CASE/LEVEL (summary.json, stages.csv, surgery_history.csv, run.log),
 one at a time in a subprocess (``run-one``), skipped when its summary.json exists. Besides
@@ -48,6 +50,7 @@ OUTCOMES = {  # key -> (label, relative bound of the default level's GCI)
     "max_suture_mean_force_N": ("largest per-suture mean force, N", 0.10),
     "corneal_power_change_D": ("corneal power change, D", None),
     "anterior_chamber_depth_change_mm": ("anterior chamber depth change, mm", None),
+    "scleral_stress_kPa": ("peak scleral von Mises stress (1 mm patch), kPa", None),
 }
 """Outcomes studied; the bound is issue 29's (5 % / 10 %), None: reported only."""
 
@@ -120,6 +123,41 @@ def run_missing(cases, levels, runs: Path, case_dir: Path) -> None:
                                      stdout=fh, stderr=subprocess.STDOUT)
             log.info("  %s %s: exit %d after %.0f s", case, level, rc,
                      time.perf_counter() - tic)
+
+
+def fill_stress(case_path: Path, level: str, out_dir: Path) -> bool:
+    """Add the peak scleral stress (eyefem.eye.outcomes.peak_scleral_stress) to the
+    summary.json of a run made before the outcome existed, evaluated on the final state of
+    its checkpoint (a numpy archive, checked against its checkpoint.json) with the case
+    rebuilt at ``level``. Returns False (and says why) where the run has no final state."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from eyefem.catalog import problems, schemas
+    from eyefem.eye.outcomes import peak_scleral_stress, stress_patches
+    from eyefem.io import checkpoint
+    from eyefem.io.casefile import load_case
+
+    f = out_dir / "summary.json"
+    summary = json.loads(f.read_text())
+    meta = json.loads((out_dir / checkpoint.FILENAME).read_text())
+    ck = checkpoint.load(out_dir, meta["key"])
+    case = load_case(str(case_path), schemas())
+    case.parameters["mesh"] = level
+    setup = problems()[case.problem][1](case.parameters, case.materials)
+    if ck["stage"] != len(setup.stages) - 1:
+        log.warning("%s: its checkpoint holds stage %d of %d, not the final state; no stress",
+                    out_dir, ck["stage"] + 1, len(setup.stages))
+        return False
+    if ck["q"].shape != (setup.model.n_dof,):
+        log.warning("%s: its state has %d unknowns, the case at %s %d; no stress", out_dir,
+                    ck["q"].size, level, setup.model.n_dof)
+        return False
+    summary["scleral_stress_kPa"] = peak_scleral_stress(
+        setup.model, ck["q"], ck["theta"], stress_patches(setup.model.mesh))
+    summary["scleral_stress_from"] = "the run's final checkpoint, evaluated afterwards"
+    f.write_text(json.dumps(summary, indent=2) + "\n")
+    return True
 
 
 # --------------------------------------------------------------------------- the study
@@ -260,10 +298,12 @@ def main(argv=None) -> int:
         argv = sys.argv[1:]
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s",
                         datefmt="%H:%M:%S")
-    if argv and argv[0] == "run-one":
+    if argv and argv[0] in ("run-one", "fill-stress"):
         case_path, level, out = argv[1:4]
-        run_one(case_path, level, Path(out))
-        return 0
+        if argv[0] == "run-one":
+            run_one(case_path, level, Path(out))
+            return 0
+        return 0 if fill_stress(Path(case_path), level, Path(out)) else 1
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="case1,case5", help="case names in --case-dir")
     ap.add_argument("--levels", default="coarse,medium,default,fine",
@@ -273,11 +313,23 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="/tmp/conv/report", help="where the table and JSON go")
     ap.add_argument("--images", help="where the plots go (default OUT/images)")
     ap.add_argument("--no-run", action="store_true", help="only tabulate the runs there")
+    ap.add_argument("--fill-stress", action="store_true",
+                    help="add the peak scleral stress to runs made before it was an outcome "
+                    "(from their final checkpoints; one process per run)")
     args = ap.parse_args(argv)
     cases, levels = args.cases.split(","), args.levels.split(",")
     runs = Path(args.runs)
     if not args.no_run:
         run_missing(cases, levels, runs, Path(args.case_dir))
+    if args.fill_stress:
+        for case in cases:
+            for lv in levels:
+                d = runs / case / lv
+                if (d / "summary.json").exists() and "scleral_stress_kPa" not in json.loads(
+                        (d / "summary.json").read_text()):
+                    log.info("peak scleral stress of %s at %s from its checkpoint", case, lv)
+                    subprocess.call([sys.executable, __file__, "fill-stress",
+                                     str(Path(args.case_dir) / f"{case}.toml"), lv, str(d)])
     study = {}
     for case in cases:
         found = {}

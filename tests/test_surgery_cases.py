@@ -22,6 +22,7 @@ RECORDED = {
         "axial_length_change_mm": 0.884398849485585,
         "volume_change_mm3": -0.00343256397627556,
         "max_suture_force_N": 0.15220025816587845,
+        "scleral_stress_kPa": 58.4900824353117,
     },
     "case2": {
         "iop_mmhg": 29.840904506592008,
@@ -30,6 +31,7 @@ RECORDED = {
         "axial_length_change_mm": 1.1978014268191224,
         "volume_change_mm3": -0.00496321258469834,
         "max_suture_force_N": 0.1423573881225626,
+        "scleral_stress_kPa": 80.02702869835967,
     },
     "case3": {
         "iop_mmhg": 28.12589710842274,
@@ -38,6 +40,7 @@ RECORDED = {
         "axial_length_change_mm": 1.1913897603902264,
         "volume_change_mm3": -0.004389666255519842,
         "max_suture_force_N": 0.17931279304012496,
+        "scleral_stress_kPa": 90.96993303420231,
     },
     "case4": {
         "iop_mmhg": 44.353992860449985,
@@ -46,6 +49,7 @@ RECORDED = {
         "axial_length_change_mm": 2.5268876380802325,
         "volume_change_mm3": -0.00981679430060467,
         "max_suture_force_N": 0.18059224901610654,
+        "scleral_stress_kPa": 136.16216261911623,
     },
     "case5": {
         "iop_mmhg": 15.099218098648874,
@@ -54,6 +58,7 @@ RECORDED = {
         "axial_length_change_mm": 0.009782640115538754,
         "volume_change_mm3": -3.318130075058434e-05,
         "max_suture_force_N": 0.01715866795399479,
+        "scleral_stress_kPa": 30.33075092236954,
     },
     "case6": {
         "iop_mmhg": 15.086867222968124,
@@ -62,10 +67,12 @@ RECORDED = {
         "axial_length_change_mm": 0.008533890516844167,
         "volume_change_mm3": -2.9050823286524974e-05,
         "max_suture_force_N": 0.015235788553696878,
+        "scleral_stress_kPa": 29.25628865503139,
     },
 }
 """case -> outcome -> value (coarse mesh), recorded when the axial hold on the globe became 10 N/mm
-by default (docs/surgery.md, "Procedure")."""
+by default (docs/surgery.md, "Procedure"); the peak scleral stress (1 mm patch) from the
+same runs' final states when it became an outcome."""
 
 RTOL = 1e-6
 """Relative tolerance of the pinned outcomes: the cases converge to a force residual of

@@ -16,10 +16,13 @@ import dataclasses
 
 import jax.numpy as jnp
 import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
 
 from eyefem.eye import optics
 from eyefem.eye.parts import SurgeryParts, buckle_coords
-from eyefem.fem.units import MMHG
+from eyefem.fem.mesh import hex_geometry
+from eyefem.fem.units import KPA, MMHG
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,11 +97,47 @@ def changes(now: dict, preop: dict) -> dict:
                                                  - preop["anterior_chamber_depth_mm"])}
 
 
-def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
+STRESS_PATCH_MM = 1.0
+"""Radius of the patch of sclera over which the peak scleral stress is averaged, mm (about
+the wall's thickness: a fixed physical size, so that the peak converges under refinement
+where a single element's stress at a bite or at the buckle's edge does not)."""
+
+
+def stress_patches(mesh, radius: float = STRESS_PATCH_MM) -> sparse.csr_matrix:
+    """Volume-weighted averaging matrix (n_sclera, n_elem): row i averages the element
+    values of the scleral elements whose reference centroids lie within ``radius`` mm of
+    scleral element i's centroid (itself included). ValueError where the mesh has no
+    material 'sclera'."""
+    if "sclera" not in mesh.materials:
+        raise ValueError(f"peak scleral stress: the mesh has no material 'sclera' "
+                         f"({list(mesh.materials)})")
+    sid = np.nonzero(mesh.material_ids == list(mesh.materials).index("sclera"))[0]
+    xe = mesh.nodes[mesh.hexes[sid]]
+    vol = hex_geometry(mesh.nodes, mesh.hexes[sid])[1].sum(axis=1)
+    tree = cKDTree(xe.mean(axis=1))
+    rows = tree.query_ball_point(xe.mean(axis=1), radius)
+    r = np.repeat(np.arange(len(sid)), [len(k) for k in rows])
+    c = np.concatenate(rows)
+    w = vol[c]
+    W = sparse.csr_matrix((w, (r, sid[c])), shape=(len(sid), mesh.n_elem))
+    return sparse.diags(1.0 / np.asarray(W.sum(axis=1)).ravel()) @ W
+
+
+def peak_scleral_stress(model, q, theta, patches) -> float:
+    """The largest von Mises stress of the sclera averaged over a patch (kPa):
+    max_i (patches @ sigma_vm)_i with :func:`stress_patches` (the solid term's element
+    stresses, averaged over each element's Gauss points)."""
+    vm = model.terms[0].fields(np.asarray(q), theta["solid"])["von_mises"]
+    return float((patches @ vm).max()) / KPA
+
+
+def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
     """The outcomes every buckle reports at state q (n_dof,): IOP (mmHg), cavity volume
     (mm^3), axial length and its change from the unloaded eye (mm), indentation (mm),
     largest suture bar force (N), corneal power and astigmatism (D), anterior chamber
-    depth (mm). A buckle body adds its own (BuckleBody.outcomes)."""
+    depth (mm), the peak scleral von Mises stress over a patch (kPa; ``patches``: the
+    :func:`stress_patches` of the mesh, built here when not given). A buckle body adds
+    its own (BuckleBody.outcomes)."""
     X, nodes = model.mesh.nodes, outcome_nodes(parts)
     cav = model.term("cavity")
     P, V = cav.pressures(q, theta["cavity"])
@@ -112,7 +151,9 @@ def outcomes(parts: SurgeryParts, model, q, theta) -> dict:
             "axial_length_change_unloaded_mm": now["axial_length_mm"] - float(unloaded),
             "indentation_mm": float(indentation(X, q, nodes)),
             "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
-            else 0.0, **{k: v for k, v in now.items() if k != "axial_length_mm"}}
+            else 0.0, **{k: v for k, v in now.items() if k != "axial_length_mm"},
+            "scleral_stress_kPa": peak_scleral_stress(
+                model, q, theta, stress_patches(model.mesh) if patches is None else patches)}
 
 
 def stage_summary(rows) -> list[dict]:
@@ -129,5 +170,6 @@ def stage_summary(rows) -> list[dict]:
                     "volume_change_mm3": r["volume_mm3"] - pre["volume_mm3"],
                     "max_suture_force_N": r["max_suture_force_N"],
                     "corneal_astigmatism_D": r["corneal_astigmatism_D"],
+                    "scleral_stress_kPa": r.get("scleral_stress_kPa"),
                     **{k: float(v) for k, v in changes(r, pre).items()}})
     return out

@@ -30,7 +30,7 @@ from eyefem.eye.bodies import BASE_TERMS, LoadPath, buckle_body
 from eyefem.eye.buckle_meshes import BAND_C10, RING_KINDS, SPONGE_C10, TIRE_C10
 from eyefem.eye.buckles import KINDS, Buckle, suture_anchor_frame
 from eyefem.eye.eyemodel import LEVELS, build_eye
-from eyefem.eye.outcomes import outcomes, stage_summary
+from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import PRESETS, SEED_MATERIALS, with_overrides
 from eyefem.fem.bars import Bars
@@ -169,11 +169,14 @@ def surgery(p, materials):
     model = body.model(model, parts)
     path = LoadPath(node_dofs(mesh.node_set("eye/nerve_end")), parts.extra_dof,
                     p["iop_mmhg"] * MMHG)
-    last = {}
+    last, patches = {}, {}  # the stress patches per model mesh (a deformable body's merges)
 
     def probe(model, q, theta):
         last["state"] = (model, q, theta)
-        return {**outcomes(parts, model, q, theta), **body.outcomes(parts, model, q, theta)}
+        if model.mesh.n_elem not in patches:
+            patches[model.mesh.n_elem] = stress_patches(model.mesh)
+        return {**outcomes(parts, model, q, theta, patches[model.mesh.n_elem]),
+                **body.outcomes(parts, model, q, theta)}
 
     def finish(rows, out_dir, plots):
         summary = stage_summary(rows)
@@ -184,7 +187,8 @@ def surgery(p, materials):
         out = {k: final[k] for k in ("iop_mmhg", "indentation_mm", "axial_length_change_mm",
                                      "volume_change_mm3", "max_suture_force_N",
                                      "refraction_change_D", "corneal_power_change_D",
-                                     "corneal_astigmatism_D", "anterior_chamber_depth_change_mm")}
+                                     "corneal_astigmatism_D", "anterior_chamber_depth_change_mm",
+                                     "scleral_stress_kPa")}
         out.update({"iop_after_tightening_mmhg": summary[1]["iop_mmhg"] if len(summary) > 1
                     else None, "elements": int(mesh.n_elem),
                     "buckle_body": p.get("buckle_body", "rigid")})

@@ -6,6 +6,9 @@ Pressures entered or reported in mmHg are converted here and nowhere else.
 MMHG = 1.33322e-4
 """One millimetre of mercury in MPa."""
 
+KPA = 1e-3
+"""One kilopascal in MPa (stresses are reported in kPa)."""
+
 
 def mmhg_to_mpa(p_mmhg):
     """Convert a pressure in mmHg to MPa."""
