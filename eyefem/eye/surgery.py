@@ -34,6 +34,7 @@ from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import PRESETS, SEED_MATERIALS, with_overrides
 from eyefem.fem.bars import Bars
+from eyefem.fem.buckle_contact import RIDGE_FLANK
 from eyefem.fem.cavity import WATER_BULK, FluidCavity
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.surface import PressureLoad
@@ -128,7 +129,7 @@ SURGERY_FIELDS = [
           "sclera: 'facet' (its flat faces) or 'nodal' (the quadratic Nagata patches through "
           "them with the nodes' normals: no jump of the contact normal at facet edges)",
           lambda v: v in ("facet", "nodal"), "'facet' or 'nodal'"),
-    Field("ridge_flank", float, 1.0, "width of each flank of a rigid ridged tire's ridge "
+    Field("ridge_flank", float, RIDGE_FLANK, "width of each flank of a rigid ridged tire's ridge "
           "(a quintic shoulder inside the ridge's 3 mm base), mm: narrower flanks have "
           "shoulders sharper than the scleral elements can follow (docs/surgery.md)",
           lambda v: 0.05 <= v <= 1.5, "0.05 to 1.5 mm"),

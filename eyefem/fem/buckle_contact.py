@@ -64,13 +64,17 @@ from eyefem.fem.terms import Term
 BUCKLE_PENALTY_FACTOR = 10.0
 """Default buckle penalty alpha = factor * E * h per node (N/mm)."""
 
+RIDGE_FLANK = 1.0
+"""Default width of a ridge's flanks, mm (shoulder radius about 0.23 mm for a 0.75 mm ridge;
+0.5 mm flanks left shoulders too sharp for the default eye mesh's scleral elements)."""
+
 
 def smooth_penetration(g, eps):
     """eps softplus(-g / eps) (mm), overflow-safe: the smoothed <-g>."""
     return eps * jnp.logaddexp(-g / eps, 0.0)
 
 
-def ring_profile(a, width, ridge, ridge_width, flank=1.0):
+def ring_profile(a, width, ridge, ridge_width, flank=RIDGE_FLANK):
     """Inner-surface offset of a ring above R (mm) at across-coordinates a (jax or numpy):
     -ridge on the ridge, 0 on the flat base, rising at the edges; the ridge's flanks span
     ``flank`` mm inside its edges at +-ridge_width / 2."""
@@ -114,7 +118,7 @@ class BuckleContact(Term):
     width: float = 2.5
     ridge: float = 0.0
     ridge_width: float = 0.0
-    ridge_flank: float = 1.0
+    ridge_flank: float = RIDGE_FLANK
     sponge_radius: float = 2.5
     sponge_length: float = 10.0
     modulus: float = 0.5
