@@ -61,3 +61,17 @@ def test_a_post_surgery_iop_above_perfusion_is_said(caplog):
     with caplog.at_level(logging.WARNING):
         assert not warn_high_iop(44.8) and not warn_high_iop(float("nan"))
     assert caplog.text == ""
+
+
+def test_a_broken_axial_symmetry_of_an_encircled_eye_is_said(caplog):
+    """Default case 4 ovalises the globe (0.29 D of corneal astigmatism induced); the
+    axisymmetric encircling cases induce below 0.01 D and must not be warned about."""
+    from eyefem.eye.surgery import warn_broken_symmetry
+
+    with caplog.at_level(logging.WARNING):
+        assert warn_broken_symmetry(0.289)
+    assert "0.29 D" in caplog.text and "load steps" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert not warn_broken_symmetry(0.004) and not warn_broken_symmetry(float("nan"))
+    assert caplog.text == ""

@@ -196,6 +196,9 @@ def surgery(p, materials):
         if rows:
             out.update({k: rows[-1][k] for k in body.summary_outcomes})
         warn_high_iop(out["iop_mmhg"])
+        if parts.buckle.encircling and len(summary) > 1:
+            warn_broken_symmetry(final["corneal_astigmatism_D"]
+                                 - summary[0]["corneal_astigmatism_D"])
         return out
 
     return Setup("surgery", model, body.stages(parts, path), probe, finish, parts=parts)
@@ -213,6 +216,26 @@ def warn_high_iop(iop_mmhg: float) -> bool:
         "buckle's indentation compresses the whole contents; with the physiological "
         "preset's stiff wall that takes a high pressure (docs/validation.md, "
         "Limitations). Less tightening lowers it.", iop_mmhg, IOP_PERFUSION_MMHG)
+    return True
+
+
+SYMMETRY_ASTIGMATISM_D = 0.05
+"""Corneal astigmatism induced by an encircling buckle above which its state is taken to
+have broken the eye's near-axial symmetry, dioptres (the encircling seed cases that keep
+it induce below 0.01 D)."""
+
+
+def warn_broken_symmetry(induced_astigmatism_d: float) -> bool:
+    """Say (log warning) and return True when an encircling buckle induced more corneal
+    astigmatism (D, since the pressurised eye) than SYMMETRY_ASTIGMATISM_D."""
+    if not induced_astigmatism_d > SYMMETRY_ASTIGMATISM_D:
+        return False
+    log.warning(
+        "the encircling buckle induced %.2f D of corneal astigmatism: the eye's state has "
+        "left its near-axial symmetry (an ovalisation of the globe, a bifurcation of the "
+        "strongly tightened eye), so its axial length change, refraction and astigmatism "
+        "depend on the load steps; quote its IOP and indentation (docs/convergence.md, "
+        "case 4).", induced_astigmatism_d)
     return True
 
 
