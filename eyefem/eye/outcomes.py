@@ -112,10 +112,9 @@ def stress_patches(mesh, radius: float = STRESS_PATCH_MM) -> sparse.csr_matrix:
         raise ValueError(f"peak scleral stress: the mesh has no material 'sclera' "
                          f"({list(mesh.materials)})")
     sid = np.nonzero(mesh.material_ids == list(mesh.materials).index("sclera"))[0]
-    xe = mesh.nodes[mesh.hexes[sid]]
+    centroids = mesh.nodes[mesh.hexes[sid]].mean(axis=1)
     vol = hex_geometry(mesh.nodes, mesh.hexes[sid])[1].sum(axis=1)
-    tree = cKDTree(xe.mean(axis=1))
-    rows = tree.query_ball_point(xe.mean(axis=1), radius)
+    rows = cKDTree(centroids).query_ball_point(centroids, radius)
     r = np.repeat(np.arange(len(sid)), [len(k) for k in rows])
     c = np.concatenate(rows)
     w = vol[c]
