@@ -9,8 +9,8 @@ iterations, total wall time of the load path and peak memory (max RSS).
     python benchmarks/bench_core.py --sizes 32:2 --extras   # + cost of a cavity, of contact
     python benchmarks/bench_core.py --sizes 20:5 --device gpu --no-path   # kernels on a GPU
 
-``--device gpu`` runs the element kernels on a GPU (a CUDA jaxlib); the sparse solve
-stays on the host. ``--no-path`` skips the 10-step load path and times the iteration at
+``--device gpu`` runs the element kernels on a GPU (a CUDA jaxlib); ``--backend cudss``
+the factorisation and back-solves there too (eyefem.solve.cudss). ``--no-path`` skips the 10-step load path and times the iteration at
 a 1% uniform dilation of the shell (for a quick kernel comparison where the linear
 solver is slow, e.g. SuperLU on a machine without PARDISO).
 
@@ -158,7 +158,7 @@ def main():
     ap.add_argument("--json", help="write the rows to this file")
     ap.add_argument("--extras", action="store_true", help="also the cost of a cavity and of contact")
     ap.add_argument("--device", choices=("cpu", "gpu"), default="cpu",
-                    help="where the element kernels run (the solve stays on the host)")
+                    help="where the element kernels run (--backend cudss: the solve too)")
     ap.add_argument("--no-path", dest="path", action="store_false",
                     help="skip the load path; time the iteration near the unloaded state")
     ap.add_argument("--no-solve", dest="solve", action="store_false",

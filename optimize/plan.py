@@ -297,10 +297,24 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="results/plan", help="output directory")
     ap.add_argument("--bounds", action="append", metavar="NAME=LOW:HIGH", default=[],
                     help="bounds of a design variable (repeatable), e.g. tightening=2:12")
+    ap.add_argument("--device", choices=("cpu", "gpu"), default="cpu",
+                    help="where the element kernels run (default cpu); with gpu the "
+                    "factorisations too where cuDSS is installed (eyefem --device)")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)-7s %(message)s",
                         datefmt="%H:%M:%S")
     logging.getLogger("eyefem").setLevel(logging.WARNING)
+    from eyefem.solve.device import DeviceError, select_device
+
+    try:
+        where = select_device(a.device)
+    except DeviceError as exc:
+        print(f"python -m optimize.plan: {exc}", file=sys.stderr)
+        return 2
+    if a.device != "cpu":
+        from eyefem.solve.linsolve import default_backend
+
+        log.info("element kernels on %s; factorisations: %s", where, default_backend())
     try:
         overrides = _check_args(a)
         case = load_case(a.case, schemas())

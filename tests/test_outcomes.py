@@ -1,11 +1,17 @@
 """The peak scleral stress over a patch: the averaging matrix (closed form, rotation
-invariance) and the whole outcome on a homogeneous deformation (closed-form stress)."""
+invariance) and the whole outcome on a homogeneous deformation (closed-form stress); the
+azimuthal wave numbers of a displacement of the outer surface."""
 
 import numpy as np
 import pytest
 
 from eyefem.eye.eyemodel import build_eye
-from eyefem.eye.outcomes import STRESS_PATCH_MM, peak_scleral_stress, stress_patches
+from eyefem.eye.outcomes import (
+    STRESS_PATCH_MM,
+    azimuthal_shares,
+    peak_scleral_stress,
+    stress_patches,
+)
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.mesh import hex_geometry
@@ -68,3 +74,19 @@ def test_peak_scleral_stress_of_a_homogeneous_stretch_is_the_closed_form(eye_mes
     theta = {"solid": model.terms[0].params}
     want = 2 * SEED_MATERIALS["sclera"] * (lam**2 - 1 / lam) / KPA
     assert peak_scleral_stress(model, q, theta, patches) == pytest.approx(want, rel=1e-10)
+
+
+@pytest.mark.parametrize("wave", [0, 2, 3])
+def test_azimuthal_shares_of_a_pure_harmonic(eye_mesh, wave):
+    """A radial displacement sin^2(polar) cos(m phi) of the outer surface is wave number m:
+    the other shares are what its change across a band's 15 degrees of polar angle leaks
+    through the uneven azimuths of the nodes (below 0.1%), and the rest is what the bands
+    next to the apex and the pole (too few nodes to fit) hold (below 2%)."""
+    X = eye_mesh.nodes
+    radial = X / np.linalg.norm(X, axis=1, keepdims=True)
+    sin2 = 1.0 - radial[:, 2] ** 2
+    u = radial * (sin2 * np.cos(wave * np.arctan2(X[:, 1], X[:, 0])))[:, None]
+    shares = azimuthal_shares(eye_mesh, u)
+    assert shares[wave] > 0.98 and shares[-1] < 0.02
+    assert np.delete(shares[:-1], wave).max() < 1e-3
+    assert shares.sum() == pytest.approx(1.0)

@@ -1,7 +1,7 @@
 """Command line: ``eyefem run CASE``, ``eyefem compare CASES``, ``eyefem verify-tangents``,
 ``eyefem cases``, ``eyefem describe PROBLEM``, ``eyefem new-case PROBLEM``,
 ``eyefem export-feb CASE -o model.feb``, ``eyefem import-feb model.feb``,
-``eyefem sweep SWEEP.toml``.
+``eyefem sweep SWEEP.toml``, ``eyefem stability CASE``.
 
 The entry point switches JAX to float64, keeps compiled kernels in a persistent cache
 (``EYEFEM_JAX_CACHE``, default ``~/.cache/eyefem/jax``; ``off`` disables it) and sets up
@@ -31,8 +31,13 @@ def _setup(verbose: int, device: str = "cpu"):
     logging.getLogger("jax").setLevel(logging.WARNING)
     where = select_device(device)
     if device != "cpu":
-        logging.getLogger("eyefem").info("element kernels on %s; the sparse solve on the host",
-                                         where)
+        from eyefem.solve.linsolve import default_backend
+
+        backend = default_backend()
+        logging.getLogger("eyefem").info(
+            "element kernels on %s; the factorisation: %s", where,
+            "cuDSS on the GPU" if backend == "cudss" else f"{backend} on the host (cuDSS: "
+            "pip install cupy-cuda13x nvidia-cudss-cu13)")
 
 
 def _compilation_cache(jax):
@@ -62,14 +67,12 @@ def with_material_preset(case, preset: str):
                                materials=kept)
 
 
-def cmd_run(args) -> int:
+def _load_run_case(args):
+    """(case, setup, output folder) of the arguments of ``eyefem run`` or ``eyefem
+    stability`` (case, --out, --mesh, --materials), or an exit code after saying why."""
     from eyefem.catalog import problems, schemas
-    from eyefem.io.casefile import CaseError, load_case
-
-    PROBLEMS = problems()  # noqa: N806
-    from eyefem.io.checkpoint import CheckpointError
-    from eyefem.io.runner import run_setup
-    from eyefem.solve.solver import ConvergenceError
+    from eyefem.io import manifest
+    from eyefem.io.casefile import CaseError, check_material_names, load_case
 
     try:
         case = load_case(args.case, schemas())
@@ -83,11 +86,8 @@ def cmd_run(args) -> int:
     except (CaseError, ValueError, KeyError) as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
-    from eyefem.io import manifest
-    from eyefem.io.casefile import check_material_names
-
     try:
-        setup = PROBLEMS[case.problem][1](case.parameters, case.materials)
+        setup = problems()[case.problem][1](case.parameters, case.materials)
         check_material_names(case, setup.model.mesh.materials)
         manifest.check_writable(out)  # before solving; a rejected case leaves no folder
         _say_where(case.path, out)
@@ -101,12 +101,26 @@ def cmd_run(args) -> int:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"eyefem: {case.path} [parameters]/[materials]: {msg}", file=sys.stderr)
         return 2
+    return case, setup, out
+
+
+def cmd_run(args) -> int:
+    from eyefem.io import manifest
+    from eyefem.io.checkpoint import CheckpointError
+    from eyefem.io.runner import run_setup
+    from eyefem.solve.solver import ConvergenceError
+
+    loaded = _load_run_case(args)
+    if isinstance(loaded, int):
+        return loaded
+    case, setup, out = loaded
     logging.getLogger(__name__).info("case %s (%s): %d elements, %d dofs -> %s", case.path,
                                      case.problem, setup.model.mesh.n_elem, setup.model.n_dof, out)
     try:
         res = run_setup(setup, out, case.solver, vtu=case.output["vtu"] and not args.no_vtu,
                         xdmf=case.output["xdmf"] or args.xdmf,
                         plots=case.output["plots"], resume=args.resume,
+                        stability=3 if args.stability else 0,
                         key=manifest.case_key(case.problem, case.parameters, case.materials,
                                               case.solver))
     except ConvergenceError as exc:
@@ -142,6 +156,92 @@ def cmd_run(args) -> int:
         if k not in ("case", "title"):
             print(f"  {k:<32} {v:.6g}" if isinstance(v, float) else f"  {k:<32} {v}")
     print(f"  results in {out}/")
+    return 0
+
+
+def cmd_stability(args) -> int:
+    """The eigenvalues of the constrained tangent nearest zero at the end of a completed
+    stage of a run (eyefem.solve.stability): stability.json and stability.vtu."""
+    import numpy as np
+
+    from eyefem.io import manifest
+    from eyefem.io.checkpoint import CheckpointError
+    from eyefem.io.output import write_text, write_vtu
+    from eyefem.io.runner import completed_state
+    from eyefem.solve.stability import (
+        StabilityError,
+        lowest_modes,
+        rigid_motions,
+        rigid_shares,
+    )
+
+    loaded = _load_run_case(args)
+    if isinstance(loaded, int):
+        return loaded
+    case, setup, out = loaded
+    names = [s.name for s in setup.stages]
+    index = None
+    if args.stage is not None:
+        if args.stage not in names:
+            print(f"eyefem stability: {case.path} has no stage '{args.stage}'; its stages: "
+                  f"{', '.join(names)}", file=sys.stderr)
+            return 2
+        index = names.index(args.stage)
+    key = manifest.case_key(case.problem, case.parameters, case.materials, case.solver)
+    try:
+        model, q, theta, i = completed_state(setup, out, key, index)
+    except CheckpointError as exc:
+        print(f"eyefem stability: {exc}. It reads the run's checkpoint: run the case first "
+              f"(eyefem run {case.path} --out {out}, with the same --mesh and --materials)",
+              file=sys.stderr)
+        return 2
+    stage = setup.stages[i]
+    held = np.zeros(model.n_dof, bool)
+    held[stage.prescribed[0]] = True
+    logging.getLogger(__name__).info(
+        "the %d eigenvalues nearest zero of the tangent at the end of stage %d '%s' (%d free "
+        "dofs)", args.modes, i + 1, stage.name, int((~held).sum() - len(model.multiplier_dofs)))
+    n = model.mesh.n_nodes
+    rigid = rigid_motions(model, q)
+    try:
+        modes = lowest_modes(model, q, theta, held, stage.active, k=args.modes,
+                             beta=case.solver.beta, exclude=rigid.T if args.deformation else None)
+    except StabilityError as exc:
+        print(f"eyefem stability: {exc}", file=sys.stderr)
+        return 3
+    shapes = modes.shapes[:, : 3 * n].reshape(len(modes.values), n, 3)
+    rows = [{"mode": j + 1, "eigenvalue_N_per_mm": float(mu), "relative_residual": float(res),
+             "rigid_share": float(share)}
+            for j, (mu, res, share) in enumerate(zip(modes.values, modes.residuals,
+                                                     rigid_shares(modes, rigid, held)))]
+    if "eye/outer" in model.mesh.node_sets:  # the surgical eye: the modes' wave numbers
+        from eyefem.eye.outcomes import azimuthal_shares
+
+        for row, u in zip(rows, shapes):
+            shares = azimuthal_shares(model.mesh, u)
+            row["azimuthal_wave_number"] = int(np.argmax(shares[:-1]))
+            row["azimuthal_shares"] = [round(float(v), 4) for v in shares]
+    result = {"case": str(case.path), "title": case.title, "stage": stage.name,
+              "stage_index": i, "stable": modes.stable, "modes": rows,
+              "rigid_motions_excluded": bool(args.deformation),
+              "metric": "Euclidean norm of the free nodal displacements (N/mm)"}
+    peak = np.maximum(np.linalg.norm(shapes, axis=2).max(axis=1), 1e-300)
+    point = {"displacement": np.asarray(q[: 3 * n]).reshape(n, 3),
+             **{f"mode_{j + 1}": u / p for j, (u, p) in enumerate(zip(shapes, peak))}}
+    write_vtu(out / "stability.vtu", model.mesh.nodes, model.mesh.hexes, point,
+              {"material": model.mesh.material_ids.astype(np.int32)},
+              {"eigenvalue_N_per_mm": modes.values, "stage": i})
+    write_text(out / "stability.json", json.dumps(result, indent=2) + "\n")
+    print(f"\n{case.title}: end of stage '{stage.name}', "
+          f"{'stable' if modes.stable else 'UNSTABLE (a negative eigenvalue)'}")
+    for row in rows:
+        wave = (f"  azimuthal wave number {row['azimuthal_wave_number']} "
+                f"({100 * max(row['azimuthal_shares'][:-1]):.0f}%)"
+                if "azimuthal_wave_number" in row else "")
+        print(f"  mode {row['mode']:2d}  {row['eigenvalue_N_per_mm']:+.6e} N/mm  residual "
+              f"{row['relative_residual']:.1e}  rigid {100 * row['rigid_share']:3.0f}%{wave}")
+    print(f"  modes in {out / 'stability.vtu'} (mode_k, largest nodal value 1), "
+          f"table in {out / 'stability.json'}")
     return 0
 
 
@@ -403,7 +503,8 @@ def main(argv=None) -> int:
     ap.add_argument("-q", "--quiet", action="store_const", const=-1, dest="verbose")
     ap.add_argument("--device", choices=("cpu", "gpu"), default="cpu",
                     help="where the element kernels run (default cpu; gpu needs a CUDA "
-                    "jaxlib); the sparse solve stays on the host")
+                    "jaxlib); with gpu the factorisation runs there too where cuDSS is "
+                    "installed (CuPy and nvidia-cudss-cu13), else on the host")
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("run", help="run a case file")
     p.add_argument("case")
@@ -413,11 +514,28 @@ def main(argv=None) -> int:
                    "(<name>.xdmf; HDF5 arrays when h5py is installed)")
     p.add_argument("--resume", action="store_true",
                    help="continue after the last completed stage (checkpoint in the output dir)")
+    p.add_argument("--stability", action="store_true",
+                   help="check that every stage ends in a stable equilibrium (the tangent's "
+                   "3 eigenvalues nearest zero; summary.json 'stability'): about the cost of "
+                   "30 back-solves per stage")
     p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, default, fine, finer)")
     p.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
                    help="tissue constants preset (eyefem.eye.presets): replaces the case's "
                    "materials_preset and its own [materials] tables of the eye's tissues")
     p.set_defaults(fn=cmd_run)
+    p = sub.add_parser("stability", help="the eigenvalues of the tangent nearest zero at "
+                       "the end of a completed stage of a run (is the state stable?)")
+    p.add_argument("case")
+    p.add_argument("--out", help="the run's output directory (default from the case file)")
+    p.add_argument("--mesh", help="the --mesh the run was given")
+    p.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
+                   help="the --materials the run was given")
+    p.add_argument("--stage", help="stage name (default: the last completed stage)")
+    p.add_argument("--modes", type=int, default=6, help="how many eigenvalues (default 6)")
+    p.add_argument("--deformation", action="store_true", help="modes orthogonal to the rigid "
+                   "motions of the whole mesh (a body held only softly, such as the globe in "
+                   "its orbit, otherwise fills the lowest modes with its rigid motions)")
+    p.set_defaults(fn=cmd_stability)
     p = sub.add_parser("compare", help="run several cases and tabulate/plot their outcomes")
     p.add_argument("cases", nargs="+", help="case files")
     p.add_argument("--mesh", help="override the mesh level of every case")

@@ -130,6 +130,46 @@ def peak_scleral_stress(model, q, theta, patches) -> float:
     return float((patches @ vm).max()) / KPA
 
 
+OUTER_SURFACE = "eye/outer"
+"""The eye mesh's node set of its outer surface."""
+
+
+def azimuthal_shares(mesh, u, n_max: int = 4, band_deg: float = 15.0) -> np.ndarray:
+    """How the radial displacement u (n_nodes, 3) of the eye's outer surface splits over
+    the azimuthal wave numbers m = 0..n_max about the optical axis (z): shares (n_max + 2,)
+    of its sum of squares, the last one what wave numbers above n_max and the bands too
+    small to fit leave.
+
+    The outer nodes are grouped in bands of polar angle (``band_deg`` wide, from the
+    corneal apex); in each band the radial displacement (along the reference position
+    from the globe's centre) is fitted by least squares with a0 + sum_m (a_m cos m phi +
+    b_m sin m phi), phi = atan2(y, x). An axisymmetric field is all m = 0; an ovalisation
+    of the globe m = 2."""
+    ids = mesh.node_set(OUTER_SURFACE)
+    X = mesh.nodes[ids]
+    radial = X / np.linalg.norm(X, axis=1, keepdims=True)
+    dr = np.einsum("ij,ij->i", np.asarray(u)[ids], radial)
+    polar = np.degrees(np.arccos(np.clip(radial[:, 2], -1.0, 1.0)))
+    phi = np.arctan2(X[:, 1], X[:, 0])
+    ms = np.arange(1, n_max + 1)
+    energy = np.zeros(n_max + 1)
+    for lo in np.arange(0.0, 180.0, band_deg):
+        sel = (polar >= lo) & (polar < lo + band_deg)
+        if sel.sum() < 4 * (2 * n_max + 1):
+            continue
+        p = phi[sel][:, None]
+        cols = [np.ones((sel.sum(), 1)), np.cos(ms * p), np.sin(ms * p)]
+        A = np.hstack(cols)
+        c = np.linalg.lstsq(A, dr[sel], rcond=None)[0]
+        energy[0] += np.sum((A[:, 0] * c[0]) ** 2)
+        for j in range(n_max):
+            part = A[:, 1 + j] * c[1 + j] + A[:, 1 + n_max + j] * c[1 + n_max + j]
+            energy[1 + j] += np.sum(part**2)
+    total = float(np.sum(dr**2)) or 1.0
+    shares = energy / total
+    return np.append(shares, max(0.0, 1.0 - shares.sum()))
+
+
 def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
     """The outcomes every buckle reports at state q (n_dof,): IOP (mmHg), cavity volume
     (mm^3), axial length and its change from the unloaded eye (mm), indentation (mm),

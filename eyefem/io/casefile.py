@@ -161,7 +161,7 @@ SOLVER_FIELDS = [
     Field(f.name, type(f.default) if not isinstance(f.default, bool) else bool, f.default,
           f"NewtonOptions.{f.name}")
     for f in dataclasses.fields(NewtonOptions) if f.name != "backend"
-] + [Field("backend", str, "", "linear solver backend: '' (default), 'pardiso' or 'superlu'")]
+] + [Field("backend", str, "", "linear solver backend: '' (default), 'pardiso', 'cudss' (a GPU) or 'superlu'")]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -35,7 +35,8 @@ FILENAME = "run.json"
 LOCK = ".eyefem.lock"
 FORMAT = 1
 OUTPUT_PATTERNS = ("summary.json", "stages.csv", "*_history.csv", "*.pvd", "*.png",
-                   "checkpoint.json", "checkpoint-*.npz", "checkpoint.pkl", FILENAME)
+                   "checkpoint.json", "checkpoint-*.npz", "checkpoint.pkl", "stability.json",
+                   "stability.vtu", FILENAME)
 """Files of an older run that a new run removes (and the ``vtu/`` folder's ``*.vtu``)."""
 
 

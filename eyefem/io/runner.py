@@ -162,9 +162,65 @@ def write_step(writer: SeriesWriter, setup: Setup, stage_name: str, t: float, mo
     add_frame(writer, model, q, theta, stages, index, t)
 
 
+def checkpoint_key(setup: Setup, key: str = "") -> str:
+    """The key a run of ``setup`` writes in its checkpoint (``key``: the case's)."""
+    return checkpoint.fingerprint(key, setup.name, setup.model.n_dof, len(setup.stages))
+
+
+def completed_state(setup: Setup, out_dir: Path, key: str = "", stage: int | None = None):
+    """The model and state at the end of a completed stage of the run in ``out_dir``.
+
+    Reads the run's checkpoint (``key`` as given to :func:`run_setup`; CheckpointError if
+    it is missing or of another case) and replays the ``before`` hooks of the stages up to
+    ``stage`` (default: the last completed one) on ``setup.model``. Returns (model, q
+    (n_dof,), theta, stage index)."""
+    ck = checkpoint.load(Path(out_dir), checkpoint_key(setup, key))
+    last = int(ck["stage"])
+    i = last if stage is None else int(stage)
+    if not 0 <= i <= last:
+        done = ", ".join(f"{j} '{s.name}'" for j, s in enumerate(setup.stages[: last + 1]))
+        raise checkpoint.CheckpointError(
+            f"{Path(out_dir) / checkpoint.FILENAME}: stage {i} has not been completed in "
+            f"this run; completed: {done}")
+    model = setup.model
+    for s, (q_s, theta_s) in zip(setup.stages[: i + 1], ck["starts"]):
+        if s.before is not None:
+            model, _, _ = s.before(model, np.array(q_s), theta_s)
+    q, theta = (ck["q"], ck["theta"]) if i == last else ck["starts"][i + 1]
+    return model, np.array(q, np.float64), theta, i
+
+
+def stage_stability(model, q, theta, stage: Stage, options: NewtonOptions, k: int = 3) -> dict:
+    """Whether a stage's end state is a stable equilibrium (eyefem.solve.stability: the k
+    eigenvalues of the tangent nearest zero); an unstable one is said (log warning).
+    Returns the record for summary.json's "stability"."""
+    from eyefem.solve.stability import StabilityError, stage_end
+
+    held = np.zeros(model.n_dof, bool)
+    held[stage.prescribed[0]] = True
+    try:
+        rec = stage_end(model, q, theta, held, stage.active, k, beta=options.beta,
+                        backend=options.backend)
+    except StabilityError as exc:
+        log.warning("stage '%s': its stability was not checked: %s", stage.name, exc)
+        return {"stable": None, "error": str(exc)}
+    share = rec["lowest_mode_rigid_share"]
+    what = "" if share is None else f" (its mode {100 * share:.0f}% a rigid motion of the mesh)"
+    if not rec["stable"]:
+        log.warning("stage '%s' ended in an unstable equilibrium: the tangent's lowest "
+                    "eigenvalue is %.3g N/mm%s. Newton converged to a saddle of the energy, "
+                    "a state the tissue would leave, so the outcomes at the end of that "
+                    "stage are not physical (eyefem stability shows the mode; "
+                    "docs/outputs.md)", stage.name, rec["lowest_eigenvalue_N_per_mm"], what)
+    else:
+        log.info("stage '%s' ends in a stable equilibrium (lowest eigenvalue %.3g N/mm%s)",
+                 stage.name, rec["lowest_eigenvalue_N_per_mm"], what)
+    return rec
+
+
 def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOptions(), *,
               vtu: bool = True, plots: bool = True, key: str = "", resume: bool = False,
-              xdmf: bool = False) -> RunResult:
+              xdmf: bool = False, stability: int = 0) -> RunResult:
     """Solve a setup, writing outputs after each converged step (atomically).
 
     ``vtu`` writes the ParaView series ``<name>.pvd`` (vtu/*.vtu); ``xdmf`` the same
@@ -173,6 +229,10 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     After every completed stage a checkpoint is written to ``out_dir``; with
     ``resume=True`` the run continues after the last completed stage of the checkpoint
     (``key`` identifies the case, so a checkpoint of another case is refused).
+
+    With ``stability`` = k > 0 the end state of every stage solved is checked for
+    stability (:func:`stage_stability`, k eigenvalues) and summary.json gets
+    "stability": {stage name: record}.
     """
     out_dir = manifest.check_writable(Path(out_dir))  # before any solving
     release = manifest.acquire(out_dir)  # a second run into out_dir is refused
@@ -182,7 +242,7 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     frames = SeriesGroup(([writer] if vtu else []) + ([xwriter] if xdmf else []))
     tic = time.perf_counter()
     case_hash = manifest.case_hash(key)
-    key = checkpoint.fingerprint(key, setup.name, setup.model.n_dof, len(setup.stages))
+    key = checkpoint_key(setup, key)
     q0, theta0, completed = setup.q0, None, ()
     try:
         if resume:
@@ -232,9 +292,14 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
             write_step(frames, setup, rec.stage, rec.t, model, q, theta)
         progress.step(rec.stage, rec.step, rec.t)
 
+    checks: dict[str, dict] = {}
+
     def on_stage_end(i, model, q, theta, starts):
         checkpoint.save(out_dir, key=key, stage=i, q=q, theta=theta, starts=starts, rows=rows,
                         vtu_entries=writer.entries)
+        if stability:
+            checks[setup.stages[i].name] = stage_stability(model, q, theta, setup.stages[i],
+                                                           options, stability)
 
     progress.start()
     try:
@@ -261,6 +326,8 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
                       ("contact_cycle", "steps_accepted_on_a_contact_cycle")):
         summary[key] = int(sum(r.info.get(flag, False) for r in sol.history))
     summary["unbalanced_steps"] = unbalanced_steps(rows)
+    if stability:
+        summary["stability"] = checks
     return RunResult(summary, rows, sol, out_dir)
 
 

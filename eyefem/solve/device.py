@@ -1,8 +1,9 @@
 """Where the element kernels run: the CPU (default) or a GPU.
 
 The energies and their derivatives are plain JAX, so they run on any device JAX has;
-the Newton step's sparse factorisation stays on the host (scipy / PARDISO) in every
-case, and the local gradients and Hessians are copied back to it once per iteration.
+the Newton step's sparse assembly stays on the host (the local gradients and Hessians
+are copied back to it once per iteration), and its factorisation runs on the GPU where
+cuDSS is installed (eyefem.solve.cudss), else on the host (PARDISO, SuperLU).
 Choose the device before any JAX work (entry points do it from ``--device``):
 
     >>> from eyefem.solve.device import select_device

@@ -12,8 +12,9 @@ reduces the constraint error by about ``1/beta``. Rank-k updates of K (fluid
 cavities) are added by the Woodbury identity, reusing the same factorisation.
 
 Factorisation backends are pluggable: ``"pardiso"`` (MKL through pypardiso, the
-default when installed) and ``"superlu"`` (scipy, always there). Every solve checks
-its own residual.
+default when installed), ``"cudss"`` (NVIDIA's cuDSS on a GPU, the default with
+``--device gpu`` where installed; eyefem.solve.cudss) and ``"superlu"`` (scipy, always
+there). Every solve checks its own residual.
 
 Length: one saddle-point solver with its backends (Pardiso, SuperLU), the Schur
 complement CG and the low-rank updates it shares; about 420 lines.
@@ -28,32 +29,40 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from eyefem.solve.errors import LinearSolveError, NegativeCurvature
+
+__all__ = ["LinearSolveError", "NegativeCurvature", "SaddlePointSolver", "available_backends",
+           "default_backend", "factorize"]
+
 log = logging.getLogger(__name__)
-
-
-class LinearSolveError(RuntimeError):
-    """A linear solve failed or its residual is too large."""
-
-
-class NegativeCurvature(LinearSolveError):
-    """The displacement block is indefinite on the incompressible modes (raised when the
-    solver was asked to report it rather than solve the indefinite system exactly)."""
 
 
 def available_backends() -> list[str]:
     """Backends that can be used on this machine."""
+    from eyefem.solve.cudss import available as cudss_available
+
     out = []
     try:
         import pypardiso  # noqa: F401
         out.append("pardiso")
     except ImportError:
         pass
+    if cudss_available():
+        out.append("cudss")
     out.append("superlu")
     return out
 
 
 def default_backend() -> str:
-    return available_backends()[0]
+    """cuDSS where the element kernels run on a GPU (``--device gpu``) and it is
+    available; else Pardiso where installed; else SuperLU."""
+    import jax
+
+    have = available_backends()
+    device = jax.config.jax_default_device
+    if "cudss" in have and getattr(device, "platform", "") == "gpu":
+        return "cudss"
+    return next(b for b in have if b != "cudss")
 
 
 class _SuperLU:
@@ -192,6 +201,10 @@ def factorize(A: sp.spmatrix, backend: str | None = None):
         return _Pardiso(A)
     if backend == "superlu":
         return _SuperLU(A)
+    if backend == "cudss":
+        from eyefem.solve.cudss import CuDSS
+
+        return CuDSS(A)
     raise ValueError(f"linear solver backend '{backend}': unknown; choose from {available_backends()}")
 
 
