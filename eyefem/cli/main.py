@@ -516,8 +516,8 @@ def main(argv=None) -> int:
                    help="continue after the last completed stage (checkpoint in the output dir)")
     p.add_argument("--stability", action="store_true",
                    help="check that every stage ends in a stable equilibrium (the tangent's "
-                   "3 eigenvalues nearest zero; summary.json 'stability'): about the cost of "
-                   "30 back-solves per stage")
+                   "3 eigenvalues nearest zero; summary.json 'stability'): each check costs "
+                   "about 5-20 Newton iterations (coarse to medium eye)")
     p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, default, fine, finer)")
     p.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
                    help="tissue constants preset (eyefem.eye.presets): replaces the case's "

@@ -232,10 +232,11 @@ def warn_broken_symmetry(induced_astigmatism_d: float) -> bool:
         return False
     log.warning(
         "the encircling buckle induced %.2f D of corneal astigmatism: the eye's state has "
-        "left its near-axial symmetry (an ovalisation of the globe, a bifurcation of the "
-        "strongly tightened eye), so its axial length change, refraction and astigmatism "
-        "depend on the load steps; quote its IOP and indentation (docs/convergence.md, "
-        "case 4).", induced_astigmatism_d)
+        "left its near-axial symmetry (an ovalisation of the globe in the strongly "
+        "tightened band, which has more than one equilibrium there), so its axial length "
+        "change, refraction and astigmatism depend on the load steps; quote its IOP and "
+        "indentation, and check that its stages end stable (eyefem run --stability; "
+        "docs/convergence.md, case 4).", induced_astigmatism_d)
     return True
 
 

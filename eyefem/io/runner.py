@@ -252,7 +252,8 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
             q0, theta0, completed = ck["q"], ck["theta"], ck["starts"]
             if xwriter is not None:
                 xwriter.resume(until=ck["stage"] + 1)  # frame times: stage index + t
-            (out_dir / "summary.json").unlink(missing_ok=True)
+            for old in ("summary.json", "stability.json", "stability.vtu"):
+                (out_dir / old).unlink(missing_ok=True)  # of the state before resuming
             log.info("resuming %s after stage %d ('%s') from %s", setup.name, ck["stage"] + 1,
                      setup.stages[ck["stage"]].name, out_dir / checkpoint.FILENAME)
         else:

@@ -54,14 +54,16 @@ def available_backends() -> list[str]:
 
 
 def default_backend() -> str:
-    """cuDSS where the element kernels run on a GPU (``--device gpu``) and it is
-    available; else Pardiso where installed; else SuperLU."""
+    """cuDSS where the element kernels run on a GPU (``--device gpu``, or JAX's own
+    default where none was chosen) and it is available; else Pardiso where installed;
+    else SuperLU."""
     import jax
 
     have = available_backends()
-    device = jax.config.jax_default_device
-    if "cudss" in have and getattr(device, "platform", "") == "gpu":
-        return "cudss"
+    if "cudss" in have:
+        device = jax.config.jax_default_device
+        if (device.platform if device is not None else jax.default_backend()) == "gpu":
+            return "cudss"
     return next(b for b in have if b != "cudss")
 
 
