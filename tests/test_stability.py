@@ -182,7 +182,7 @@ def test_stability_of_a_case_not_run_says_to_run_it_first(tmp_path, capsys):
     case = ROOT / "cases" / "verification" / "uniaxial.toml"
     assert cli_main(["-q", "stability", str(case), "--out", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err
-    assert "no checkpoint" in err and "run the case first" in err
+    assert "holds no run of this case (no checkpoint.json)" in err and "run the case first" in err
 
 
 def test_an_unstable_stage_end_is_recorded_and_said(caplog):

@@ -168,6 +168,7 @@ def cmd_stability(args) -> int:
     from eyefem.io.checkpoint import CheckpointError
     from eyefem.io.output import write_text, write_vtu
     from eyefem.io.runner import completed_state
+    from eyefem.solve.errors import LinearSolveError
     from eyefem.solve.stability import (
         StabilityError,
         lowest_modes,
@@ -188,11 +189,15 @@ def cmd_stability(args) -> int:
             return 2
         index = names.index(args.stage)
     key = manifest.case_key(case.problem, case.parameters, case.materials, case.solver)
+    again = (f"eyefem run {case.path} --out {out}, with the same --mesh and --materials")
+    if not (out / "checkpoint.json").exists():
+        print(f"eyefem stability: {out} holds no run of this case (no checkpoint.json): run "
+              f"the case first ({again})", file=sys.stderr)
+        return 2
     try:
         model, q, theta, i = completed_state(setup, out, key, index)
     except CheckpointError as exc:
-        print(f"eyefem stability: {exc}. It reads the run's checkpoint: run the case first "
-              f"(eyefem run {case.path} --out {out}, with the same --mesh and --materials)",
+        print(f"eyefem stability: {exc}; it reads the run of this case ({again})",
               file=sys.stderr)
         return 2
     stage = setup.stages[i]
@@ -205,8 +210,9 @@ def cmd_stability(args) -> int:
     rigid = rigid_motions(model, q)
     try:
         modes = lowest_modes(model, q, theta, held, stage.active, k=args.modes,
-                             beta=case.solver.beta, exclude=rigid.T if args.deformation else None)
-    except StabilityError as exc:
+                             beta=case.solver.beta, backend=case.solver.backend,
+                             exclude=rigid.T if args.deformation else None)
+    except (StabilityError, LinearSolveError) as exc:
         print(f"eyefem stability: {exc}", file=sys.stderr)
         return 3
     shapes = modes.shapes[:, : 3 * n].reshape(len(modes.values), n, 3)

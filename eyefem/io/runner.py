@@ -194,6 +194,7 @@ def stage_stability(model, q, theta, stage: Stage, options: NewtonOptions, k: in
     """Whether a stage's end state is a stable equilibrium (eyefem.solve.stability: the k
     eigenvalues of the tangent nearest zero); an unstable one is said (log warning).
     Returns the record for summary.json's "stability"."""
+    from eyefem.solve.errors import LinearSolveError
     from eyefem.solve.stability import StabilityError, stage_end
 
     held = np.zeros(model.n_dof, bool)
@@ -201,7 +202,7 @@ def stage_stability(model, q, theta, stage: Stage, options: NewtonOptions, k: in
     try:
         rec = stage_end(model, q, theta, held, stage.active, k, beta=options.beta,
                         backend=options.backend)
-    except StabilityError as exc:
+    except (StabilityError, LinearSolveError) as exc:  # the run goes on; the record says
         log.warning("stage '%s': its stability was not checked: %s", stage.name, exc)
         return {"stable": None, "error": str(exc)}
     share = rec["lowest_mode_rigid_share"]
