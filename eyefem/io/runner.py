@@ -21,6 +21,7 @@ from eyefem.io import checkpoint, manifest
 from eyefem.io.output import Part, SeriesWriter, XdmfSeriesWriter, write_csv
 from eyefem.io.progress import Progress
 from eyefem.solve.model import Model
+from eyefem.solve.loadpath import replay_hooks
 from eyefem.solve.solver import ACCEPTED_FLAGS, NewtonOptions, Solution, Stage, solve
 
 log = logging.getLogger(__name__)
@@ -182,10 +183,7 @@ def completed_state(setup: Setup, out_dir: Path, key: str = "", stage: int | Non
         raise checkpoint.CheckpointError(
             f"{Path(out_dir) / checkpoint.FILENAME}: stage {i} has not been completed in "
             f"this run; completed: {done}")
-    model = setup.model
-    for s, (q_s, theta_s) in zip(setup.stages[: i + 1], ck["starts"]):
-        if s.before is not None:
-            model, _, _ = s.before(model, np.array(q_s), theta_s)
+    model = replay_hooks(setup.model, setup.stages[: i + 1], ck["starts"])
     q, theta = (ck["q"], ck["theta"]) if i == last else ck["starts"][i + 1]
     return model, np.array(q, np.float64), theta, i
 

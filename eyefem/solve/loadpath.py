@@ -72,6 +72,16 @@ def interpolate(a, b, t):
     return jax.tree_util.tree_map(lambda x, y: (1.0 - t) * np.asarray(x) + t * np.asarray(y), a, b)
 
 
+def replay_hooks(model: Model, stages: Sequence[Stage], starts) -> Model:
+    """The model after the ``before`` hooks of ``stages`` replayed with their start states
+    ``starts`` ((q, theta) per stage, as a checkpoint holds them); the states are not
+    re-solved (resuming a load path, rebuilding a completed stage's model)."""
+    for (q_s, theta_s), stage in zip(starts, stages):
+        if stage.before is not None:
+            model, _, _ = stage.before(model, np.array(q_s), theta_s)
+    return model
+
+
 def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
           options: NewtonOptions = NewtonOptions(),
           on_step: Callable[[StepRecord, Model, np.ndarray, Any], None] | None = None,
@@ -94,9 +104,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
     vref = float(sum(np.sum(t.data["dv"]) for t in model.terms if "dv" in t.data)) or 1.0
     asm, last_solver, stage = None, None, None
     starts = list(completed)
-    for (q_s, theta_s), done in zip(completed, stages):
-        if done.before is not None:
-            model, _, _ = done.before(model, np.array(q_s), theta_s)
+    model = replay_hooks(model, stages, completed)
     for i_stage, stage in enumerate(stages):
         if i_stage < len(completed):
             continue
