@@ -82,7 +82,7 @@ def run_one(case_path: str, level: str, out_dir: Path) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     from eyefem.catalog import problems, schemas
-    from eyefem.eye.eyemodel import LEVELS
+    from eyefem.eye.eyemodel import level_spec
     from eyefem.io import manifest
     from eyefem.io.casefile import load_case
     from eyefem.io.runner import run_setup
@@ -97,7 +97,7 @@ def run_one(case_path: str, level: str, out_dir: Path) -> dict:
                                           case.solver))
     last = res.rows[-1]
     summary = {"case": str(case_path), "title": case.title, "level": level,
-               "n_per_edge": LEVELS[level][0], "iop_param_mmhg": case.parameters["iop_mmhg"],
+               "n_per_edge": level_spec(level)[0], "iop_param_mmhg": case.parameters["iop_mmhg"],
                **res.summary,
                "mean_suture_force_N": last["mean_suture_force_N"],
                "max_suture_mean_force_N": last["max_suture_mean_force_N"],
@@ -255,9 +255,10 @@ def markdown(study: dict) -> str:
     return "\n".join(lines)
 
 
-def plot(case: str, s: dict, path: Path) -> None:
+def plot(case: str, s: dict, path: Path, other: dict | None = None, other_label: str = "") -> None:
     """Outcome vs h per outcome (one panel each), with the finest triple's extrapolated
-    value at h = 0 where the triple converges monotonically with a plausible order."""
+    value at h = 0 where the triple converges monotonically with a plausible order;
+    ``other``: a study of the same case from other runs (``--compare``), drawn grey."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -269,6 +270,8 @@ def plot(case: str, s: dict, path: Path) -> None:
     fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 3.2 * nrow), squeeze=False)
     for ax, k in zip(axes.flat, keys):
         ax.plot(s["h"], s["values"][k], "o-", label="runs")
+        if other and k in other["values"]:
+            ax.plot(other["h"], other["values"][k], "s--", color="0.6", ms=4, label=other_label)
         for x, y, lv in zip(s["h"], s["values"][k], s["levels"]):
             ax.annotate(lv, (x, y), textcoords="offset points", xytext=(3, 3), fontsize=7)
         t = s["triples"][k][0] if s["triples"][k] else None
@@ -293,6 +296,25 @@ def plot(case: str, s: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def collect(cases, levels, runs: Path) -> dict:
+    """case -> :func:`study_case` of the runs RUNS/CASE/LEVEL/summary.json there (cases
+    with fewer than three levels run are left out, with a warning)."""
+    study = {}
+    for case in cases:
+        found = {}
+        for lv in levels:
+            f = runs / case / lv / "summary.json"
+            if f.exists():
+                found[lv] = json.loads(f.read_text())
+            else:
+                log.warning("%s: no run at %s (%s missing); left out", case, lv, f)
+        if len(found) < 3:
+            log.warning("%s: %d level(s) run; a study needs three", case, len(found))
+            continue
+        study[case] = study_case(found, levels)
+    return study
+
+
 def main(argv=None) -> int:
     if argv is None:
         argv = sys.argv[1:]
@@ -313,6 +335,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="/tmp/conv/report", help="where the table and JSON go")
     ap.add_argument("--images", help="where the plots go (default OUT/images)")
     ap.add_argument("--no-run", action="store_true", help="only tabulate the runs there")
+    ap.add_argument("--compare", help="other run folders (RUNS/CASE/LEVEL, e.g. of an earlier "
+                    "model) drawn beside these in the plots")
+    ap.add_argument("--compare-label", default="compared runs", help="their legend entry")
     ap.add_argument("--fill-stress", action="store_true",
                     help="add the peak scleral stress to runs made before it was an outcome "
                     "(from their final checkpoints; one process per run)")
@@ -330,26 +355,15 @@ def main(argv=None) -> int:
                     log.info("peak scleral stress of %s at %s from its checkpoint", case, lv)
                     subprocess.call([sys.executable, __file__, "fill-stress",
                                      str(Path(args.case_dir) / f"{case}.toml"), lv, str(d)])
-    study = {}
-    for case in cases:
-        found = {}
-        for lv in levels:
-            f = runs / case / lv / "summary.json"
-            if f.exists():
-                found[lv] = json.loads(f.read_text())
-            else:
-                log.warning("%s: no run at %s (%s missing); left out", case, lv, f)
-        if len(found) < 3:
-            log.warning("%s: %d level(s) run; a study needs three", case, len(found))
-            continue
-        study[case] = study_case(found, levels)
+    study = collect(cases, levels, runs)
+    other = collect(cases, levels, Path(args.compare)) if args.compare else {}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     images = Path(args.images) if args.images else out / "images"
     (out / "convergence.json").write_text(json.dumps(study, indent=1) + "\n")
     (out / "convergence_table.md").write_text(markdown(study) + "\n")
     for case, s in study.items():
-        plot(case, s, images / f"convergence_{case}.png")
+        plot(case, s, images / f"convergence_{case}.png", other.get(case), args.compare_label)
     log.info("wrote %s, %s and the plots in %s", out / "convergence.json",
              out / "convergence_table.md", images)
     return 0

@@ -166,21 +166,22 @@ def test_study_of_synthetic_runs():
     assert "IOP rise" in table and "GCI of default" in table
 
 
-# recorded by benchmarks/mesh_convergence.py (docs/convergence.md), case 5 (seed materials)
+# recorded by benchmarks/mesh_convergence.py (docs/convergence.md), case 5 (seed materials,
+# bites spread over 1.5 mm patches: 2026-11-27)
 CASE5_RECORDED = {
     "coarse": {
-        "iop_mmhg": 15.099218098648874,
-        "indentation_mm": 0.1693512263718837,
-        "axial_length_change_mm": 0.009782640115538754,
-        "refraction_change_D": -0.015899366331272095,
-        "max_suture_force_N": 0.01715866795399479,
+        "iop_mmhg": 15.101816091185427,
+        "indentation_mm": 0.17255819436232933,
+        "axial_length_change_mm": 0.010035746498104459,
+        "refraction_change_D": -0.01733238800050288,
+        "max_suture_force_N": 0.017538449064291604,
     },
     "medium": {
-        "iop_mmhg": 15.088520703671493,
-        "indentation_mm": 0.14490126565989137,
-        "axial_length_change_mm": 0.00907884394184677,
-        "refraction_change_D": -0.014925174020126879,
-        "max_suture_force_N": 0.014255209889970664,
+        "iop_mmhg": 15.096774802701693,
+        "indentation_mm": 0.1532327873148347,
+        "axial_length_change_mm": 0.009907738990236226,
+        "refraction_change_D": -0.015252513354043633,
+        "max_suture_force_N": 0.015473092536388936,
     },
 }
 
@@ -202,3 +203,27 @@ def test_case5_coarse_and_medium_reproduce_the_study(tmp_path):
         got = json.loads((out / "summary.json").read_text())
         for key, value in want.items():
             assert got[key] == pytest.approx(value, rel=1e-5, abs=1e-9), (level, key)
+
+
+def test_through_thickness_split_keeps_the_tissues():
+    """A level with the suffix 'x2' splits each of the 4 wall layers in two at the
+    midpoints of its radial edges: each trilinear hexahedron is cut into two exactly, so
+    every tissue keeps its volume to round-off, the wall gets twice its elements, and the
+    outer scleral surface (where the buckle and the bites sit) is unchanged."""
+    from eyefem.eye.eyemodel import build_eye, is_level, level_spec
+    from eyefem.fem.mesh import hex_geometry
+
+    assert level_spec("coarsex2") == LEVELS["coarse"] + (2,)
+    assert is_level("defaultx2") and not is_level("coarsex3") and not is_level("x2")
+    with pytest.raises(ValueError, match="suffix 'x2'"):
+        level_spec("coarse2")
+    a, b = build_eye(level="coarse"), build_eye(level="coarsex2")
+    va, vb = (np.bincount(m.mesh.material_ids, hex_geometry(m.mesh.nodes, m.mesh.hexes)[1].sum(1))
+              for m in (a, b))
+    np.testing.assert_allclose(vb, va, rtol=1e-12)
+    qa, qb = a.quality(), b.quality()
+    for tissue in ("sclera", "choroid", "retina", "cornea", "limbus", "ciliary_body"):
+        assert qb[f"elements_{tissue}"] == 2 * qa[f"elements_{tissue}"], tissue
+    fa, fb = (m.mesh.nodes[m.mesh.face_set("eye/sclera_outer")] for m in (a, b))
+    np.testing.assert_allclose(np.sort(fb.reshape(-1, 3), 0), np.sort(fa.reshape(-1, 3), 0),
+                               atol=1e-12)

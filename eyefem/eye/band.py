@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from eyefem.eye.buckle_meshes import deformable_band, ring_fit_groups
-from eyefem.eye.sutures import generate_sutures, suture_bar_ends
+from eyefem.eye.sutures import generate_sutures, suture_bars
 from eyefem.fem.bars import TiedBars
 from eyefem.fem.contact import SurfaceContact
 from eyefem.fem.mesh import merge
@@ -192,8 +192,8 @@ def band_suture_term(parts: SurgeryParts) -> TiedBars:
                               width=p["suture_width"], angle_deg=p["suture_angle_deg"], n_bars=3,
                               buckle_faces=mesh.face_set("band/outer"),
                               buckle_half_width=0.45 * b.width)
-    na, xa, nb, xb, _ = suture_bar_ends(layout)
-    return TiedBars("sutures", na, nb, xa, xb, mesh.nodes, EA=p["suture_EA"])
+    return suture_bars("sutures", layout, mesh.nodes, mesh.face_set("eye/sclera_outer"),
+                       EA=p["suture_EA"], bite_radius=p["bite_radius"])
 
 
 def band_outcomes(parts: SurgeryParts, model, q, theta) -> dict:

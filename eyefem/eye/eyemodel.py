@@ -41,8 +41,34 @@ LEVELS = {"coarse": (10, 4), "medium": (14, 4), "default": (22, 6), "fine": (32,
           "finer": (44, 10)}
 """Mesh density levels: (cubed-sphere elements per patch edge, lens elements per edge).
 
-Refinement is in-plane only: every level keeps 4 element layers through the wall; "fine"
-and "finer" serve the mesh convergence study (docs/convergence.md)."""
+These levels refine in-plane only: each keeps 4 element layers through the wall (retina,
+choroid, two of sclera); "fine" and "finer" serve the mesh convergence study
+(docs/convergence.md). A level name with the suffix "x2" (``mediumx2``, ``defaultx2``...)
+splits every one of the 4 layers in two (8 through the wall), the same in-plane: the
+through-thickness check of the study (:func:`level_spec`)."""
+
+THROUGH_SPLIT = "x2"
+
+
+def level_spec(level: str) -> tuple[int, int, int]:
+    """(elements per patch edge, lens elements per edge, sub-layers per wall layer) of a
+    mesh level name: a key of LEVELS, or one with the suffix "x2" (8 wall layers)."""
+    base, split = level, 1
+    if level.endswith(THROUGH_SPLIT) and level[:-len(THROUGH_SPLIT)] in LEVELS:
+        base, split = level[:-len(THROUGH_SPLIT)], 2
+    if base not in LEVELS:
+        raise ValueError(f"eye mesh level '{level}'; choose one of {sorted(LEVELS)}, or one of "
+                         f"them with the suffix '{THROUGH_SPLIT}' (8 wall layers instead of 4)")
+    return LEVELS[base] + (split,)
+
+
+def is_level(level) -> bool:
+    """True for a mesh level name :func:`level_spec` accepts."""
+    try:
+        level_spec(level)
+    except (ValueError, TypeError, AttributeError):
+        return False
+    return True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,26 +211,26 @@ class EyeModel:
 
 
 def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> EyeModel:
-    """Mesh the eye at a density level (a key of LEVELS: "coarse" .. "finer")."""
-    if level not in LEVELS:
-        raise ValueError(f"eye mesh level '{level}'; choose one of {sorted(LEVELS)}")
+    """Mesh the eye at a density level (a key of LEVELS: "coarse" .. "finer", or one of them
+    with the suffix "x2": 8 wall layers instead of 4; :func:`level_spec`)."""
     g = geometry
-    n, n_lens = LEVELS[level]
-    shell = spherical_shell(1.0, 1.0, n, 4)
+    n, n_lens, split = level_spec(level)
+    shell = spherical_shell(1.0, 1.0, n, 4 * split)
     X = shell.nodes
     r = np.linalg.norm(X, axis=1)
     d = X / r[:, None]
-    level_k = np.rint((r - 1.0) * 4).astype(int)  # 0 (inside) .. 4 (outside)
+    level_k = np.rint((r - 1.0) * 4 * split).astype(int)  # 0 (inside) .. 4 split (outside)
     theta = np.arccos(np.clip(d[:, 2], -1, 1))
     ro = g.outer_radius(d)
     T, f = g.profile(theta)
-    frac = np.array([0.0, 0.5, 1.0, 1.0, 1.0])[level_k] * f + \
-        np.array([0.0, 0.0, 0.0, 0.5, 1.0])[level_k] * (1 - f)
+    t = level_k / split  # 0 .. 4: the tissue interfaces at integers, sub-layers between
+    frac = np.interp(t, np.arange(5), [0.0, 0.5, 1.0, 1.0, 1.0]) * f + \
+        np.interp(t, np.arange(5), [0.0, 0.0, 0.0, 0.5, 1.0]) * (1 - f)
     nodes = d * (ro - T + frac * T)[:, None]
     hexes = shell.hexes
     # tissues: by element centroid angle and layer
     th_e = theta[hexes]
-    layer = np.min(level_k[hexes], axis=1)  # 0 retina .. 3 outer sclera
+    layer = np.min(level_k[hexes], axis=1) // split  # 0 retina .. 3 outer sclera
     tl = g.limbus_angle
     ora = tl + g.ora_serrata / g.scleral_radius
     nerve_dir = np.array([np.sin(np.radians(180 - g.nerve_angle_deg)), 0.0,
@@ -249,7 +275,7 @@ def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> 
     sclera_outer = outer[~near & (theta[outer].min(axis=1) >= tl)]
     apex = int(np.argmax(nodes[:, 2]))
     n_wall = len(level_k)
-    pole = int(np.argmin(np.where(level_k == 4, nodes[:n_wall, 2], np.inf)))
+    pole = int(np.argmin(np.where(level_k == 4 * split, nodes[:n_wall, 2], np.inf)))
     eye = Mesh(nodes, hexes, mat, TISSUES,
                {"apex": np.array([apex]), "pole": np.array([pole]),
                 "nerve_end": np.array(end_nodes), "outer": np.unique(outer_all)},

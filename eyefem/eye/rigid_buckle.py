@@ -12,7 +12,7 @@ from eyefem.eye.buckles import KINDS, SPONGE_LENGTH, suture_anchor_frame
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.sutures import generate_sutures
-from eyefem.fem.bars import AnchoredBars, bilinear
+from eyefem.fem.bars import AnchoredBars, end_patches, reference_end_positions
 from eyefem.fem.buckle_contact import BuckleContact
 
 
@@ -67,10 +67,12 @@ def suture_term(parts: SurgeryParts, scale: float, width: float | None = None,
         xi_a.append(side.xi)
     anchors, nodes_a, xi_a, d1, d2, d3 = (np.concatenate(v) for v in
                                           (anchors, nodes_a, xi_a, d1, d2, d3))
-    L0 = np.linalg.norm(anchors - np.einsum("na,nai->ni", bilinear(xi_a), mesh.nodes[nodes_a]), axis=1)
+    patch = (end_patches(mesh.nodes, mesh.face_set("eye/sclera_outer"), nodes_a, xi_a, True,
+                         p["bite_radius"]) if p["bite_radius"] else None)
+    L0 = np.linalg.norm(anchors - reference_end_positions(mesh.nodes, nodes_a, xi_a, patch), axis=1)
     return AnchoredBars("sutures", nodes_a, xi_a, anchors, np.zeros(len(anchors), int), d1, d2,
                         1, mesh.nodes, L0, EA=p["suture_EA"], tension_only=True,
-                        extra_dof=parts.extra_dof, dirs3=d3)
+                        extra_dof=parts.extra_dof, dirs3=d3, patch=patch)
 
 
 def meridian(x):

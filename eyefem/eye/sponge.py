@@ -18,8 +18,7 @@ import numpy as np
 from eyefem.eye.buckle_meshes import deformable_sponge
 from eyefem.eye.buckles import Buckle
 from eyefem.eye.eyemodel import EyeGeometry
-from eyefem.eye.sutures import generate_sutures, suture_bar_ends
-from eyefem.fem.bars import TiedBars
+from eyefem.eye.sutures import generate_sutures, suture_bars
 from eyefem.fem.contact import SurfaceContact
 from eyefem.fem.mesh import Mesh
 from eyefem.fem.terms import OrbitSpring
@@ -87,8 +86,8 @@ def sponge_suture_term(mesh: Mesh, buckle: Buckle, frame, p: dict):
                               width=p["suture_width"], angle_deg=p["suture_angle_deg"], n_bars=3,
                               buckle_faces=mesh.face_set("sponge/outer"),
                               buckle_half_width=0.3 * buckle.width)
-    na, xa, nb, xb, _ = suture_bar_ends(layout)
-    return TiedBars("sutures", na, nb, xa, xb, mesh.nodes, EA=p["suture_EA"]), layout
+    return suture_bars("sutures", layout, mesh.nodes, mesh.face_set("eye/sclera_outer"),
+                       EA=p["suture_EA"], bite_radius=p["bite_radius"]), layout
 
 
 def sponge_spring_term(mesh: Mesh, buckle: Buckle, g: EyeGeometry) -> OrbitSpring:

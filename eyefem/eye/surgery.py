@@ -29,7 +29,7 @@ from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
 from eyefem.eye.bodies import BASE_TERMS, LoadPath, buckle_body
 from eyefem.eye.buckle_meshes import BAND_C10, RING_KINDS, SPONGE_C10, TIRE_C10
 from eyefem.eye.buckles import KINDS, Buckle, suture_anchor_frame
-from eyefem.eye.eyemodel import LEVELS, build_eye
+from eyefem.eye.eyemodel import LEVELS, build_eye, is_level
 from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import PRESETS, SEED_MATERIALS, with_overrides
@@ -58,8 +58,9 @@ TIGHTENINGS = ("pulled_ends", "shortened_loop")
 """How a deformable band or tire is tightened (eyefem.eye.band)."""
 
 SURGERY_FIELDS = [
-    Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)}", lambda v: v in LEVELS,
-          f"one of {list(LEVELS)}"),
+    Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)} (the suffix 'x2', "
+          "e.g. 'defaultx2': 8 wall layers instead of 4)", is_level,
+          f"one of {list(LEVELS)}, or one with the suffix 'x2'"),
     Field("buckle", str, "tire_flat", f"buckle kind: {', '.join(KINDS)}", lambda v: v in KINDS,
           f"one of {list(KINDS)}"),
     Field("buckle_body", str, "rigid", "'rigid' (exact analytic surface, radial motion) or "
@@ -85,6 +86,11 @@ SURGERY_FIELDS = [
           "prescribed shortening (then tightening must be 0), N; 0: shortening prescribed",
           lambda v: v >= 0, ">= 0"),
     Field("suture_width", float, 9.0, "bite span across the buckle, mm", positive, "> 0"),
+    Field("bite_radius", float, 1.5, "radius of a suture bite's patch on the outer sclera, "
+          "mm: the suture's pull is spread over it with the weight (1 - (r/R)^2)^2 (about the "
+          "area of a 3 mm partial-thickness scleral pass; docs/surgery.md, 'Suture bites'); 0: a "
+          "point bite (the force on the four nodes of one face, mesh-dependent)",
+          lambda v: v == 0 or 0.2 <= v <= 5, "0 (point bites) or 0.2 to 5 mm"),
     Field("n_sutures", int, 8, "number of sutures", positive, ">= 1"),
     Field("suture_angle_deg", float, 0.0, "suture angle about the buckle normal, degrees"),
     Field("suture_tightening", float, 0.6, "shortening of each suture loop when tied, mm "

@@ -14,6 +14,10 @@ the suture angle:
    points are the intersections of rays through the buckle top with the buckle's
    outer surface; n_bars bars per suture (n_bars - 1 points over the buckle). The
    suture lengths follow from the geometry.
+4. a bite of physical size (``bite_radius`` R > 0) spreads the suture's pull over the
+   outer scleral faces within R of the bite point (eyefem.fem.bars.EndPatches: the
+   bite is the weighted mean of that patch, weight (1 - r^2/R^2)^2); R = 0 keeps the
+   point bite, whose force sits on one face's four nodes.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import dataclasses
 
 import numpy as np
 
-from eyefem.fem.bars import bilinear
+from eyefem.fem.bars import TiedBars, bilinear, end_patches
 from eyefem.fem.mesh import QUAD_CORNERS
 
 
@@ -204,6 +208,33 @@ def suture_bar_ends(layout: SutureLayout, over_node_ids=None):
     na, nb = chain_n[:, :-1].reshape(-1, 4), chain_n[:, 1:].reshape(-1, 4)
     xa, xb = chain_x[:, :-1].reshape(-1, 2), chain_x[:, 1:].reshape(-1, 2)
     return na, xa, nb, xb, np.repeat(np.arange(k), m + 1)
+
+
+def bite_patches(layout: SutureLayout, xyz, sclera_faces, radius):
+    """The bites' patches (:class:`eyefem.fem.bars.EndPatches`), or (None, None) for point
+    bites (radius 0): (patches of bite A, patches of bite B), n_sutures ends each."""
+    if radius == 0:
+        return None, None
+    return tuple(end_patches(xyz, sclera_faces, b.nodes, b.xi, True, radius)
+                 for b in (layout.bite_a, layout.bite_b))
+
+
+def suture_bars(name, layout: SutureLayout, xyz, sclera_faces, *, EA, bite_radius):
+    """Tension-only tied bars (:class:`eyefem.fem.bars.TiedBars`) of sutures over a
+    deformable buckle, their bites spread over patches of radius ``bite_radius`` (mm; 0:
+    point bites). The first bar of each suture starts at bite A, the last ends at bite B;
+    the ends over the buckle stay points.
+
+    Args: name; layout; xyz (n_nodes, 3) mm; sclera_faces (m, 4); EA, N; bite_radius, mm.
+    """
+    na, xa, nb, xb, _ = suture_bar_ends(layout)
+    if bite_radius == 0:
+        return TiedBars(name, na, nb, xa, xb, xyz, EA=EA)
+    first = np.arange(len(na)) % layout.n_bars == 0
+    last = np.arange(len(na)) % layout.n_bars == layout.n_bars - 1
+    pa = end_patches(xyz, sclera_faces, na, xa, first, bite_radius)
+    pb = end_patches(xyz, sclera_faces, nb, xb, last, bite_radius)
+    return TiedBars(name, na, nb, xa, xb, xyz, EA=EA, patch_a=pa, patch_b=pb)
 
 
 def radial_bite_sensitivity(xyz, bites: EmbeddedPoint, points, dpoints,

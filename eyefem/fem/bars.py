@@ -38,6 +38,135 @@ def embedded_positions(X4, u4, xi):
     return jnp.einsum("na,nai->ni", N, X4 + u4)
 
 
+_GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(6)
+_GAUSS_XI = np.stack(np.meshgrid(_GAUSS_X, _GAUSS_X, indexing="ij"), -1).reshape(-1, 2)
+_GAUSS_WT = np.outer(_GAUSS_W, _GAUSS_W).ravel()
+
+
+@dataclasses.dataclass(frozen=True)
+class EndPatches:
+    """Bar ends spread over a patch of a surface: a suture's bite of physical size.
+
+    A spread end is the weighted mean of the surface points of its patch, x = sum_j w_j x_j
+    (a distributing coupling of translations: the bar's force is shared out over the
+    patch's nodes as w_j f), with w_j = int N_j phi dA / int phi dA over the surface faces
+    near the end's point X_b(xi) and the kernel phi = (1 - |X - X_b|^2 / R^2)^2 (0 beyond
+    R). The weights follow xi smoothly (a differentiable param), so bites still move with
+    the design. An end that is not spread is the point x = sum_a N_a(xi) x_a of its face.
+
+    Attributes:
+      nodes: (n, m) node ids; columns 0-3 are the face holding the end's point.
+      faces: (n, f, 4) the patch's faces as column indices into ``nodes``.
+      face_mask: (n, f) 1 for a face of the patch, 0 for padding (and for a point end).
+      spread: (n,) True for an end spread over its patch.
+      radius: the patch radius R, mm.
+    """
+
+    nodes: np.ndarray
+    faces: np.ndarray
+    face_mask: np.ndarray
+    spread: np.ndarray
+    radius: float
+
+    def data(self) -> dict:
+        """The arrays :func:`patch_weights` reads (leading axis n)."""
+        n = len(self.nodes)
+        return {"faces": self.faces, "mask": self.face_mask,
+                "spread": self.spread.astype(float), "R": np.full(n, float(self.radius))}
+
+
+def end_patches(node_xyz, surface_faces, nodes4, xi, spread, radius, margin=None) -> EndPatches:
+    """The patches of bar ends on a surface (:class:`EndPatches`).
+
+    Args:
+      node_xyz: (n_nodes, 3) reference coordinates, mm.
+      surface_faces: (s, 4) the surface's quadrilaterals (node ids).
+      nodes4: (n, 4) the face holding each end; xi: (n, 2) its parametric coordinates.
+      spread: (n,) bool, the ends to spread (the others stay points).
+      radius: R, mm (> 0).
+      margin: faces within R + margin of an end's point are kept (default R / 2), so that
+        the end can move by that much with the design before its patch is cut short.
+    """
+    if not radius > 0:
+        raise ValueError(f"bite patch radius = {radius} mm; must be > 0 (0: point bites)")
+    X = np.asarray(node_xyz, float)
+    nodes4 = np.asarray(nodes4, np.int64).reshape(-1, 4)
+    xi = np.asarray(xi, float).reshape(-1, 2)
+    spread = np.broadcast_to(np.asarray(spread, bool), (len(nodes4),)).copy()
+    sf = np.asarray(surface_faces, np.int64)
+    cen = X[sf].mean(1)
+    circ = np.linalg.norm(X[sf] - cen[:, None], axis=2).max(1)
+    reach = radius + (0.5 * radius if margin is None else margin)
+    points = np.einsum("na,nai->ni", bilinear(xi), X[nodes4])
+    node_lists, face_lists = [], []
+    for i in range(len(nodes4)):
+        if not spread[i]:
+            node_lists.append(list(nodes4[i]))
+            face_lists.append(np.zeros((0, 4), np.int64))
+            continue
+        near = sf[np.linalg.norm(cen - points[i], axis=1) < reach + circ]
+        ids = list(nodes4[i]) + [v for v in np.unique(near) if v not in nodes4[i]]
+        col = {v: j for j, v in enumerate(ids)}
+        node_lists.append(ids)
+        face_lists.append(np.vectorize(col.__getitem__)(near).reshape(-1, 4))
+    m = max(len(v) for v in node_lists)
+    f = max(1, max(len(v) for v in face_lists))
+    nodes = np.array([v + [v[0]] * (m - len(v)) for v in node_lists], np.int64)
+    faces = np.zeros((len(nodes4), f, 4), np.int64)
+    faces[:] = np.arange(4)
+    mask = np.zeros((len(nodes4), f))
+    for i, fl in enumerate(face_lists):
+        faces[i, :len(fl)] = fl
+        mask[i, :len(fl)] = 1.0
+    return EndPatches(nodes, faces, mask, spread, float(radius))
+
+
+def patch_weights(X, xi, pdata):
+    """Weights (n, m) of the nodes of each end (JAX-traceable; :class:`EndPatches`).
+
+    X: (n, m, 3) reference coordinates of the ends' nodes, mm; xi: (n, 2);
+    pdata: :meth:`EndPatches.data`. A spread end's weights sum to 1 and are smooth in xi;
+    a point end's are its face's bilinear shape functions.
+    """
+    n, m = X.shape[:2]
+    N4 = bilinear(xi)
+    point = jnp.einsum("na,nai->ni", N4, X[:, :4])
+    rows = jnp.broadcast_to(jnp.arange(n)[:, None, None], pdata["faces"].shape)
+    Xf = X[rows, pdata["faces"]]  # (n, f, 4, 3)
+    Nq = bilinear(_GAUSS_XI)  # (g, 4)
+    c = _C
+    dN = np.stack([0.25 * c[:, 0] * (1 + _GAUSS_XI[:, 1:2] * c[:, 1]),
+                   0.25 * c[:, 1] * (1 + _GAUSS_XI[:, 0:1] * c[:, 0])], -1)  # (g, 4, 2)
+    Xq = jnp.einsum("ga,nfai->nfgi", Nq, Xf)
+    T = jnp.einsum("gak,nfai->nfgki", dN, Xf)
+    dA = jnp.linalg.norm(jnp.cross(T[..., 0, :], T[..., 1, :]), axis=-1) * _GAUSS_WT
+    s2 = jnp.sum((Xq - point[:, None, None]) ** 2, -1) / pdata["R"][:, None, None] ** 2
+    phi = jnp.where(s2 < 1.0, (1.0 - s2) ** 2, 0.0) * dA * pdata["mask"][..., None]
+    nodal = jnp.einsum("nfg,ga->nfa", phi, Nq)  # (n, f, 4)
+    w = jnp.zeros((n, m)).at[rows, pdata["faces"]].add(nodal)
+    total = jnp.sum(w, axis=1, keepdims=True)
+    w = w / jnp.where(total > 0, total, 1.0)
+    w_point = jnp.concatenate([N4, jnp.zeros((n, m - 4))], axis=1)
+    return jnp.where(pdata["spread"][:, None] > 0, w, w_point)
+
+
+def reference_end_positions(node_xyz, nodes4, xi, patch: EndPatches | None = None):
+    """Reference positions (n, 3), mm, of bar ends (nodes4 (n, 4), xi (n, 2)): the points
+    in their faces, or the centroids of their patches."""
+    nodes = np.asarray(nodes4, np.int64).reshape(-1, 4) if patch is None else patch.nodes
+    X = np.asarray(node_xyz, float)[nodes]
+    return np.asarray(end_positions(X, 0 * X, np.asarray(xi, float).reshape(-1, 2),
+                                    None if patch is None else patch.data()))
+
+
+def end_positions(X, u, xi, pdata=None):
+    """Current positions (n, 3) of bar ends: point ends (X, u (n, 4, 3)) without
+    ``pdata``, else ends with patches (X, u (n, m, 3); :func:`patch_weights`)."""
+    if pdata is None:
+        return embedded_positions(X, u, xi)
+    return jnp.einsum("nm,nmi->ni", patch_weights(X, xi, pdata), X + u)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Bars(Term):
     """Bars between embedded points.
@@ -50,6 +179,8 @@ class Bars(Term):
       node_xyz: (n_nodes, 3) reference coordinates of the mesh.
       EA: axial stiffness E * A per bar, N (scalar or (n,)).
       tension_only: slack bars carry no force.
+      patch_a, patch_b: :class:`EndPatches` of the ends a and b (sutures' bites of physical
+        size; their ``nodes`` replace nodes_a / nodes_b), or None: point ends.
     """
 
     name: str
@@ -60,10 +191,18 @@ class Bars(Term):
     node_xyz: np.ndarray
     EA: float | np.ndarray = 1.0
     tension_only: bool = False
+    patch_a: EndPatches | None = None
+    patch_b: EndPatches | None = None
 
     def __post_init__(self):
         na = np.asarray(self.nodes_a, np.int64).reshape(-1, 4)
         nb = np.asarray(self.nodes_b, np.int64).reshape(-1, 4)
+        for patch, ends in ((self.patch_a, na), (self.patch_b, nb)):
+            if patch is not None and not np.array_equal(patch.nodes[:, :4], ends):
+                raise ValueError(f"bars '{self.name}': an end patch does not start with the "
+                                 "faces of its ends (build it with end_patches from them)")
+        na = na if self.patch_a is None else self.patch_a.nodes
+        nb = nb if self.patch_b is None else self.patch_b.nodes
         n = len(na)
         xi = np.stack([np.asarray(self.xi_a, float).reshape(n, 2),
                        np.asarray(self.xi_b, float).reshape(n, 2)], axis=1)
@@ -77,24 +216,34 @@ class Bars(Term):
                              f"(bar {int(np.argmin(EA))}: {EA.min()})")
         X = self.node_xyz
         nodes8 = np.concatenate([na, nb], axis=1)
-        L0 = np.linalg.norm(np.asarray(embedded_positions(X[nb], 0 * X[nb], xi[:, 1]))
-                            - np.asarray(embedded_positions(X[na], 0 * X[na], xi[:, 0])), axis=1)
+        object.__setattr__(self, "_ma", na.shape[1])
+        data = {"X": X[nodes8]}
+        for key, patch in (("pa", self.patch_a), ("pb", self.patch_b)):
+            if patch is not None:
+                data[key] = patch.data()
+        xa, xb = self.endpoints(np.zeros((n, 3 * nodes8.shape[1])), {"xi": xi}, data)
+        L0 = np.linalg.norm(np.asarray(xb) - np.asarray(xa), axis=1)
         if np.any(L0 <= 1e-12):
             i = int(np.argmin(L0))
             raise ValueError(f"bars '{self.name}': bar {i} has zero initial length; its ends "
                              "coincide")
-        object.__setattr__(self, "dofs", (3 * nodes8[:, :, None] + np.arange(3)).reshape(n, 24))
+        object.__setattr__(self, "dofs", (3 * nodes8[:, :, None] + np.arange(3)).reshape(n, -1))
         object.__setattr__(self, "params", {"EA": EA, "shortening": np.zeros(n), "xi": xi})
-        object.__setattr__(self, "data", {"X": X[nodes8], "L0": L0})
+        object.__setattr__(self, "data", {**data, "L0": L0})
+
+    def _patch_key(self):
+        return (self._ma, self.patch_a is not None, self.patch_b is not None)
 
     def static_key(self):
-        return (self.tension_only,)
+        return (self.tension_only,) + self._patch_key()
 
     def endpoints(self, q_loc, params, data):
         """Current end positions xa, xb (n, 3), mm."""
-        u = q_loc.reshape(-1, 8, 3)
-        xa = embedded_positions(data["X"][:, :4], u[:, :4], params["xi"][:, 0])
-        xb = embedded_positions(data["X"][:, 4:], u[:, 4:], params["xi"][:, 1])
+        X = data["X"]
+        u = q_loc.reshape(X.shape)
+        ma = self._ma
+        xa = end_positions(X[:, :ma], u[:, :ma], params["xi"][:, 0], data.get("pa"))
+        xb = end_positions(X[:, ma:], u[:, ma:], params["xi"][:, 1], data.get("pb"))
         return xa, xb
 
     def lengths(self, q_loc, params, data):
@@ -169,6 +318,9 @@ class AnchoredBars(Term):
       smoothing: a tension-only bar's stretch is eps softplus(stretch / eps) (eps in mm):
         C-infinity, so Newton does not cycle on sutures that are just taut (as every
         suture is when it is tied); the force of a bar at zero stretch is EA/L0 eps ln 2.
+      patch: :class:`EndPatches` of the ends a (bites of physical size; its ``nodes``
+        replace nodes_a), or None: point bites. L0 is then measured from the patches'
+        centroids (:func:`reference_end_positions`).
     """
 
     name: str
@@ -186,9 +338,15 @@ class AnchoredBars(Term):
     extra_dof: int = -1
     smoothing: float = 2e-4
     dirs3: np.ndarray | None = None
+    patch: EndPatches | None = None
 
     def __post_init__(self):
         na = np.asarray(self.nodes_a, np.int64).reshape(-1, 4)
+        if self.patch is not None:
+            if not np.array_equal(self.patch.nodes[:, :4], na):
+                raise ValueError(f"bars '{self.name}': the end patch does not start with the "
+                                 "faces of the ends (build it with end_patches from them)")
+            na = self.patch.nodes
         n = len(na)
         L0 = np.broadcast_to(np.asarray(self.L0, float), (n,)).copy()
         if np.any(L0 <= 0):
@@ -198,7 +356,7 @@ class AnchoredBars(Term):
         if np.any(EA <= 0):
             raise ValueError(f"bars '{self.name}': axial stiffness EA must be > 0 N")
         nb = self.n_bodies
-        dofs = (3 * na[:, :, None] + np.arange(3)).reshape(n, 12)
+        dofs = (3 * na[:, :, None] + np.arange(3)).reshape(n, -1)
         if self.extra_dof >= 0:
             if nb != 1:
                 raise ValueError(f"bars '{self.name}': a free body motion needs n_bodies = 1")
@@ -212,17 +370,19 @@ class AnchoredBars(Term):
         object.__setattr__(self, "data", {"X": self.node_xyz[na], "anchor": np.asarray(
             self.anchor_xyz, float), "body": np.asarray(self.body, np.int64),
             "dir": np.asarray(self.dirs, float), "dir2": np.asarray(self.dirs2, float),
-            "dir3": dir3})
+            "dir3": dir3, **({} if self.patch is None else {"pa": self.patch.data()})})
 
     def static_key(self):
-        return (self.tension_only, self.extra_dof >= 0)
+        return (self.tension_only, self.extra_dof >= 0, self.patch is not None)
 
     def endpoints(self, q_loc, params, data):
         """Current positions (n, 3), mm, of the bites xa and the moved anchors xb."""
-        xa = embedded_positions(data["X"], q_loc[:, :12].reshape(-1, 4, 3), params["xi"])
+        m = data["X"].shape[1]
+        xa = end_positions(data["X"], q_loc[:, :3 * m].reshape(-1, m, 3), params["xi"],
+                           data.get("pa"))
         d = params["d"][data["body"]]
         if self.extra_dof >= 0:
-            d = d + q_loc[:, 12]
+            d = d + q_loc[:, 3 * m]
         b = data["body"]
         xb = (data["anchor"] + d[:, None] * data["dir"] + params["s"][b][:, None] * data["dir2"]
               + params["dr"][b][:, None] * data["dir3"])
@@ -287,7 +447,7 @@ class TiedBars(Bars):
                                             "tightening": np.zeros(len(p["EA"]))})
 
     def static_key(self):
-        return (self.smoothing,)
+        return (self.smoothing,) + self._patch_key()
 
     def _raw(self, q_loc, params, data):
         return self.lengths(q_loc, params, data) - (params["L0"] - params["tightening"])

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.fem.bars import Bars, TiedBars, bilinear
+from eyefem.fem.bars import Bars, TiedBars, bilinear, end_patches, patch_weights
 from eyefem.fem.loop_solid import ShortenedLoopSolid
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.mesh import HEX_CORNERS, HEX_FACES, Mesh
@@ -120,6 +120,26 @@ def _bar_check(rng):
                      "embedded end, shortening 5%")
 
 
+def _tied_check(bar, x, wa, wb, state):
+    """CheckData of a one-bar TiedBars at local dofs x, tightened to 0.5 smoothing lengths
+    of stretch; hand-coded: the smoothed bar mapped by the ends' node weights wa (m_a,) and
+    wb (m_b,) (x_end = sum_j w_j x_j)."""
+    L = float(bar.lengths(jnp.asarray(x)[None], bar.params, bar.data)[0])
+    p = {**bar.params, "tightening": np.array([bar.params["L0"][0] - L + 0.005])}
+    kern = jax.jit(bar.local_grad_hess)
+    g, H = kern(jnp.asarray(x)[None], p, bar.data)
+    ma = len(wa)
+    T = np.zeros((6, 3 * (ma + len(wb))))
+    T[:3, :3 * ma] = np.kron(np.asarray(wa)[None], np.eye(3))
+    T[3:, 3 * ma:] = np.kron(np.asarray(wb)[None], np.eye(3))
+    xs = bar.data["X"][0].ravel() + x
+    L0 = bar.params["L0"][0]
+    f, k = smoothed_bar_residual_tangent(T[:3] @ xs, T[3:] @ xs, 3.0, L0, L0 - p["tightening"][0],
+                                         0.01)
+    return CheckData(np.asarray(g[0]), T.T @ f, np.asarray(H[0]), T.T @ k @ T,
+                     lambda y: np.asarray(kern(jnp.asarray(y)[None], p, bar.data)[0][0]), x, state)
+
+
 def _tied_bar_check(rng):
     """A tension-only suture bar between points inside two distorted faces (a bite in the
     sclera, a point on a deformable buckle), tied and shortened to within a few smoothing
@@ -128,22 +148,30 @@ def _tied_bar_check(rng):
                   [0.2, 0.1, 2.0], [1.2, 0.0, 2.1], [1.0, 1.1, 1.9], [0.1, 1.0, 2.0]])
     xi = rng.uniform(-0.8, 0.8, (2, 2))
     bar = TiedBars("tied", [[0, 1, 2, 3]], [[4, 5, 6, 7]], xi[:1], xi[1:], X, EA=3.0, smoothing=0.01)
-    u = 0.02 * rng.standard_normal((8, 3))
-    x = u.ravel()
-    L = float(bar.lengths(jnp.asarray(x)[None], bar.params, bar.data)[0])
-    p = {**bar.params, "tightening": np.array([bar.params["L0"][0] - L + 0.005])}
-    kern = jax.jit(bar.local_grad_hess)
-    g, H = kern(jnp.asarray(x)[None], p, bar.data)
-    T = np.zeros((6, 24))
-    T[:3, :12] = np.kron(bilinear(xi[0])[None], np.eye(3))
-    T[3:, 12:] = np.kron(bilinear(xi[1])[None], np.eye(3))
-    xs = bar.data["X"][0].ravel() + x
-    L0 = bar.params["L0"][0]
-    f, k = smoothed_bar_residual_tangent(T[:3] @ xs, T[3:] @ xs, 3.0, L0, L0 - p["tightening"][0],
-                                         0.01)
-    return CheckData(np.asarray(g[0]), T.T @ f, np.asarray(H[0]), T.T @ k @ T,
-                     lambda y: np.asarray(kern(jnp.asarray(y)[None], p, bar.data)[0][0]), x,
-                     "face to face, 0.5 eps of stretch")
+    x = 0.02 * rng.standard_normal(24)
+    return _tied_check(bar, x, bilinear(xi[0]), bilinear(xi[1]), "face to face, 0.5 eps of stretch")
+
+
+def _spread_bite_check(rng):
+    """A tied suture bar whose bite is spread over a patch (radius 1 mm) of a curved 6 x 6
+    grid of faces (a cap of a 12 mm sphere) to a point in a face above it. Hand-coded: the
+    smoothed bar mapped by the patch weights (x_a = sum_j w_j x_j)."""
+    n, half = 6, 1.5
+    g = np.linspace(-half, half, n + 1)
+    P = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    d = np.column_stack([P, np.full(len(P), 12.0)])
+    X = 12.0 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    X = np.vstack([X, [[0.2, 0.1, 14.0], [1.2, 0.0, 14.1], [1.0, 1.1, 13.9], [0.1, 1.0, 14.0]]])
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    F = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
+    f4, top = F[[14]], [[49, 50, 51, 52]]
+    xi = rng.uniform(-0.8, 0.8, (2, 2))
+    patch = end_patches(X, F, f4, xi[:1], True, 1.0)
+    bar = TiedBars("tied", f4, top, xi[:1], xi[1:], X, EA=3.0, smoothing=0.01, patch_a=patch)
+    x = (0.02 * rng.standard_normal(X.shape))[bar.dofs[0, ::3] // 3].ravel()
+    w = np.asarray(patch_weights(jnp.asarray(X[patch.nodes]), jnp.asarray(xi[:1]), patch.data()))
+    return _tied_check(bar, x, w[0], bilinear(xi[1]),
+                       f"bite over {patch.nodes.shape[1]} nodes, 0.5 eps of stretch")
 
 
 def _orbit_check(rng, tilted=False):
@@ -188,6 +216,7 @@ def term_checks() -> dict[str, Callable[[np.random.Generator], CheckData]]:
         "orbit_spring_tilted_shift": lambda rng: _orbit_check(rng, tilted=True),
         "suture_bar": _bar_check,
         "tied_suture_bar": _tied_bar_check,
+        "tied_suture_bar_spread_bite": _spread_bite_check,
         "fluid_cavity": cavity_check,
         **contact_checks(),
     }
