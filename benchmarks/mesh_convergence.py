@@ -5,12 +5,14 @@ collects the outcomes and applies the three-grid procedure of Celik et al. 2008
 (eyefem.eye.convergence: observed order, Richardson extrapolation, GCI with Fs = 1.25) to
 every outcome and every consecutive triple of levels. Grid size h = 1 / n, n the elements
 per cubed-sphere patch edge (eyefem.eye.eyemodel.LEVELS); the wall keeps 4 element layers
-at every level, so the refinement is in-plane only.
+at every level, so the refinement is in-plane only (a level with the suffix "x2", e.g.
+``run-one CASE mediumx2 DIR``, has 8: the through-thickness check).
 
     python benchmarks/mesh_convergence.py --cases case1,case5 \
         --levels coarse,medium,default,fine --runs /tmp/conv --out /tmp/conv/report \
         --images docs/images
     python benchmarks/mesh_convergence.py ... --no-run     # tabulate existing runs only
+    python benchmarks/mesh_convergence.py ... --compare OTHER_RUNS   # drawn beside, grey
     python benchmarks/mesh_convergence.py ... --no-run --fill-stress   # runs made before
                                             # the peak scleral stress was an outcome
 

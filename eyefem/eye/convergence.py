@@ -8,7 +8,8 @@ that need not be constant. Pure numpy; no eye model needed.
 Grids are ordered fine to coarse: h1 < h2 < h3 with values phi1, phi2, phi3. For the eye
 the grid size measure is h = 1 / n, n the elements per cubed-sphere patch edge (the wall
 keeps 4 element layers at every level, so refinement is in-plane only; the limit h -> 0 is
-the 4-layer through-thickness model, not the continuum).
+the 4-layer through-thickness model, not the continuum; levels with the suffix "x2" split
+the layers to measure that part apart).
 
   r21 = h2 / h1, r32 = h3 / h2, eps21 = phi2 - phi1, eps32 = phi3 - phi2
   s = sign(eps32 / eps21); s < 0 is oscillatory convergence (no p, no extrapolation)
