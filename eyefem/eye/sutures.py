@@ -26,8 +26,7 @@ import dataclasses
 
 import numpy as np
 
-from eyefem.fem.bars import TiedBars, bilinear, end_patches
-from eyefem.fem.mesh import QUAD_CORNERS
+from eyefem.fem.bars import TiedBars, bilinear, dbilinear, end_patches
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,13 +39,6 @@ class EmbeddedPoint:
     def positions(self, xyz):
         """Positions (n, 3) for node coordinates xyz (n_nodes, 3)."""
         return np.einsum("na,nai->ni", bilinear(self.xi), xyz[self.nodes])
-
-
-def _dbilinear(xi):
-    c = QUAD_CORNERS
-    dx = 0.25 * c[:, 0] * (1 + xi[1] * c[:, 1])
-    dy = 0.25 * c[:, 1] * (1 + xi[0] * c[:, 0])
-    return np.stack([dx, dy], -1)  # (4, 2)
 
 
 def ray_face_intersection(xyz, faces, origin, direction, n_candidates=12, tol=1e-9):
@@ -72,7 +64,7 @@ def ray_face_intersection(xyz, faces, origin, direction, n_candidates=12, tol=1e
         for _ in range(30):
             xi = z[:2]
             r = bilinear(xi) @ xf - (o + z[2] * d)
-            J = np.column_stack([(_dbilinear(xi).T @ xf).T, -d])
+            J = np.column_stack([(dbilinear(xi).T @ xf).T, -d])
             try:
                 dz = np.linalg.solve(J, -r)
             except np.linalg.LinAlgError:
@@ -260,6 +252,6 @@ def radial_bite_sensitivity(xyz, bites: EmbeddedPoint, points, dpoints,
         dist = np.linalg.norm(rel[i])
         u = rel[i] / dist
         du = (dpoints[i] - u * (u @ dpoints[i])) / dist
-        J = np.column_stack([(_dbilinear(xi).T @ xf).T, -u])
+        J = np.column_stack([(dbilinear(xi).T @ xf).T, -u])
         out[i] = np.linalg.solve(J, np.linalg.norm(x - c) * du)[:2]
     return out

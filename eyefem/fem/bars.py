@@ -32,6 +32,12 @@ def bilinear(xi):
     return 0.25 * (1 + xi[..., None, 0] * _C[:, 0]) * (1 + xi[..., None, 1] * _C[:, 1])
 
 
+def dbilinear(xi):
+    """Derivatives (..., 4, 2) of the bilinear shape functions with respect to xi (..., 2)."""
+    return np.stack([0.25 * _C[:, 0] * (1 + xi[..., None, 1] * _C[:, 1]),
+                     0.25 * _C[:, 1] * (1 + xi[..., None, 0] * _C[:, 0])], -1)
+
+
 def embedded_positions(X4, u4, xi):
     """Positions (n, 3) of embedded points: X4, u4 (n, 4, 3) face nodes; xi (n, 2)."""
     N = bilinear(xi)
@@ -133,10 +139,7 @@ def patch_weights(X, xi, pdata):
     point = jnp.einsum("na,nai->ni", N4, X[:, :4])
     rows = jnp.broadcast_to(jnp.arange(n)[:, None, None], pdata["faces"].shape)
     Xf = X[rows, pdata["faces"]]  # (n, f, 4, 3)
-    Nq = bilinear(_GAUSS_XI)  # (g, 4)
-    c = _C
-    dN = np.stack([0.25 * c[:, 0] * (1 + _GAUSS_XI[:, 1:2] * c[:, 1]),
-                   0.25 * c[:, 1] * (1 + _GAUSS_XI[:, 0:1] * c[:, 0])], -1)  # (g, 4, 2)
+    Nq, dN = bilinear(_GAUSS_XI), dbilinear(_GAUSS_XI)  # (g, 4), (g, 4, 2)
     Xq = jnp.einsum("ga,nfai->nfgi", Nq, Xf)
     T = jnp.einsum("gak,nfai->nfgki", dN, Xf)
     dA = jnp.linalg.norm(jnp.cross(T[..., 0, :], T[..., 1, :]), axis=-1) * _GAUSS_WT
