@@ -202,15 +202,6 @@ def suture_bar_ends(layout: SutureLayout, over_node_ids=None):
     return na, xa, nb, xb, np.repeat(np.arange(k), m + 1)
 
 
-def bite_patches(layout: SutureLayout, xyz, sclera_faces, radius):
-    """The bites' patches (:class:`eyefem.fem.bars.EndPatches`), or (None, None) for point
-    bites (radius 0): (patches of bite A, patches of bite B), n_sutures ends each."""
-    if radius == 0:
-        return None, None
-    return tuple(end_patches(xyz, sclera_faces, b.nodes, b.xi, True, radius)
-                 for b in (layout.bite_a, layout.bite_b))
-
-
 def suture_bars(name, layout: SutureLayout, xyz, sclera_faces, *, EA, bite_radius):
     """Tension-only tied bars (:class:`eyefem.fem.bars.TiedBars`) of sutures over a
     deformable buckle, their bites spread over patches of radius ``bite_radius`` (mm; 0:
