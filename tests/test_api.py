@@ -132,3 +132,19 @@ def test_import_is_lazy_and_x64_is_required():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=300, check=False)
     assert res.returncode == 0, res.stderr[-2000:]
+
+
+CASE_FILES = sorted(p for p in (ROOT / "cases").rglob("*.toml") if p.parent.name != "sweeps")
+
+
+@pytest.mark.parametrize("path", CASE_FILES, ids=[p.relative_to(ROOT / "cases").as_posix()
+                                                    for p in CASE_FILES])
+def test_every_case_file_in_the_repository_is_valid(path):
+    """Each shipped case file parses against its problem's schema, and a surgery passes
+    the checks across fields (those surgery() runs before building the model)."""
+    from eyefem.eye.surgery import check_parameters
+
+    case = eyefem.load_case(path)
+    assert case.title
+    if case.problem == "surgery":
+        check_parameters(case.parameters)

@@ -88,6 +88,11 @@ CASE_FILE_ERRORS = [  # (id, case text, words of the message); exit code 2, noth
     ("sclera c10 in kPa", SURGERY + "[materials.sclera]\nc10 = 83.3\n",
      "did you give kPa? 0.0833 MPa = 83.3 kPa"),
     ("buckle shift nan", SURGERY + "buckle_shift = nan\n", "'buckle_shift' = nan"),
+    ("bite length with point bites", SURGERY + "bite_radius = 0.0\nbite_length = 4.0\n",
+     "bite_length = 4.0 mm needs a bite of physical size"),
+    ("bite length shorter than its width", SURGERY + "bite_length = 2.0\n",
+     "shorter than the patch's width 2 x bite_radius = 3.0 mm"),
+    ("bite length out of range", SURGERY + "bite_length = 0.2\n", "0 (a disc) or 0.4 to 12 mm"),
 ]
 
 

@@ -58,15 +58,31 @@ def test_a_table_over_a_calibrated_tissue_is_said(caplog):
     ("warn_broken_symmetry", 0.289, ("0.29 D", "load steps"), 0.004),
 ])
 def test_a_suspect_surgical_outcome_is_said(caplog, warner, above, said, below):
-    """A run says why a suspect number comes out (a post-surgery IOP above perfusion, an
-    encircled eye that left its axial symmetry), and stays quiet for the seed cases."""
+    _suspect_is_said(caplog, warner, above, said, below)
+
+
+@pytest.mark.parametrize("low, said, normal", [
+    # case 1 on the coarse physiological eye with 250 uL drained ends at -49 mmHg
+    (-49.1, ("-49.1 mmHg", "hypotony", "liquid under tension", "drain less"), 15.0),
+    (3.2, ("3.2 mmHg", "hypotony", "drain less"), 21.0),
+])
+def test_an_over_drained_eye_is_said(caplog, low, said, normal):
+    """A post-surgery IOP below hypotony (below zero: not physical) is said, with the fix."""
+    _suspect_is_said(caplog, "warn_low_iop", low, said, normal)
+    if low > 0:
+        assert "not physical" not in caplog.text
+
+
+def _suspect_is_said(caplog, warner, flagged, said, quiet):
+    """A run says why a suspect number comes out (a post-surgery IOP above perfusion or
+    below hypotony, an encircled eye that left its axial symmetry), and stays quiet for
+    the seed cases."""
     from eyefem.eye import surgery
 
     warn = getattr(surgery, warner)
     with caplog.at_level(logging.WARNING):
-        assert warn(above)
-    assert all(words in caplog.text for words in said)
-    caplog.clear()
-    with caplog.at_level(logging.WARNING):
-        assert not warn(below) and not warn(float("nan"))
+        assert not warn(quiet) and not warn(float("nan"))
     assert caplog.text == ""
+    with caplog.at_level(logging.WARNING):
+        assert warn(flagged)
+    assert all(words in caplog.text for words in said), caplog.text

@@ -193,7 +193,8 @@ def band_suture_term(parts: SurgeryParts) -> TiedBars:
                               buckle_faces=mesh.face_set("band/outer"),
                               buckle_half_width=0.45 * b.width)
     return suture_bars("sutures", layout, mesh.nodes, mesh.face_set("eye/sclera_outer"),
-                       EA=p["suture_EA"], bite_radius=p["bite_radius"])
+                       EA=p["suture_EA"], bite_radius=p["bite_radius"],
+                       bite_length=p["bite_length"])
 
 
 def band_outcomes(parts: SurgeryParts, model, q, theta) -> dict:

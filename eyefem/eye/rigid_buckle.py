@@ -68,7 +68,8 @@ def suture_term(parts: SurgeryParts, scale: float, width: float | None = None,
     anchors, nodes_a, xi_a, d1, d2, d3 = (np.concatenate(v) for v in
                                           (anchors, nodes_a, xi_a, d1, d2, d3))
     patch = (end_patches(mesh.nodes, mesh.face_set("eye/sclera_outer"), nodes_a, xi_a, True,
-                         p["bite_radius"]) if p["bite_radius"] else None)
+                         p["bite_radius"], half_length=p["bite_length"] / 2 or None,
+                         toward=anchors) if p["bite_radius"] else None)
     L0 = np.linalg.norm(anchors - reference_end_positions(mesh.nodes, nodes_a, xi_a, patch), axis=1)
     return AnchoredBars("sutures", nodes_a, xi_a, anchors, np.zeros(len(anchors), int), d1, d2,
                         1, mesh.nodes, L0, EA=p["suture_EA"], tension_only=True,

@@ -87,7 +87,8 @@ def sponge_suture_term(mesh: Mesh, buckle: Buckle, frame, p: dict):
                               buckle_faces=mesh.face_set("sponge/outer"),
                               buckle_half_width=0.3 * buckle.width)
     return suture_bars("sutures", layout, mesh.nodes, mesh.face_set("eye/sclera_outer"),
-                       EA=p["suture_EA"], bite_radius=p["bite_radius"]), layout
+                       EA=p["suture_EA"], bite_radius=p["bite_radius"],
+                       bite_length=p["bite_length"]), layout
 
 
 def sponge_spring_term(mesh: Mesh, buckle: Buckle, g: EyeGeometry) -> OrbitSpring:

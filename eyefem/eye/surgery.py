@@ -91,6 +91,11 @@ SURGERY_FIELDS = [
           "area of a 3 mm partial-thickness scleral pass; docs/surgery.md, 'Suture bites'); 0: a "
           "point bite (the force on the four nodes of one face, mesh-dependent)",
           lambda v: v == 0 or 0.2 <= v <= 5, "0 (point bites) or 0.2 to 5 mm"),
+    Field("bite_length", float, 0.0, "length of a suture bite's patch along the buckle's "
+          "edge, mm (a mattress suture's pass: an ellipse of half-width bite_radius across "
+          "the edge and half-length bite_length / 2 along it; docs/surgery.md, 'Suture "
+          "bites'); 0: a disc of radius bite_radius",
+          lambda v: v == 0 or 0.4 <= v <= 12, "0 (a disc) or 0.4 to 12 mm"),
     Field("n_sutures", int, 8, "number of sutures", positive, ">= 1"),
     Field("suture_angle_deg", float, 0.0, "suture angle about the buckle normal, degrees"),
     Field("suture_tightening", float, 0.6, "shortening of each suture loop when tied, mm "
@@ -201,7 +206,7 @@ def surgery(p, materials):
                     "buckle_body": p.get("buckle_body", "rigid")})
         if rows:
             out.update({k: rows[-1][k] for k in body.summary_outcomes})
-        warn_high_iop(out["iop_mmhg"])
+        warn_high_iop(out["iop_mmhg"]) or warn_low_iop(out["iop_mmhg"])
         if parts.buckle.encircling and len(summary) > 1:
             warn_broken_symmetry(final["corneal_astigmatism_D"]
                                  - summary[0]["corneal_astigmatism_D"])
@@ -218,10 +223,32 @@ def warn_high_iop(iop_mmhg: float) -> bool:
     log.warning(
         "IOP after the surgery is %.0f mmHg, above the ~%.0f mmHg at which the central "
         "retinal artery stops perfusing the retina. The model's cavity is closed (no "
-        "aqueous outflow, choroidal blood expulsion, drainage or paracentesis), so the "
-        "buckle's indentation compresses the whole contents; with the physiological "
-        "preset's stiff wall that takes a high pressure (docs/validation.md, "
-        "Limitations). Less tightening lowers it.", iop_mmhg, IOP_PERFUSION_MMHG)
+        "aqueous outflow or choroidal blood expulsion; it loses only the case's "
+        "drain_volume), so the buckle's indentation compresses the whole contents; with "
+        "the physiological preset's stiff wall that takes a high pressure "
+        "(docs/validation.md, Limitations). Less tightening, or draining (drain_volume, "
+        "uL), lowers it.", iop_mmhg, IOP_PERFUSION_MMHG)
+    return True
+
+
+IOP_HYPOTONY_MMHG = 5.0
+"""Post-surgery IOP below which a run warns: ocular hypotony (a pressure below zero is a
+liquid under tension, which the contents of a real eye do not hold)."""
+
+
+def warn_low_iop(iop_mmhg: float) -> bool:
+    """Say (log warning) and return True when the post-surgery IOP (mmHg) is below
+    IOP_HYPOTONY_MMHG (typically: more drained, ``drain_volume``, than the buckle
+    displaced)."""
+    if not iop_mmhg < IOP_HYPOTONY_MMHG:
+        return False
+    log.warning(
+        "IOP after the surgery is %.1f mmHg, below the %.0f mmHg of ocular hypotony%s. "
+        "More fluid was drained (drain_volume) than the buckle's indentation displaced; "
+        "drain less.", iop_mmhg, IOP_HYPOTONY_MMHG,
+        ": a negative pressure is a liquid under tension, which the contents of a real "
+        "eye cannot hold (the choroid would detach), so the state is not physical"
+        if iop_mmhg < 0 else "")
     return True
 
 
@@ -277,6 +304,16 @@ def check_parameters(p):
         if p["tightening"] != 0:
             raise ValueError(f"band_tension = {p['band_tension']} N and tightening = "
                              f"{p['tightening']} mm: give one; set tightening = 0 to pull the band")
+    if p.get("bite_length", 0.0) > 0:
+        if p["bite_radius"] == 0:
+            raise ValueError(f"bite_length = {p['bite_length']} mm needs a bite of physical "
+                             "size: bite_radius = 0 makes point bites; set bite_radius (the "
+                             "half-width across the edge, e.g. 0.5 mm) or bite_length = 0")
+        if p["bite_length"] < 2 * p["bite_radius"]:
+            raise ValueError(f"bite_length = {p['bite_length']} mm is shorter than the patch's "
+                             f"width 2 x bite_radius = {2 * p['bite_radius']} mm: bite_length is "
+                             "the full length along the buckle's edge and bite_radius the "
+                             "half-width across it; lengthen bite_length or narrow bite_radius")
     if p.get("buckle_body", "rigid") == "deformable":
         _check_deformable(p)
 

@@ -202,21 +202,30 @@ def suture_bar_ends(layout: SutureLayout, over_node_ids=None):
     return na, xa, nb, xb, np.repeat(np.arange(k), m + 1)
 
 
-def suture_bars(name, layout: SutureLayout, xyz, sclera_faces, *, EA, bite_radius):
+def suture_bars(name, layout: SutureLayout, xyz, sclera_faces, *, EA, bite_radius,
+                bite_length=0.0):
     """Tension-only tied bars (:class:`eyefem.fem.bars.TiedBars`) of sutures over a
     deformable buckle, their bites spread over patches of radius ``bite_radius`` (mm; 0:
-    point bites). The first bar of each suture starts at bite A, the last ends at bite B;
-    the ends over the buckle stay points.
+    point bites), or over ellipses ``bite_length`` long along the buckle's edge (mm; 0: a
+    disc). The first bar of each suture starts at bite A, the last ends at bite B; the
+    ends over the buckle stay points.
 
-    Args: name; layout; xyz (n_nodes, 3) mm; sclera_faces (m, 4); EA, N; bite_radius, mm.
+    Args: name; layout; xyz (n_nodes, 3) mm; sclera_faces (m, 4); EA, N; bite_radius,
+    bite_length, mm.
     """
     na, xa, nb, xb, _ = suture_bar_ends(layout)
     if bite_radius == 0:
         return TiedBars(name, na, nb, xa, xb, xyz, EA=EA)
     first = np.arange(len(na)) % layout.n_bars == 0
     last = np.arange(len(na)) % layout.n_bars == layout.n_bars - 1
-    pa = end_patches(xyz, sclera_faces, na, xa, first, bite_radius)
-    pb = end_patches(xyz, sclera_faces, nb, xb, last, bite_radius)
+    half = bite_length / 2 if bite_length else None
+    X = np.asarray(xyz, float)
+    pos_a = np.einsum("na,nai->ni", bilinear(xa), X[na])
+    pos_b = np.einsum("na,nai->ni", bilinear(xb), X[nb])
+    pa = end_patches(xyz, sclera_faces, na, xa, first, bite_radius, half_length=half,
+                     toward=pos_b)
+    pb = end_patches(xyz, sclera_faces, nb, xb, last, bite_radius, half_length=half,
+                     toward=pos_a)
     return TiedBars(name, na, nb, xa, xb, xyz, EA=EA, patch_a=pa, patch_b=pb)
 
 

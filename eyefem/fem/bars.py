@@ -56,16 +56,21 @@ class EndPatches:
     A spread end is the weighted mean of the surface points of its patch, x = sum_j w_j x_j
     (a distributing coupling of translations: the bar's force is shared out over the
     patch's nodes as w_j f), with w_j = int N_j phi dA / int phi dA over the surface faces
-    near the end's point X_b(xi) and the kernel phi = (1 - |X - X_b|^2 / R^2)^2 (0 beyond
-    R). The weights follow xi smoothly (a differentiable param), so bites still move with
-    the design. An end that is not spread is the point x = sum_a N_a(xi) x_a of its face.
+    near the end's point X_b(xi) and the kernel phi = (1 - s^2)^2 (0 beyond s = 1) of the
+    scaled distance s^2 = (|d|^2 - (d.t)^2) / R^2 + (d.t)^2 / A^2, d = X - X_b: a disc of
+    radius R (A = R, t = 0), or an ellipse of half-width R across and half-length A along
+    the unit tangent t (a mattress suture's pass along the buckle's edge). The weights
+    follow xi smoothly (a differentiable param), so bites still move with the design. An
+    end that is not spread is the point x = sum_a N_a(xi) x_a of its face.
 
     Attributes:
       nodes: (n, m) node ids; columns 0-3 are the face holding the end's point.
       faces: (n, f, 4) the patch's faces as column indices into ``nodes``.
       face_mask: (n, f) 1 for a face of the patch, 0 for padding (and for a point end).
       spread: (n,) True for an end spread over its patch.
-      radius: the patch radius R, mm.
+      radius: the patch's (half-)width R, mm.
+      half_length: A, mm: its half-length along ``along`` (A = R: a disc).
+      along: (n, 3) unit tangents of the patches' long axes (zeros for discs).
     """
 
     nodes: np.ndarray
@@ -73,15 +78,26 @@ class EndPatches:
     face_mask: np.ndarray
     spread: np.ndarray
     radius: float
+    half_length: float | None = None
+    along: np.ndarray | None = None
+
+    @property
+    def elongated(self) -> bool:
+        """True for elliptic patches (half-length differs from the radius)."""
+        return self.half_length is not None and self.half_length != self.radius
 
     def data(self) -> dict:
         """The arrays :func:`patch_weights` reads (leading axis n)."""
         n = len(self.nodes)
+        A = self.radius if self.half_length is None else self.half_length
+        t = np.zeros((n, 3)) if self.along is None else np.asarray(self.along, float)
         return {"faces": self.faces, "mask": self.face_mask,
-                "spread": self.spread.astype(float), "R": np.full(n, float(self.radius))}
+                "spread": self.spread.astype(float), "R": np.full(n, float(self.radius)),
+                "A": np.full(n, float(A)), "t": t}
 
 
-def end_patches(node_xyz, surface_faces, nodes4, xi, spread, radius, margin=None) -> EndPatches:
+def end_patches(node_xyz, surface_faces, nodes4, xi, spread, radius, margin=None,
+                half_length=None, toward=None) -> EndPatches:
     """The patches of bar ends on a surface (:class:`EndPatches`).
 
     Args:
@@ -89,12 +105,20 @@ def end_patches(node_xyz, surface_faces, nodes4, xi, spread, radius, margin=None
       surface_faces: (s, 4) the surface's quadrilaterals (node ids).
       nodes4: (n, 4) the face holding each end; xi: (n, 2) its parametric coordinates.
       spread: (n,) bool, the ends to spread (the others stay points).
-      radius: R, mm (> 0).
-      margin: faces within R + margin of an end's point are kept (default R / 2), so that
-        the end can move by that much with the design before its patch is cut short.
+      radius: R, mm (> 0): the disc's radius, or the ellipse's half-width.
+      margin: faces within max(R, A) + margin of an end's point are kept (default R / 2),
+        so that the end can move by that much with the design before its patch is cut short.
+      half_length: A, mm (> 0; default R: a disc): the half-length of an elliptic patch,
+        whose long axis is the surface tangent across the bar, t = n x (p - X_b) / |...|
+        (n the surface normal at the end's point X_b): a suture's pass along the buckle's
+        edge when the bar crosses the edge.
+      toward: (n, 3) the point p each bar pulls toward (its other end, reference), mm;
+        needed for an elliptic patch.
     """
     if not radius > 0:
         raise ValueError(f"bite patch radius = {radius} mm; must be > 0 (0: point bites)")
+    if half_length is not None and not half_length > 0:
+        raise ValueError(f"bite patch half-length = {half_length} mm; must be > 0")
     X = np.asarray(node_xyz, float)
     nodes4 = np.asarray(nodes4, np.int64).reshape(-1, 4)
     xi = np.asarray(xi, float).reshape(-1, 2)
@@ -102,8 +126,12 @@ def end_patches(node_xyz, surface_faces, nodes4, xi, spread, radius, margin=None
     sf = np.asarray(surface_faces, np.int64)
     cen = X[sf].mean(1)
     circ = np.linalg.norm(X[sf] - cen[:, None], axis=2).max(1)
-    reach = radius + (0.5 * radius if margin is None else margin)
+    long = radius if half_length is None else max(radius, half_length)
+    reach = long + (0.5 * radius if margin is None else margin)
     points = np.einsum("na,nai->ni", bilinear(xi), X[nodes4])
+    along = None
+    if half_length is not None and half_length != radius:
+        along = _patch_axes(X, nodes4, xi, points, toward)
     node_lists, face_lists = [], []
     for i in range(len(nodes4)):
         if not spread[i]:
@@ -124,7 +152,31 @@ def end_patches(node_xyz, surface_faces, nodes4, xi, spread, radius, margin=None
     for i, fl in enumerate(face_lists):
         faces[i, :len(fl)] = fl
         mask[i, :len(fl)] = 1.0
-    return EndPatches(nodes, faces, mask, spread, float(radius))
+    return EndPatches(nodes, faces, mask, spread, float(radius),
+                      None if half_length is None else float(half_length), along)
+
+
+def _patch_axes(X, nodes4, xi, points, toward):
+    """Unit long axes (n, 3) of elliptic patches: the surface tangent normal to the bar,
+    n x (p - X_b) normalised (:func:`end_patches`)."""
+    if toward is None:
+        raise ValueError("an elongated bite patch needs the point each bar pulls toward "
+                         "(toward=, its other end) to orient the patch along the buckle's edge")
+    toward = np.asarray(toward, float).reshape(-1, 3)
+    if toward.shape != points.shape:
+        raise ValueError(f"toward has shape {toward.shape}; expected {points.shape} (one "
+                         "point per bar end)")
+    T = np.einsum("nak,nai->nki", dbilinear(xi), X[nodes4])
+    normal = np.cross(T[:, 0], T[:, 1])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    axis = np.cross(normal, toward - points)
+    size = np.linalg.norm(axis, axis=1)
+    bad = np.flatnonzero(size < 1e-6 * np.linalg.norm(toward - points, axis=1) + 1e-12)
+    if len(bad):
+        raise ValueError(f"bar end {bad[0]}: the bar is normal to the surface (or has zero "
+                         "length), so an elongated patch has no direction across it; use a "
+                         "disc (half_length = radius)")
+    return axis / size[:, None]
 
 
 def patch_weights(X, xi, pdata):
@@ -143,7 +195,10 @@ def patch_weights(X, xi, pdata):
     Xq = jnp.einsum("ga,nfai->nfgi", Nq, Xf)
     T = jnp.einsum("gak,nfai->nfgki", dN, Xf)
     dA = jnp.linalg.norm(jnp.cross(T[..., 0, :], T[..., 1, :]), axis=-1) * _GAUSS_WT
-    s2 = jnp.sum((Xq - point[:, None, None]) ** 2, -1) / pdata["R"][:, None, None] ** 2
+    d = Xq - point[:, None, None]
+    dt2 = jnp.einsum("nfgi,ni->nfg", d, pdata["t"]) ** 2
+    s2 = ((jnp.sum(d**2, -1) - dt2) / pdata["R"][:, None, None] ** 2
+          + dt2 / pdata["A"][:, None, None] ** 2)
     phi = jnp.where(s2 < 1.0, (1.0 - s2) ** 2, 0.0) * dA * pdata["mask"][..., None]
     nodal = jnp.einsum("nfg,ga->nfa", phi, Nq)  # (n, f, 4)
     w = jnp.zeros((n, m)).at[rows, pdata["faces"]].add(nodal)
