@@ -29,6 +29,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from eyefem.io.progress import Heartbeat
 from optimize import objectives as obj
 
 log = logging.getLogger("optimize.plan")
@@ -349,6 +350,7 @@ def main(argv=None) -> int:
     rows = []
 
     def progress(row):
+        beat.news()
         rows.append(row)
         write_csv(out / "plan_history.csv", rows)
         log.info("sim %2d  objective %.4g  violation %.3g  %s  IOP %.2f mmHg  indentation %.3f "
@@ -356,9 +358,12 @@ def main(argv=None) -> int:
                  row["constraint_violation"], "  ".join(f"{n} {row[n]:.3f}" for n in names),
                  row["iop_mmhg"], row["indentation_mm"], row["newton_iterations"], row["wall_s"])
 
+    beat = Heartbeat(lambda: f"simulation {len(rows)} (with its adjoints)", interval=60.0,
+                     logger=log)
     try:
-        res = plan(sim, terms, names, constraints=cons, bounds=bounds, iterations=a.iterations,
-                   tol=a.tol, on_iteration=progress)
+        with beat:
+            res = plan(sim, terms, names, constraints=cons, bounds=bounds,
+                       iterations=a.iterations, tol=a.tol, on_iteration=progress)
     except (ConvergenceError, ValueError) as exc:
         print(f"plan: {exc}\nthe history so far is in {out / 'plan_history.csv'}", file=sys.stderr)
         return 3

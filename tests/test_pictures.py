@@ -20,7 +20,7 @@ from eyefem.io.pictures import (
     section_polygons,
     section_segments,
 )
-from eyefem.io.progress import Progress
+from eyefem.io.progress import Heartbeat, Progress
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -130,6 +130,32 @@ def test_progress_lines_throttled_with_time_left(caplog):
     assert "stage 2/2 tighten, step 1/4" in lines[1] and "step 2 under way for 9 s" in lines[1]
     assert "step 3/4, t = 0.750, 80% done, 32 s elapsed, about 8 s left" in lines[2]
     assert "[" not in "".join(lines)  # numbers, not arrays
+
+
+def test_heartbeat_says_what_is_under_way_until_there_is_news(caplog):
+    """A planner's simulation reports only when it ends; the heartbeat fills the silence
+    (one line per interval without news) and stays quiet after news."""
+    clock, n = _Clock(), [0]
+    beat = Heartbeat(lambda: f"simulation {n[0]}", interval=60.0, clock=clock)
+    with caplog.at_level(logging.INFO, logger="eyefem.io.progress"):
+        clock.now = 30.0
+        beat.beat()  # 30 s of silence: quiet
+        clock.now = 61.0
+        beat.beat()
+        clock.now = 100.0
+        beat.beat()  # 39 s after the last line: quiet
+        clock.now = 130.0
+        n[0] = 1
+        beat.news()
+        clock.now = 185.0
+        beat.beat()  # 55 s after the news: quiet
+        clock.now = 190.0
+        beat.beat()
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == ["simulation 0 under way for 1 min 01 s", "simulation 1 under way for 1 min 00 s"]
+    with Heartbeat(lambda: "x", interval=0.01) as running:
+        assert running._thread.is_alive()
+    assert running._thread is None
 
 
 def test_progress_heartbeat_thread_stops():

@@ -44,6 +44,12 @@ BIOMETRY_FIELDS = [
     Field("sclera_thickness_pole", float, REFERENCE.sclera_pole,
           "scleral thickness at the posterior pole, mm", positive, "> 0", warn=(0.6, 1.5),
           refuse=(0.1, 3.0), unit="mm", slips=(("um", 1e-3),)),
+    Field("limbus_width", float, 0.0,
+          "arc width of the limbus ring (a tissue between cornea and sclera), mm: the wall "
+          "elements whose centroid lies within it; 0: the ring of elements the "
+          "corneoscleral junction passes through, one element wide (narrower on finer "
+          "meshes; docs/convergence.md, 'The limbus ring')",
+          lambda v: v == 0 or 0.5 <= v <= 3, "0 (one element) or 0.5 to 3 mm"),
 ]
 """Case-file fields of a patient's biometry (the surgery and pressure_volume problems)."""
 
@@ -66,7 +72,8 @@ def eye_geometry(p: dict) -> EyeGeometry:
         cornea_radius=b["corneal_radius"], cornea_thickness=b["central_corneal_thickness"],
         sclera_limbus=b["sclera_thickness_limbus"], sclera_equator=b["sclera_thickness_equator"],
         sclera_pole=b["sclera_thickness_pole"],
-        lens_centre_depth=b["anterior_chamber_depth"] + REFERENCE.lens_thickness / 2)
+        lens_centre_depth=b["anterior_chamber_depth"] + REFERENCE.lens_thickness / 2,
+        limbus_width=b["limbus_width"] or None)
     try:
         g.limbus_angle  # noqa: B018 - raises if the corneal and scleral spheres do not meet
     except ValueError as exc:

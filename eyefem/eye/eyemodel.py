@@ -89,6 +89,10 @@ class EyeGeometry:
       nerve_diameter: optic nerve (3), nerve_length: stub (3), nerve_angle_deg: from the
         posterior pole toward +x (15); disc_diameter: optic disc (1.8).
       zonule_area: cross-section per zonule bar, mm^2 (0.01).
+      limbus_width: arc width of the limbus ring, mm, centred on the corneoscleral
+        junction: the elements whose centroid lies within it are limbus (a tissue of the
+        same size on every mesh level); None: the elements the junction passes through
+        (one element wide, so the ring narrows as the mesh is refined).
     """
 
     axial_length: float = 24.0
@@ -111,10 +115,13 @@ class EyeGeometry:
     nerve_angle_deg: float = 15.0
     disc_diameter: float = 1.8
     zonule_area: float = 0.01
+    limbus_width: float | None = None
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
+            if v is None and f.name == "limbus_width":
+                continue
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"eye geometry: {f.name} = {v} mm; must be a positive number")
         if not self.scleral_radius < self.axial_length - self.scleral_radius:
@@ -242,8 +249,14 @@ def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> 
                    np.where(layer == 1, TISSUES.index("choroid"), TISSUES.index("retina")))
     mat = np.where((th_e.mean(1) < ora) & (layer < 2), TISSUES.index("ciliary_body"), mat)
     mat = np.where((off_axis < g.disc_diameter / 2) & (layer < 2), TISSUES.index("optic_nerve"), mat)
-    mat = np.where(th_e.max(1) <= tl, TISSUES.index("cornea"), mat)
-    mat = np.where((th_e.min(1) < tl) & (th_e.max(1) > tl), TISSUES.index("limbus"), mat)
+    if g.limbus_width is None:  # the ring of elements the junction passes through
+        mat = np.where(th_e.max(1) <= tl, TISSUES.index("cornea"), mat)
+        mat = np.where((th_e.min(1) < tl) & (th_e.max(1) > tl), TISSUES.index("limbus"), mat)
+    else:  # a ring of fixed arc width, by the elements' centroids
+        th_c = np.arccos(np.clip(cdir[:, 2], -1, 1))
+        half = 0.5 * g.limbus_width / g.scleral_radius
+        mat = np.where(th_c < tl - half, TISSUES.index("cornea"), mat)
+        mat = np.where(np.abs(th_c - tl) <= half, TISSUES.index("limbus"), mat)
     inner, outer = shell.face_set("inner"), shell.face_set("outer")
     # optic nerve stub: extrude the outer faces within the nerve radius along nerve_dir
     fc = nodes[outer].mean(axis=1)

@@ -130,3 +130,51 @@ class Progress:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class Heartbeat:
+    """Log ``what()`` with the time since the last news every ``interval`` seconds while
+    there is no news (:meth:`news`): a long computation that reports only when a piece
+    ends (a planner's simulation) is never silent for long.
+
+    Args:
+      what: the message's subject, called at each beat (e.g. lambda: "simulation 3").
+      interval: seconds between beats, s (0: none).
+      clock, logger: as :class:`Progress`.
+    """
+
+    def __init__(self, what: Callable[[], str], *, interval: float = 30.0,
+                 clock: Callable[[], float] = time.monotonic, logger=log):
+        self.what, self.interval, self.clock, self.log = what, float(interval), clock, logger
+        self.last_news = self.last_line = clock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def news(self) -> None:
+        """Something was reported: the next beat is ``interval`` seconds from now."""
+        self.last_news = self.last_line = self.clock()
+
+    def beat(self) -> None:
+        """Log '<what> under way for <time>' if nothing was said for ``interval`` s."""
+        now = self.clock()
+        if now - self.last_line >= self.interval:
+            self.last_line = now
+            self.log.info("%s under way for %s", self.what(), _duration(now - self.last_news))
+
+    def __enter__(self) -> Heartbeat:
+        if self.interval > 0:
+            self._stop.clear()
+
+            def run():
+                while not self._stop.wait(self.interval / 2):
+                    self.beat()
+
+            self._thread = threading.Thread(target=run, name="eyefem-heartbeat", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
