@@ -131,7 +131,7 @@ def end_patches(node_xyz, surface_faces, nodes4, xi, spread, radius, margin=None
     points = np.einsum("na,nai->ni", bilinear(xi), X[nodes4])
     along = None
     if half_length is not None and half_length != radius:
-        along = _patch_axes(X, nodes4, xi, points, toward)
+        along = _patch_axes(X, nodes4, xi, points, toward, spread)
     node_lists, face_lists = [], []
     for i in range(len(nodes4)):
         if not spread[i]:
@@ -156,9 +156,9 @@ def end_patches(node_xyz, surface_faces, nodes4, xi, spread, radius, margin=None
                       None if half_length is None else float(half_length), along)
 
 
-def _patch_axes(X, nodes4, xi, points, toward):
+def _patch_axes(X, nodes4, xi, points, toward, spread):
     """Unit long axes (n, 3) of elliptic patches: the surface tangent normal to the bar,
-    n x (p - X_b) normalised (:func:`end_patches`)."""
+    n x (p - X_b) normalised (:func:`end_patches`); zeros for the ends not spread."""
     if toward is None:
         raise ValueError("an elongated bite patch needs the point each bar pulls toward "
                          "(toward=, its other end) to orient the patch along the buckle's edge")
@@ -171,12 +171,13 @@ def _patch_axes(X, nodes4, xi, points, toward):
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     axis = np.cross(normal, toward - points)
     size = np.linalg.norm(axis, axis=1)
-    bad = np.flatnonzero(size < 1e-6 * np.linalg.norm(toward - points, axis=1) + 1e-12)
+    bad = np.flatnonzero(spread & (size < 1e-6 * np.linalg.norm(toward - points, axis=1)
+                                   + 1e-12))
     if len(bad):
         raise ValueError(f"bar end {bad[0]}: the bar is normal to the surface (or has zero "
                          "length), so an elongated patch has no direction across it; use a "
                          "disc (half_length = radius)")
-    return axis / size[:, None]
+    return np.where(spread[:, None], axis / np.where(size > 0, size, 1.0)[:, None], 0.0)
 
 
 def patch_weights(X, xi, pdata):
