@@ -54,3 +54,22 @@ def test_planner_reaches_the_target_indentation(tmp_path):
     assert summary["violated_constraints"] == [] and summary["simulations"] <= 15
     for f in ("plan_history.csv", "plan.png", "planned_case.toml"):
         assert (tmp_path / f).exists()
+
+
+@pytest.mark.slow
+def test_planner_on_the_calibrated_eye_plans_the_drainage(tmp_path):
+    """The README's planning example: case 1's buckle on the physiological eye, with the
+    drained volume a design variable, reaches the indentation target inside the IOP
+    window (coarse: 2 simulations, about 5 minutes on 2 cores)."""
+    rc = plan_main([str(ROOT / "cases/planning/case1_physiological.toml"), "--mesh", "coarse",
+                    "--target-indentation", "0.8", "--iop-min", "10", "--iop-max", "21",
+                    "--vars", "tightening,drain_volume", "--iterations", "8",
+                    "--out", str(tmp_path)])
+    summary = json.loads((tmp_path / "plan_summary.json").read_text())
+    assert rc == 0 and summary["converged"] and summary["violated_constraints"] == []
+    out = summary["outcomes"]
+    # the default --tol 0.01: |indentation - 0.8| < 0.05 * 0.1 = 0.005 mm; the IOP window
+    # met to half a tolerance unit
+    assert out["indentation_mm"] == pytest.approx(0.8, abs=0.0051)
+    assert 9.5 < out["iop_mmhg"] < 21.5
+    assert summary["design"]["drain_volume"] > 100.0  # undrained it ends above 600 mmHg
