@@ -152,10 +152,11 @@ def _tied_bar_check(rng):
     return _tied_check(bar, x, bilinear(xi[0]), bilinear(xi[1]), "face to face, 0.5 eps of stretch")
 
 
-def _spread_bite_check(rng):
-    """A tied suture bar whose bite is spread over a patch (radius 1 mm) of a curved 6 x 6
-    grid of faces (a cap of a 12 mm sphere) to a point in a face above it. Hand-coded: the
-    smoothed bar mapped by the patch weights (x_a = sum_j w_j x_j)."""
+def _spread_bite_check(rng, elliptic=False):
+    """A tied suture bar whose bite is spread over a patch (a disc of radius 1 mm, or with
+    ``elliptic`` an ellipse 0.4 mm across and 1.2 mm along the tangent normal to the bar)
+    of a curved 6 x 6 grid of faces (a cap of a 12 mm sphere) to a point in a face above
+    it. Hand-coded: the smoothed bar mapped by the patch weights (x_a = sum_j w_j x_j)."""
     n, half = 6, 1.5
     g = np.linspace(-half, half, n + 1)
     P = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
@@ -166,7 +167,9 @@ def _spread_bite_check(rng):
     F = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
     f4, top = F[[14]], [[49, 50, 51, 52]]
     xi = rng.uniform(-0.8, 0.8, (2, 2))
-    patch = end_patches(X, F, f4, xi[:1], True, 1.0)
+    patch = (end_patches(X, F, f4, xi[:1], True, 0.4, half_length=1.2,
+                         toward=X[top].mean(1) + [[2.0, 0.0, 0.0]]) if elliptic else
+             end_patches(X, F, f4, xi[:1], True, 1.0))
     bar = TiedBars("tied", f4, top, xi[:1], xi[1:], X, EA=3.0, smoothing=0.01, patch_a=patch)
     x = (0.02 * rng.standard_normal(X.shape))[bar.dofs[0, ::3] // 3].ravel()
     w = np.asarray(patch_weights(jnp.asarray(X[patch.nodes]), jnp.asarray(xi[:1]), patch.data()))
@@ -217,6 +220,7 @@ def term_checks() -> dict[str, Callable[[np.random.Generator], CheckData]]:
         "suture_bar": _bar_check,
         "tied_suture_bar": _tied_bar_check,
         "tied_suture_bar_spread_bite": _spread_bite_check,
+        "tied_suture_bar_elliptic_bite": lambda rng: _spread_bite_check(rng, elliptic=True),
         "fluid_cavity": cavity_check,
         **contact_checks(),
     }
