@@ -28,6 +28,21 @@ def _duration(seconds: float) -> str:
     return f"{s // 3600} h {s % 3600 // 60:02d} min"
 
 
+def _beating(beat: Callable[[], None], interval: float, stop: threading.Event,
+             name: str) -> threading.Thread:
+    """A started daemon thread calling ``beat`` every interval / 2 seconds until ``stop``
+    is set (it never keeps the process alive)."""
+    stop.clear()
+
+    def run():
+        while not stop.wait(interval / 2):
+            beat()
+
+    thread = threading.Thread(target=run, name=name, daemon=True)
+    thread.start()
+    return thread
+
+
 class Progress:
     """Progress of a load path of stages (objects with ``name`` and ``n_steps``).
 
@@ -108,14 +123,7 @@ class Progress:
     def start(self) -> Progress:
         """Start the heartbeat thread (a daemon: it never keeps the process alive)."""
         if self._thread is None and self.interval > 0:
-            self._stop.clear()
-
-            def run():
-                while not self._stop.wait(self.interval / 2):
-                    self.beat()
-
-            self._thread = threading.Thread(target=run, name="eyefem-progress", daemon=True)
-            self._thread.start()
+            self._thread = _beating(self.beat, self.interval, self._stop, "eyefem-progress")
         return self
 
     def close(self) -> None:
@@ -162,15 +170,8 @@ class Heartbeat:
             self.log.info("%s under way for %s", self.what(), _duration(now - self.last_news))
 
     def __enter__(self) -> Heartbeat:
-        if self.interval > 0:
-            self._stop.clear()
-
-            def run():
-                while not self._stop.wait(self.interval / 2):
-                    self.beat()
-
-            self._thread = threading.Thread(target=run, name="eyefem-heartbeat", daemon=True)
-            self._thread.start()
+        if self._thread is None and self.interval > 0:
+            self._thread = _beating(self.beat, self.interval, self._stop, "eyefem-heartbeat")
         return self
 
     def __exit__(self, *exc) -> None:
