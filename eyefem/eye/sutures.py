@@ -26,7 +26,13 @@ import dataclasses
 
 import numpy as np
 
-from eyefem.fem.bars import TiedBars, bilinear, dbilinear, end_patches
+from eyefem.fem.bars import (
+    TiedBars,
+    bilinear,
+    dbilinear,
+    end_patches,
+    reference_end_positions,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -219,9 +225,7 @@ def suture_bars(name, layout: SutureLayout, xyz, sclera_faces, *, EA, bite_radiu
     first = np.arange(len(na)) % layout.n_bars == 0
     last = np.arange(len(na)) % layout.n_bars == layout.n_bars - 1
     half = bite_length / 2 if bite_length else None
-    X = np.asarray(xyz, float)
-    pos_a = np.einsum("na,nai->ni", bilinear(xa), X[na])
-    pos_b = np.einsum("na,nai->ni", bilinear(xb), X[nb])
+    pos_a, pos_b = reference_end_positions(xyz, na, xa), reference_end_positions(xyz, nb, xb)
     pa = end_patches(xyz, sclera_faces, na, xa, first, bite_radius, half_length=half,
                      toward=pos_b)
     pb = end_patches(xyz, sclera_faces, nb, xb, last, bite_radius, half_length=half,
