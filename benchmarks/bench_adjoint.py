@@ -6,7 +6,9 @@ is short), then times at the converged state (median of repeats):
   - the gradient of one outcome (IOP) with respect to every design variable (surgical
     and material): three adjoint solves (stages 3, 2 and 1) with the reused
     factorisations + the vector-Jacobian products (eyefem.eye.design.SurgerySimulator.gradients);
-and reports their ratio.
+  - the gradients of every outcome (eyefem.eye.variables.OUTCOMES) with respect to every
+    design variable: the same three adjoint solves, one right-hand side per outcome;
+and reports their ratios.
 
     python benchmarks/bench_adjoint.py --mesh default --repeats 3
 """
@@ -25,7 +27,12 @@ jax.config.update("jax_enable_x64", True)
 
 from bench_core import _median  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
-from eyefem.eye.design import SurgerySimulator, default_parameters  # noqa: E402
+from eyefem.eye.design import (  # noqa: E402
+    DESIGN_VARIABLES,
+    OUTCOMES,
+    SurgerySimulator,
+    default_parameters,
+)
 
 
 def main(argv=None):
@@ -49,15 +56,20 @@ def main(argv=None):
         s.solve(-r[asm.free_primal], -r[asm.mult])
 
     sim.gradients(res, ["iop_mmhg"])  # compile
+    sim.gradients(res)
     newton_iteration()
     t_newton = _median(newton_iteration, a.repeats)
     t_grad = _median(lambda: sim.gradients(res, ["iop_mmhg"]), a.repeats)
+    t_all = _median(lambda: sim.gradients(res), a.repeats)
     out = {"machine": f"{platform.node()} ({platform.processor() or platform.machine()}), "
                       f"{jax.device_count()} JAX device(s)",
            "mesh": a.mesh, "elements": int(sol.model.mesh.n_elem), "dofs": int(sol.model.n_dof),
            "forward_s": round(forward, 1), "newton_iterations": res.newton_iterations,
            "newton_iteration_s": round(t_newton, 3), "gradient_all_variables_s": round(t_grad, 3),
            "ratio_gradient_to_newton_iteration": round(t_grad / t_newton, 2),
+           "outcomes": len(OUTCOMES), "variables": len(DESIGN_VARIABLES),
+           "gradients_all_outcomes_s": round(t_all, 3),
+           "ratio_all_outcomes_to_newton_iteration": round(t_all / t_newton, 2),
            "iop_mmhg": res.outcomes["iop_mmhg"]}
     print(json.dumps(out, indent=2))
     return out

@@ -7,8 +7,9 @@ Sequential quadratic programming (scipy's SLSQP) on the design variables scaled 
 [0, 1] by their bounds: the objective (an indentation target) is minimised subject to
 the limits as constraints (IOP, axial length change, suture force), with exact
 gradients of both: each evaluation solves the case at the design (warm started from the
-last converged states) and runs one adjoint (three solves) for the objective and one per
-constraint (SurgerySimulator.weighted_gradient). The plan stops when the objective is
+last converged states) and one block adjoint (three solves, one right-hand side per
+outcome the objective or a constraint weighs: SurgerySimulator.gradients) for the
+objective and every constraint together. The plan stops when the objective is
 below --tol with every constraint met (to half a tolerance unit), when the projected
 gradient of a feasible design vanishes, or after --iterations simulations. Writes into
 --out: plan_history.csv (every simulation: design, outcomes, objective, constraint
@@ -139,13 +140,18 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
         res = sim.run(design)
         out = res.outcomes
 
-        def gradient(fn):  # d fn / d z: one adjoint of the outcomes' weighted sum
-            g = sim.weighted_gradient(res, weights(fn, out))
-            return np.array([g[n] for n in names]) * (hi - lo)
+        # d fn / d z of the objective and every constraint from one block adjoint of the
+        # outcomes they weigh (SurgerySimulator.gradients: one right-hand side per outcome)
+        w_all = [weights(fn, out) for fn in (f_total, *constraints)]
+        used = sorted({k for w in w_all for k, v in w.items() if v})
+        g_out = sim.gradients(res, used) if used else {}
 
-        f, gf = float(f_total(out)), gradient(f_total)
+        def gradient(w):
+            return np.array([sum(w[k] * g_out[k][n] for k in used) for n in names]) * (hi - lo)
+
+        f, gf = float(f_total(out)), gradient(w_all[0])
         cv = np.array([float(c(out)) for c in constraints])
-        cg = np.array([gradient(c) for c in constraints]).reshape(len(constraints), len(names))
+        cg = np.array([gradient(w) for w in w_all[1:]]).reshape(len(constraints), len(names))
         feasible = bool(np.all(cv >= -FEASIBLE))
         pg = np.where(((z <= 0) & (gf > 0)) | ((z >= 1) & (gf < 0)), 0.0, gf)
         row = {"iteration": len(history), "objective": f,

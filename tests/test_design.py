@@ -105,6 +105,22 @@ def test_every_design_variable_has_a_gradient(base):
         assert all(np.isfinite(v) for v in grads[out].values())
 
 
+def test_every_outcome_at_once_equals_one_outcome_at_a_time(base):
+    """SurgerySimulator.gradients solves each stage's adjoints of all outcomes together
+    (one right-hand side per outcome); asked for one outcome, or for a weighted sum
+    (weighted_gradient, the planner's backward pass), it gives the same numbers to the
+    adjoints' refinement tolerance (1e-10 relative)."""
+    sim, res, grads = base
+    for name in ("iop_mmhg", "refraction_change_D"):  # one without, one with a stage-1 route
+        one = sim.gradients(res, [name])[name]
+        for var in DESIGN_VARIABLES:
+            assert one[var] == pytest.approx(grads[name][var], rel=1e-8, abs=1e-12), (name, var)
+    w = sim.weighted_gradient(res, {"iop_mmhg": 2.0, "axial_length_change_mm": -1.0})
+    for var in DESIGN_VARIABLES:
+        want = 2.0 * grads["iop_mmhg"][var] - grads["axial_length_change_mm"][var]
+        assert w[var] == pytest.approx(want, rel=1e-8, abs=1e-10), var
+
+
 def test_band_pull_term_is_the_work_of_the_tension():
     """DofForce: energy -f gain q, gradient -f gain, zero tangent (hand-coded values)."""
     import jax.numpy as jnp

@@ -437,6 +437,33 @@ def test_pardiso_factorisation_kept_for_an_adjoint_survives_pattern_eviction():
 
 
 @pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
+def test_a_kept_pardiso_factorisation_is_not_overwritten_by_its_pattern():
+    """The stages of a surgery share one sparsity pattern; a factorisation kept for an
+    adjoint (``keep``) moves into its own instance: a later factorisation of the same
+    pattern neither overwrites it nor makes it factorise again, and both solve."""
+    from eyefem.solve.linsolve import factorize
+
+    rng = np.random.default_rng(4)
+    A = sp.random(50, 50, density=0.08, random_state=rng)
+    A0 = (A @ A.T + 50 * sp.identity(50)).tocsr()
+    A1 = A0.copy()
+    A1.data = A1.data * (1.0 + rng.random(A1.nnz))  # same pattern, other values
+    A1 = (A1 + A1.T).tocsr()
+    A0 = (A0 + A0.T + 0 * A1).tocsr()  # the union pattern for both
+    A1 = (A1 + 0 * A0).tocsr()
+    f0 = factorize(A0, "pardiso")
+    f0.keep()
+    f1 = factorize(A1, "pardiso")
+    assert f1.key == f0.key and f1.entry["solver"] is not f0.entry["solver"]
+    calls = []
+    f0._factorize = lambda: calls.append("refactorised")  # would be a refactorisation
+    b = rng.standard_normal(50)
+    assert np.allclose(A0 @ f0.solve(b), b, rtol=1e-10, atol=1e-10)
+    assert np.allclose(A1 @ f1.solve(b), b, rtol=1e-10, atol=1e-10)
+    assert calls == []
+
+
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
 def test_pardiso_runs_with_the_project_settings_and_solves_indefinite_systems():
     """PARDISO_IPARM is in effect (no automatic iterative refinement: Pardiso reports 0
     refinement steps) and an indefinite symmetric system is still solved accurately."""

@@ -137,7 +137,7 @@ class SurgerySimulator(DesignGradients):
         mesh = self.parts.eye.mesh
         self._mat_row = {m: mesh.materials.index(m) for m in SEED_MATERIALS if m in mesh.materials}
         self._nodes = outcome_nodes(self.parts)
-        sol1 = solve(self.model1, [self.stage1], options=options)
+        sol1 = _kept(solve(self.model1, [self.stage1], options=options))
         self.stage1_iterations = sum(r.iterations for r in sol1.history)
         # the buckle and sutures are fitted once, at this eye's snug scale; other designs
         # move them by params
@@ -231,13 +231,14 @@ class SurgerySimulator(DesignGradients):
         ramp = {k: target[k] for k in ("solid", "zonule")}
         s1 = self.stage1
         try:
-            sol1 = solve(self.model1, [Stage(s1.name, 1, s1.prescribed, params=ramp, active=s1.active)],
-                         q0=prev.q, theta=prev.theta, options=self.options)
+            sol1 = _kept(solve(self.model1, [Stage(s1.name, 1, s1.prescribed, params=ramp,
+                                                   active=s1.active)],
+                               q0=prev.q, theta=prev.theta, options=self.options))
         except ConvergenceError as exc:
             log.warning("pre-operative warm start failed (%s); pressurising again",
                         str(exc).splitlines()[0])
             start = self._materials_theta(self.model1.theta0(), design)
-            sol1 = solve(self.model1, [s1], theta=start, options=self.options)
+            sol1 = _kept(solve(self.model1, [s1], theta=start, options=self.options))
         self.preop = self._preop(sol1, want)
         return self.preop
 
@@ -318,6 +319,7 @@ class SurgerySimulator(DesignGradients):
             start = {**prev.sol2.theta, "sutures": th2["sutures"]}
             sol2 = solve(model, [Stage("tighten", 1, held, params=ramped, active=self.stage2.active)],
                          q0=prev.sol2.q, theta=start, options=self.options)
+        sol2 = _kept(sol2)
         th3 = self._tied(sut, sol2.q, sol2.theta, design)
         same_faces = prev is not None and np.array_equal(prev.sutures.nodes_a, sut.nodes_a)
         if same_faces:  # continuation of every param from the previous design's state
@@ -331,6 +333,7 @@ class SurgerySimulator(DesignGradients):
                                        params={"sutures": th3["sutures"]},
                                        active=self.stage3.active)],
                          q0=sol2.q, theta=untied, options=self.options)
+        sol3 = _kept(sol3)
         its = sum(r.iterations for r in sol2.history + sol3.history)
         res = Result(design, {}, sol2, sol3, sut, its, pre)
         res.outcomes = {k: float(f(sol3.q, sol3.theta)) for k, f in self.outcome_fns(res).items()}
@@ -338,6 +341,23 @@ class SurgerySimulator(DesignGradients):
         return res
 
     # --- outcomes as JAX functions ---------------------------------------------------
+    def outcome_vector_fn(self, res: Result, names) -> Callable:
+        """(q, theta) -> (k,) the named outcomes (:meth:`outcome_fns`), the eye's optics
+        evaluated once for all of them."""
+        fns = self.outcome_fns(res)
+        X, nodes = self.parts.eye.mesh.nodes, self._nodes
+        preop = (res.preop or self.preop).optics
+        optical = set(OPTICAL_CHANGES) | {"corneal_astigmatism_D"}
+
+        def outcomes(q, theta):
+            opt = eye_optics(X, q, nodes) if optical & set(names) else None
+            ch = changes(opt, preop) if opt is not None else {}
+            return jnp.stack([ch[n] if n in OPTICAL_CHANGES else opt[n] if n in optical
+                              else fns[n](q, theta) for n in names])
+
+        return outcomes
+
+
     def outcome_fns(self, res: Result) -> dict[str, Callable]:
         """Outcome name -> J(q, theta), JAX-traceable, at the converged design ``res``
         (the changes measured from ``res``'s own pre-operative eye; eyefem.eye.outcomes)."""
@@ -364,3 +384,14 @@ class SurgerySimulator(DesignGradients):
                 "corneal_astigmatism_D":
                     lambda q, theta: eye_optics(X, q, nodes)["corneal_astigmatism_D"],
                 **{name: change(name) for name in OPTICAL_CHANGES}}
+
+
+def _kept(sol: Solution) -> Solution:
+    """``sol`` with its last factorisation kept out of the Pardiso instance its sparsity
+    pattern shares (SaddlePointSolver.keep): the stages of a surgery share one pattern,
+    and the design gradients solve on each stage's factorisation after the later stages
+    have factorised; kept, none is factorised again for the gradients."""
+    if sol.solver is not None:
+        sol.solver.keep()
+    return sol
+

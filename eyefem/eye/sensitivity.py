@@ -25,88 +25,101 @@ from eyefem.eye.variables import (
     STAGE_PARAMS,
 )
 from eyefem.fem.cavity import cavity_pressures
-from eyefem.solve.adjoint import value_and_grad
+from eyefem.solve.adjoint import values_and_grads
 
 
 class DesignGradients:
     """d outcome / d design variable of a converged design (mixed into SurgerySimulator,
     whose attributes it reads: parts, params, model, preop, pulled and the outcome nodes)."""
 
-    def _preop_route(self, res, name: str) -> Callable | None:
-        """q1 -> the outcome with the state held at ``res`` and the pre-operative eye at q1
-        (its gradient is the outcome's dependence on the pre-operative state); None for the
-        outcomes that do not depend on it."""
-        if name not in OPTICAL_CHANGES:
+    def _preop_routes(self, res, names) -> Callable | None:
+        """q1 -> (k,) the named outcomes with the state held at ``res`` and the
+        pre-operative eye at q1 (their gradients are the outcomes' dependence on the
+        pre-operative state; 0 for the outcomes that do not depend on it); None if none
+        does."""
+        if not set(names) & set(OPTICAL_CHANGES):
             return None
         X, nodes = self.parts.eye.mesh.nodes, self._nodes
         now = {k: float(v) for k, v in eye_optics(X, res.sol3.q, nodes).items()}
-        return lambda q1: changes(now, eye_optics(X, q1, nodes))[name]
+
+        def routes(q1):
+            ch = changes(now, eye_optics(X, q1, nodes))
+            return jnp.stack([ch[n] if n in OPTICAL_CHANGES else jnp.zeros(()) for n in names])
+
+        return routes
 
     # --- adjoint ------------------------------------------------------------------
     def gradients(self, res, outcomes=None) -> dict[str, dict[str, float]]:
         """d outcome / d design variable for the named outcomes (default: all OUTCOMES):
-        three adjoint solves per outcome."""
-        fns = self.outcome_fns(res)
+        three block adjoint solves (stages 3, 2, 1), one right-hand side per outcome."""
         names = list(OUTCOMES) if outcomes is None else list(outcomes)
-        return {name: self._gradient(res, fns[name], self._preop_route(res, name))
-                for name in names}
+        totals = self._gradients(res, self.outcome_vector_fn(res, names),
+                                 self._preop_routes(res, names))
+        return dict(zip(names, totals))
 
     def weighted_gradient(self, res, weights: dict) -> dict[str, float]:
         """d (sum_k w_k outcome_k) / d design variable, for outcome name -> weight w_k: the
         cost of one outcome's gradient (three adjoint solves) whatever the weights (the
         backward pass of eyefem.simulate)."""
-        fns = self.outcome_fns(res)
         items = [(k, float(w)) for k, w in weights.items() if w]
-        routes = [(self._preop_route(res, k), w) for k, w in items]
-        routes = [(r, w) for r, w in routes if r is not None]
-
-        def objective(q, theta):
-            return sum(w * fns[k](q, theta) for k, w in items)
-
-        def route(q1):
-            return sum(w * r(q1) for r, w in routes)
-
         if not items:
             return {k: 0.0 for k in DESIGN_VARIABLES}
-        return self._gradient(res, objective, route if routes else None)
+        names = [k for k, _ in items]
+        w = jnp.asarray([w for _, w in items])
+        outcomes = self.outcome_vector_fn(res, names)
+        routes = self._preop_routes(res, names)
 
-    def _gradient(self, res, objective, route) -> dict[str, float]:
-        """d objective / d design: the adjoints of stages 3, 2 and 1, chained through the
-        design map (SurgerySimulator.design_map, by jax.vjp) and the bites' derivatives."""
+        def objective(q, theta):
+            return jnp.reshape(jnp.dot(w, outcomes(q, theta)), (1,))
+
+        def route(q1):
+            return jnp.reshape(jnp.dot(w, routes(q1)), (1,))
+
+        return self._gradients(res, objective, None if routes is None else route)[0]
+
+    def _gradients(self, res, objectives, routes) -> list[dict[str, float]]:
+        """d objective / d design for k objectives, ``objectives(q, theta)`` (k,), with
+        their stage-1 routes ``routes(q1)`` (k,) (or None): the adjoints of stages 3, 2
+        and 1, each stage's k adjoints solved together
+        (eyefem.solve.adjoint.values_and_grads), chained through the design map
+        (SurgerySimulator.design_map, by jax.vjp) and the bites' derivatives."""
         sut, pre = res.sutures, res.preop or self.preop
         rs = self.parts.eye.geometry.scleral_radius
-        _, g3 = value_and_grad(objective, res.sol3)
-        gL0 = jnp.asarray(g3["sutures"]["L0"])
+        _, g3s = values_and_grads(objectives, res.sol3)
+        gL0 = jnp.stack([jnp.asarray(g3["sutures"]["L0"]) for g3 in g3s])  # (k, n_bars)
 
-        def tied_length(q, theta):
-            return jnp.dot(gL0, sut.lengths(q[sut.dofs], theta["sutures"], sut.data))
+        def tied_lengths(q, theta):
+            return gL0 @ sut.lengths(q[sut.dofs], theta["sutures"], sut.data)
 
-        _, g2 = value_and_grad(tied_length, res.sol2)
-        g1 = self._preop_adjoint(pre, sum(float(np.sum(g["cavity"]["v_ini"])) for g in (g2, g3)),
-                                 rs * sum(float(np.sum(g[t]["dr"])) for g in (g2, g3)
-                                          for t in ("buckle", "sutures")), route)
+        _, g2s = values_and_grads(tied_lengths, res.sol2)
+        g_volume = [sum(float(np.sum(g["cavity"]["v_ini"])) for g in gg) for gg in zip(g2s, g3s)]
+        g_scale = [rs * sum(float(np.sum(g[t]["dr"])) for g in gg for t in ("buckle", "sutures"))
+                   for gg in zip(g2s, g3s)]
+        g1s = self._preop_adjoints(pre, jnp.asarray(g_volume), jnp.asarray(g_scale), routes)
         dxi_w = self._dxi(res, "suture_width")
         encircling = self.parts.buckle.encircling
         dxi_m = 0 * dxi_w if encircling else self._dxi(res, "buckle_meridian_deg")
         bites = (res.sol3.theta["sutures"]["xi"], dxi_w, dxi_m, res.design["suture_width"],
                  res.design["buckle_meridian_deg"])
         design = {k: jnp.asarray(v, jnp.float64) for k, v in res.design.items()}
-        total = dict.fromkeys(DESIGN_VARIABLES, 0.0)
-        for stage, g, like in ((1, g1, pre.sol1.theta), (2, g2, res.sol2.theta),
-                               (3, g3, res.sol3.theta)):
-            keys = [(t, k) for t, k in STAGE_PARAMS[stage] if t in g and k in g[t]]
+        totals = [dict.fromkeys(DESIGN_VARIABLES, 0.0) for _ in g3s]
+        for stage, gs, like in ((1, g1s, pre.sol1.theta), (2, g2s, res.sol2.theta),
+                                (3, g3s, res.sol3.theta)):
+            keys = [(t, k) for t, k in STAGE_PARAMS[stage] if t in gs[0] and k in gs[0][t]]
 
             def params(d, like=like, keys=keys):
                 values = self.design_map(d, like, bites)
                 return [values[t][k] for t, k in keys]
 
             _, vjp = jax.vjp(params, design)
-            (gd,) = vjp([jnp.asarray(g[t][k], jnp.float64) for t, k in keys])
-            for k, v in gd.items():
-                total[k] += float(v)
+            for g, total in zip(gs, totals):
+                (gd,) = vjp([jnp.asarray(g[t][k], jnp.float64) for t, k in keys])
+                for k, v in gd.items():
+                    total[k] += float(v)
         if encircling:  # its sutures are spread evenly around: no meridian
-            total["buckle_meridian_deg"] = 0.0
-        return total
+            for total in totals:
+                total["buckle_meridian_deg"] = 0.0
+        return totals
 
     def jacobian(self, res, variables, outcomes=None) -> np.ndarray:
         """d outcome / d variable at the converged design ``res``: array (n_outcomes,
@@ -122,18 +135,19 @@ class DesignGradients:
         jac = [[grads[o][v] for v in variables] for o in names]
         return np.array(jac, dtype=float).reshape(len(names), len(variables))
 
-    def _preop_adjoint(self, pre, g_volume, g_scale, route=None):
-        """Stage-1 adjoint: d/dtheta_1 of g_volume V(q1) + g_scale s(q1) + route(q1), the
-        routes by which the pre-operative eye enters the later stages and the outcome
-        (``route``: :meth:`_preop_route`, or None)."""
+    def _preop_adjoints(self, pre, g_volume, g_scale, routes=None) -> list:
+        """Stage-1 adjoints of k objectives, solved together: d/dtheta_1 of g_volume V(q1)
+        + g_scale s(q1) + routes(q1) (each (k,)), the routes by which the pre-operative eye
+        enters the later stages and the outcomes (``routes``: :meth:`_preop_routes`, or
+        None)."""
         cav = self.model.term("cavity")
 
         def preop(q, theta):
             V = cavity_pressures(q, theta["cavity"], cav.data, cav.dofs)[1][0]
             out = g_volume * V + g_scale * snug_scale(self.parts, q, pre.node)
-            return out if route is None else out + route(q)
+            return out if routes is None else out + routes(q)
 
-        return value_and_grad(preop, pre.sol1)[1]
+        return values_and_grads(preop, pre.sol1)[1]
 
     def _dxi(self, res, var: str):
         """d xi / d var (n_bars, 2) of the bites (var: suture_width or buckle_meridian_deg,

@@ -26,46 +26,96 @@ from eyefem.solve.model import Model
 log = logging.getLogger(__name__)
 
 
-def residual_fn(model: Model, active=None) -> Callable:
-    """R(q, theta) (n_dof,) as a JAX function (sum of the active terms' gradients)."""
-    terms = model._active(active)
-
-    def R(q, theta):
-        return sum(jax.grad(t.energy)(q, theta[t.name], t.data, t.dofs) for t in terms)
-
-    return R
+ASSEMBLED_FROM = 4
+"""From this many adjoints at once, their refinement multiplies by the exact tangent
+assembled at the solution (one assembly, then sparse products) instead of k autodiff
+tangent-vector products per sweep (on the default eye one assembly costs about as much
+as the products of 8 vectors; the two agree to 1e-12 relative)."""
 
 
 def adjoint_solve(model: Model, solver, asm, q, theta, rhs, *, active=None, tol=1e-10,
                   max_refine=20):
     """Solve K lam = rhs on the free dofs with a (possibly slightly stale) factorisation.
 
-    The factorisation preconditions a refinement against the exact K v (autodiff), so the
-    result is the adjoint at q itself. Returns lam (n_dof,), zero on prescribed dofs.
+    The factorisation preconditions a refinement against the exact tangent at q (autodiff
+    tangent-vector products, or the tangent assembled at q for ASSEMBLED_FROM or more
+    right-hand sides), so the result is the adjoint at q itself. rhs (n_dof,) or
+    (n_dof, k): k adjoints at once (one block back-solve per sweep, each column refined
+    to ``tol`` relative). Returns lam like rhs, zero on prescribed dofs.
     """
+    one = np.ndim(rhs) == 1
+    rhs = np.asarray(rhs, float).reshape(model.n_dof, -1)
     free, mult = asm.free_primal, asm.mult
-    b = np.zeros(model.n_dof)
+    b = np.zeros_like(rhs)
     b[free], b[mult] = rhs[free], rhs[mult]
-    lam = np.zeros(model.n_dof)
-    nb = np.linalg.norm(b) or 1.0
-    for it in range(max_refine):
-        res = b - _apply(model, q, lam, theta, active, asm)
-        if np.linalg.norm(res) <= tol * nb:
-            break
-        x, y = solver.solve(res[free], res[mult])
-        lam = lam + asm.expand(x, y)
+    lam = np.zeros_like(b)
+    nb = np.linalg.norm(b, axis=0)
+    nb[nb == 0] = 1.0
+    todo = np.ones(b.shape[1], bool)
+    rel = np.zeros(b.shape[1])
+    if b.shape[1] >= ASSEMBLED_FROM:
+        apply = assembled_tangent(model, asm, q, theta, active)
     else:
-        log.warning("adjoint refinement stopped at relative residual %.2e",
-                    np.linalg.norm(res) / nb)
-    return lam
+        def apply(V):
+            return _apply(model, q, V, theta, active, asm)
+    for it in range(max_refine):
+        res = b[:, todo] - (apply(lam[:, todo]) if it else 0.0)
+        rel[todo] = np.linalg.norm(res, axis=0) / nb[todo]
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("adjoint sweep %d: relative residuals %s", it,
+                      np.array2string(rel, precision=1))
+        done = rel[todo] <= tol
+        if done.all():
+            break
+        cols = np.nonzero(todo)[0]
+        todo[cols[done]] = False
+        res = res[:, ~done]
+        x, y = solver.solve(res[free], res[mult])
+        lam[:, todo] += asm.expand(x.reshape(len(free), -1), y.reshape(len(mult), -1))
+    else:
+        log.warning("adjoint refinement stopped at relative residual %.2e", float(rel.max()))
+    return lam[:, 0] if one else lam
 
 
-def _apply(model, q, v, theta, active, asm):
-    kv = model.hvp(q, v, theta, active)
+def _apply(model, q, V, theta, active, asm):
+    """K V (n_dof, k) on the free primal and multiplier rows (zero elsewhere)."""
+    kv = model.hvp_many(q, V, theta, active)
     out = np.zeros_like(kv)
     out[asm.free_primal] = kv[asm.free_primal]
     out[asm.mult] = kv[asm.mult]
     return out
+
+
+def assembled_tangent(model: Model, asm, q, theta, active=None) -> Callable:
+    """V (n_dof, k) -> K V on the free primal and multiplier rows (zero elsewhere), K the
+    exact tangent of ``model`` assembled at q (the saddle point [[K_pp, B], [B^T, 0]],
+    assembled without the augmentation B D B^T, whose cancellation would leave a
+    roundoff floor near 1e-10, and with the low-rank terms); the
+    assembler (shared by the stages of a load path) is left holding its own model."""
+    held, asm.model = asm.model, model
+    try:
+        _, K, B, _, low_rank = asm.assemble(q, theta, active, beta=0.0)
+    finally:
+        asm.model = held
+    free, mult = asm.free_primal, asm.mult
+    if low_rank:
+        W = np.stack([v for _, v in low_rank], axis=1)
+        a = np.array([al for al, _ in low_rank])[:, None]
+
+    def apply(V):
+        x = V[free]
+        kx = K @ x
+        out = np.zeros_like(V)
+        if B is not None:
+            y = V[mult]
+            kx += B @ y
+            out[mult] = B.T @ x
+        if low_rank:
+            kx += W @ (a * (W.T @ x))
+        out[free] = kx
+        return out
+
+    return apply
 
 
 def value_and_grad(objective: Callable[[Any, Any], Any], solution, *, active=None):
@@ -80,6 +130,22 @@ def value_and_grad(objective: Callable[[Any, Any], Any], solution, *, active=Non
     The gradient is that of an equilibrium: a solution whose last step was accepted out of
     balance (on a cycling contact pairing) gets a warning naming the step and the force.
     """
+    vals, grads = values_and_grads(lambda q, theta: jnp.reshape(objective(q, theta), (1,)),
+                                   solution, active=active)
+    return float(vals[0]), grads[0]
+
+
+def values_and_grads(objectives: Callable[[Any, Any], Any], solution, *, active=None):
+    """Values and theta-gradients of k objectives at one converged solution.
+
+    ``objectives(q, theta)`` returns the k values (k,) (JAX-traceable): their q- and
+    theta-gradients come from one reverse-mode Jacobian, their k adjoints are solved
+    together (:func:`adjoint_solve`) and the residual's design derivative is contracted
+    with all of them at once (compiled per term class): the cost of one objective's
+    gradient and a little per further objective. Warns as :func:`value_and_grad`.
+
+    Returns (values (k,), gradients: list of k pytrees like theta).
+    """
     last = solution.history[-1] if solution.history else None
     if last is not None and last.info.get("unbalanced_N"):
         log.warning("adjoint gradient at stage '%s' step %d (t = %.4g), accepted with %.3e N "
@@ -89,11 +155,13 @@ def value_and_grad(objective: Callable[[Any, Any], Any], solution, *, active=Non
     model, q, theta = solution.model, solution.q, solution.theta
     active = solution.active if active is None else active
     theta_j = jax.tree_util.tree_map(jnp.asarray, theta)
-    val, (gq, gth) = jax.value_and_grad(objective, argnums=(0, 1))(jnp.asarray(q), theta_j)
-    lam = adjoint_solve(model, solution.solver, solution.assembler, q, theta, np.asarray(gq),
-                        active=active)
-    R = residual_fn(model, active)
-    _, vjp = jax.vjp(lambda th: R(jnp.asarray(q), th), theta_j)
-    (gR,) = vjp(jnp.asarray(lam))
-    grad = jax.tree_util.tree_map(lambda a, b: np.asarray(a) - np.asarray(b), gth, gR)
-    return float(val), grad
+    q_j = jnp.asarray(q)
+    vals, pullback = jax.vjp(objectives, q_j, theta_j)
+    k = vals.shape[0]
+    gq, gth = jax.vmap(pullback)(jnp.eye(k))  # (k, n_dof), theta-like with a leading k
+    lam = adjoint_solve(model, solution.solver, solution.assembler, q, theta,
+                        np.asarray(gq).T, active=active)
+    gRs = model.params_vjp_many(q_j, jnp.asarray(lam), theta_j, active)
+    grads = [jax.tree_util.tree_map(lambda a, b, j=j: np.asarray(a[j]) - np.asarray(b), gth, gR)
+             for j, gR in enumerate(gRs)]
+    return np.asarray(vals), grads

@@ -117,12 +117,15 @@ class Assembler:
             slots[valid] = inv[off: off + len(valid)]
             self.patterns[name] = _TermPattern(prim, m, slots, valid, bs, bv)
 
-    def assemble(self, q, theta, active=None, pressure_stiffness=True, gauss_newton=False):
+    def assemble(self, q, theta, active=None, pressure_stiffness=True, gauss_newton=False,
+                 beta=None):
         """Residual (n_dof,) and the factorisation-ready tangent pieces at q; with
         ``pressure_stiffness`` False the tangent leaves out the Hessians of follower
         pressures (terms marked ``pressure_stiffness``; their low-rank parts stay); with
         ``gauss_newton`` the terms that have one use their Gauss-Newton Hessian
-        (``Term.grad_hess_gauss_newton``: penalty contact without the surface curvature).
+        (``Term.grad_hess_gauss_newton``: penalty contact without the surface curvature);
+        ``beta`` overrides the augmentation strength (0: K without B D B^T, D = 0, for
+        products with the exact tangent free of the augmentation's cancellation).
 
         Returns: (r, K (n_p, n_p) CSR including the condensation, B (n_p, n_m) or None,
         D (n_m,) or None, low_rank list of (alpha, v (n_p,))).
@@ -146,7 +149,8 @@ class Assembler:
                     g, Hpp = model.local_grad_hess_gauss_newton(t, q, theta)
                     b = d = None
                 else:
-                    g, Hpp, b, d = model.local_grad_hess_condensed(t, q, theta, self.beta)
+                    g, Hpp, b, d = model.local_grad_hess_condensed(
+                        t, q, theta, self.beta if beta is None else beta)
                 p = self.patterns[t.name]
                 if p.mult is not None:
                     D[self.mred[t.dofs[:, p.mult]]] = d
@@ -191,8 +195,9 @@ class Assembler:
         return v[self.free_primal], v[self.mult]
 
     def expand(self, x, y):
-        """Global vector (n_dof,) from free primal and multiplier parts (prescribed = 0)."""
-        out = np.zeros(self.model.n_dof)
+        """Global vector (n_dof,) from free primal and multiplier parts (prescribed = 0);
+        (n_dof, k) from parts (n_p, k), (n_m, k)."""
+        out = np.zeros((self.model.n_dof,) + np.shape(x)[1:])
         out[self.free_primal] = x
         out[self.mult] = y
         return out

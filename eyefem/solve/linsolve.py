@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import weakref
 
 import numpy as np
 import scipy.sparse as sp
@@ -171,7 +172,26 @@ class _Pardiso:
             old["freed"], old["owner"] = True, None
         self._call(self.entry["solver"], 11)
         self.entry["freed"] = False
-        _PARDISO_BY_PATTERN[self.key] = self.entry
+        if not self.entry.get("kept"):
+            _PARDISO_BY_PATTERN[self.key] = self.entry
+
+    def keep(self):
+        """Keep this factorisation for later solves (the adjoint of a stage, solved after
+        later stages have factorised the same pattern): it moves into an instance of its
+        own, which no later factorisation overwrites and whose memory is freed when this
+        object is collected; the pattern's shared instance starts afresh (one more
+        symbolic analysis)."""
+        import pypardiso
+
+        if self.entry.get("kept"):
+            return
+        shared = self.entry
+        mine = {**shared, "kept": True}
+        shared.update(solver=_new_pardiso(pypardiso), owner=None, freed=True)
+        self.entry = mine
+        if mine["owner"] != id(self):  # overwritten since: factorised again, in its own
+            self._factorize()
+        weakref.finalize(self, mine["solver"].free_memory, True)
 
     def _call(self, solver, phase, b=None):
         import pypardiso
@@ -280,6 +300,14 @@ class SaddlePointSolver:
             cap = np.diag(1.0 / a) + V.T @ self.KiV
             self.cap_inv = np.linalg.inv(cap)
         self.n_solves = 0
+
+    def keep(self) -> "SaddlePointSolver":
+        """Keep the factorisation out of the Pardiso instance its pattern shares (see
+        ``_Pardiso.keep``; other backends hold their own already). Returns self."""
+        keep = getattr(self.fact, "keep", None)
+        if keep is not None:
+            keep()
+        return self
 
     def plus_low_rank(self, extra: list) -> "SaddlePointSolver":
         """This tangent plus further rank-one terms (alpha, v (n,)), on the same

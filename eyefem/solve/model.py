@@ -101,9 +101,12 @@ class Model:
             elif kind == "lookahead":
                 ks[key] = jax.jit(lambda q, dq, p, d, dofs: term.gap_linearisation(q[dofs], dq[dofs], p, d))
             elif kind == "hvp":
-                g = jax.grad(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
-                ks[key] = jax.jit(lambda q, v, p, d, dofs: jax.jvp(lambda x: g(x, p, d, dofs),
-                                                                   (q,), (v,))[1])
+                ks[key] = jax.jit(_hvp(term))
+            elif kind == "hvp_many":
+                ks[key] = jax.jit(jax.vmap(_hvp(term), in_axes=(None, 1, None, None, None),
+                                           out_axes=1))
+            elif kind == "params_vjp_many":
+                ks[key] = jax.jit(jax.vmap(_params_vjp(term), in_axes=(None, 1, None, None, None)))
         return ks[key]
 
     def energy(self, q, theta, active=None) -> float:
@@ -134,6 +137,31 @@ class Model:
         for t in self._active(active):
             r += np.asarray(self._kernel(t, "hvp")(q, v, theta[t.name], t.data, t.dofs))
         return r
+
+    def hvp_many(self, q, V, theta, active=None) -> np.ndarray:
+        """K V (n_dof, k) for k vectors V (n_dof, k) at once (:meth:`hvp`, vectorised)."""
+        r = np.zeros((self.n_dof, V.shape[1]))
+        for t in self._active(active):
+            r += np.asarray(self._kernel(t, "hvp_many")(q, V, theta[t.name], t.data, t.dofs))
+        return r
+
+    def params_vjp_many(self, q, L, theta, active=None) -> list[dict]:
+        """The residual's vector-Jacobian products with respect to the design: for each
+        column l of L (n_dof, k), d(l . R(q, theta))/dtheta as a pytree like theta (the
+        active terms' params; others zero). Compiled per term class, all columns at once."""
+        k = L.shape[1]
+        out = [{} for _ in range(k)]
+        names = {t.name for t in self._active(active)}
+        for t in self.terms:
+            if t.name in names:
+                g = self._kernel(t, "params_vjp_many")(q, L, theta[t.name], t.data, t.dofs)
+                for j in range(k):
+                    out[j][t.name] = jax.tree_util.tree_map(lambda a, j=j: np.asarray(a[j]), g)
+            else:
+                zero = jax.tree_util.tree_map(lambda a: np.zeros(np.shape(a)), theta[t.name])
+                for j in range(k):
+                    out[j][t.name] = zero
+        return out
 
     def gap_linearisations(self, q, dq, theta, active=None) -> list:
         """(term, g (n,), dg (n,), dg/dq_loc (n, k), gap at q + dq (n,)) of every active
@@ -187,6 +215,23 @@ class Model:
         if active is None:
             return self.terms
         return [t for t in self.terms if t.name in active]
+
+
+def _hvp(term: Term):
+    """(q, v, params, data, dofs) -> K v of one term, forward over reverse."""
+    g = jax.grad(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
+    return lambda q, v, p, d, dofs: jax.jvp(lambda x: g(x, p, d, dofs), (q,), (v,))[1]
+
+
+def _params_vjp(term: Term):
+    """(q, l, params, data, dofs) -> d(l . dE/dq)/dparams of one term (reverse over
+    forward: the directional derivative of the energy along l, differentiated in params)."""
+    def f(q, lam, p, d, dofs):
+        def along(pp):
+            return jax.jvp(lambda x: term.energy(x, pp, d, dofs), (q,), (lam,))[1]
+        _, vjp = jax.vjp(along, p)
+        return vjp(jnp.ones(()))[0]
+    return f
 
 
 def node_dofs(node_ids, components="xyz") -> np.ndarray:

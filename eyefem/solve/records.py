@@ -103,8 +103,13 @@ class Solution:
         """This solution with a factorisation of the tangent (for adjoints) if it has none."""
         if self.solver is not None:
             return self
-        r, K, B, D, lr = self.assembler.assemble(self.q, self.theta, self.active)
-        return dataclasses.replace(self, solver=self.assembler.solver(K, B, D, lr))
+        asm = self.assembler
+        held, asm.model = asm.model, self.model  # the assembler is shared by the stages
+        try:
+            r, K, B, D, lr = asm.assemble(self.q, self.theta, self.active)
+        finally:
+            asm.model = held
+        return dataclasses.replace(self, solver=asm.solver(K, B, D, lr))
 
 
 class StepFailed(Exception):
