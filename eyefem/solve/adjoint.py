@@ -162,6 +162,7 @@ def values_and_grads(objectives: Callable[[Any, Any], Any], solution, *, active=
     lam = adjoint_solve(model, solution.solver, solution.assembler, q, theta,
                         np.asarray(gq).T, active=active)
     gRs = model.params_vjp_many(q_j, jnp.asarray(lam), theta_j, active)
-    grads = [jax.tree_util.tree_map(lambda a, b, j=j: np.asarray(a[j]) - np.asarray(b), gth, gR)
+    gth = jax.tree_util.tree_map(np.asarray, gth)  # to the host once, then sliced
+    grads = [jax.tree_util.tree_map(lambda a, b, j=j: a[j] - b, gth, gR)
              for j, gR in enumerate(gRs)]
     return np.asarray(vals), grads

@@ -154,9 +154,10 @@ class Model:
         names = {t.name for t in self._active(active)}
         for t in self.terms:
             if t.name in names:
-                g = self._kernel(t, "params_vjp_many")(q, L, theta[t.name], t.data, t.dofs)
+                g = jax.tree_util.tree_map(np.asarray, self._kernel(t, "params_vjp_many")(
+                    q, L, theta[t.name], t.data, t.dofs))  # to the host once, then sliced
                 for j in range(k):
-                    out[j][t.name] = jax.tree_util.tree_map(lambda a, j=j: np.asarray(a[j]), g)
+                    out[j][t.name] = jax.tree_util.tree_map(lambda a, j=j: a[j], g)
             else:
                 zero = jax.tree_util.tree_map(lambda a: np.zeros(np.shape(a)), theta[t.name])
                 for j in range(k):
