@@ -122,9 +122,9 @@ def test_adjoint_gradient_of_rigidity_matches_central_differences():
     1e-3, 1e-4 c10: -0.00592041, -0.00591894, -0.00591806 tightened, against -0.00575114
     at h = 1e-4 with the default tolerance; the 1e-3 quotient's truncation error is
     about 1e-5, the test's 1e-4 leaves a margin of 10). At rtol 1e-11 the injection steps
-    now stall on roundoff just above the tolerance (1.1e-11 N against 2e-12 N, measured
-    2026-11-27 on the code before and after the block adjoints), so the solves are held
-    to 1e-10: the pressures' error is then 1e-10 relative, far below the quotient's."""
+    stall on roundoff just above the tolerance (1.1e-11 N against 2e-12 N), so the solves
+    are held to 1e-10: the pressures' error is then 1e-10 relative, far below the
+    quotient's."""
     from eyefem.solve.solver import NewtonOptions
     from optimize.calibrate import PressureVolumeFit, rigidity_of
 
