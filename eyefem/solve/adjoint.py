@@ -90,13 +90,8 @@ def assembled_tangent(model: Model, asm, q, theta, active=None) -> Callable:
     """V (n_dof, k) -> K V on the free primal and multiplier rows (zero elsewhere), K the
     exact tangent of ``model`` assembled at q (the saddle point [[K_pp, B], [B^T, 0]],
     assembled without the augmentation B D B^T, whose cancellation would leave a
-    roundoff floor near 1e-10, and with the low-rank terms); the
-    assembler (shared by the stages of a load path) is left holding its own model."""
-    held, asm.model = asm.model, model
-    try:
-        _, K, B, _, low_rank = asm.assemble(q, theta, active, beta=0.0)
-    finally:
-        asm.model = held
+    roundoff floor near 1e-10, and with the low-rank terms)."""
+    _, K, B, _, low_rank = asm.assemble(q, theta, active, beta=0.0, model=model)
     free, mult = asm.free_primal, asm.mult
     if low_rank:
         W = np.stack([v for _, v in low_rank], axis=1)

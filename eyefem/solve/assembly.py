@@ -118,19 +118,21 @@ class Assembler:
             self.patterns[name] = _TermPattern(prim, m, slots, valid, bs, bv)
 
     def assemble(self, q, theta, active=None, pressure_stiffness=True, gauss_newton=False,
-                 beta=None):
+                 beta=None, model: Model | None = None):
         """Residual (n_dof,) and the factorisation-ready tangent pieces at q; with
         ``pressure_stiffness`` False the tangent leaves out the Hessians of follower
         pressures (terms marked ``pressure_stiffness``; their low-rank parts stay); with
         ``gauss_newton`` the terms that have one use their Gauss-Newton Hessian
         (``Term.grad_hess_gauss_newton``: penalty contact without the surface curvature);
         ``beta`` overrides the augmentation strength (0: K without B D B^T, D = 0, for
-        products with the exact tangent free of the augmentation's cancellation).
+        products with the exact tangent free of the augmentation's cancellation);
+        ``model`` assembles another model of the same layout than the one the assembler
+        holds (a load path's stages share one assembler: the adjoint of an earlier stage).
 
         Returns: (r, K (n_p, n_p) CSR including the condensation, B (n_p, n_m) or None,
         D (n_m,) or None, low_rank list of (alpha, v (n_p,))).
         """
-        model = self.model
+        model = self.model if model is None else model
         r = np.zeros(model.n_dof)
         kdata = np.zeros(len(self.indices))
         bdata = np.zeros(self.B_pattern.nnz) if self.n_m else None

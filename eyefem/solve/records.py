@@ -103,12 +103,8 @@ class Solution:
         """This solution with a factorisation of the tangent (for adjoints) if it has none."""
         if self.solver is not None:
             return self
-        asm = self.assembler
-        held, asm.model = asm.model, self.model  # the assembler is shared by the stages
-        try:
-            r, K, B, D, lr = asm.assemble(self.q, self.theta, self.active)
-        finally:
-            asm.model = held
+        asm = self.assembler  # shared by the stages: assemble this solution's own model
+        r, K, B, D, lr = asm.assemble(self.q, self.theta, self.active, model=self.model)
         return dataclasses.replace(self, solver=asm.solver(K, B, D, lr))
 
 
