@@ -357,7 +357,6 @@ class SurgerySimulator(DesignGradients):
 
         return outcomes
 
-
     def outcome_fns(self, res: Result) -> dict[str, Callable]:
         """Outcome name -> J(q, theta), JAX-traceable, at the converged design ``res``
         (the changes measured from ``res``'s own pre-operative eye; eyefem.eye.outcomes)."""
@@ -394,4 +393,3 @@ def _kept(sol: Solution) -> Solution:
     if sol.solver is not None:
         sol.solver.keep()
     return sol
-
