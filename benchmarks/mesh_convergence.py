@@ -56,7 +56,7 @@ OUTCOMES = {  # key -> (label, relative bound of the default level's GCI)
 }
 """Outcomes studied; the bound is issue 29's (5 % / 10 %), None: reported only."""
 
-ABBREV = {"coarse": "c", "medium": "m", "default": "D", "fine": "f", "finer": "F"}
+ABBREV = {"coarse": "c", "half": "h", "medium": "m", "default": "D", "fine": "f", "finer": "F"}
 
 
 # --------------------------------------------------------------------------- running
@@ -248,7 +248,7 @@ def markdown(study: dict) -> str:
             ok = "" if g is None or bound is None else (" ok" if g <= bound else " **over**")
             row += [_pct(g) + ok, _pct(bound) if bound else "-"]
             lines.append("| " + " | ".join(row) + " |")
-        legend = ("(levels: c coarse, m medium, D default, f fine, F finer; behaviour of "
+        legend = ("(levels: c coarse, h half, m medium, D default, f fine, F finer; behaviour of "
                   "each triple, observed order p, Richardson value and GCI_fine of its "
                   "finest level; (!): p outside 0.5..4 or the extrapolation changes sign; "
                   "'GCI of default': Fs |phi_ext - phi_default| / |phi_default| against "
