@@ -13,8 +13,8 @@ at every level, so the refinement is in-plane only (a level with the suffix "x2"
         --images docs/images
     python benchmarks/mesh_convergence.py ... --no-run     # tabulate existing runs only
     python benchmarks/mesh_convergence.py ... --compare OTHER_RUNS   # drawn beside, grey
-    python benchmarks/mesh_convergence.py ... --no-run --fill-stress   # runs made before
-                                            # the peak scleral stress was an outcome
+    python benchmarks/mesh_convergence.py ... --no-run --fill   # runs made before the
+              # peak scleral stress was recorded or the indentation weighted by area
 
 Each run goes to RUNS/CASE/LEVEL (summary.json, stages.csv, surgery_history.csv, run.log),
 one at a time in a subprocess (``run-one``), skipped when its summary.json exists. Besides
@@ -45,6 +45,7 @@ log = logging.getLogger("mesh_convergence")
 OUTCOMES = {  # key -> (label, relative bound of the default level's GCI)
     "iop_rise_mmhg": ("IOP rise, mmHg", 0.05),
     "indentation_mm": ("indentation, mm", 0.05),
+    "indentation_nodes_mm": ("indentation, bands at the nodes, mm", None),
     "axial_length_change_mm": ("axial length change, mm", 0.05),
     "refraction_change_D": ("refraction change, D", 0.05),
     "max_suture_force_N": ("largest suture bar force, N", 0.10),
@@ -61,12 +62,16 @@ ABBREV = {"coarse": "c", "half": "h", "medium": "m", "default": "D", "fine": "f"
 
 # --------------------------------------------------------------------------- running
 
-def _suture_probe(base_probe, n_sutures: int):
+def _study_probe(base_probe, parts, n_sutures: int):
     """Probe that adds suture forces that do not hang on one bar: the mean bar force over
     all sutures and the largest per-suture mean bar force, N (0 before the sutures are
-    tightened, as max_suture_force_N)."""
+    tightened, as max_suture_force_N), and the indentation with its bands sampled at the
+    nodes (:func:`_indentation_at_nodes`)."""
+    indent = _indentation_at_nodes(parts)
+
     def probe(model, q, theta):
         out = base_probe(model, q, theta)
+        out["indentation_nodes_mm"] = indent(q)
         f = np.asarray(model.term("sutures").forces(q, theta["sutures"]), float)
         tight = np.any(np.asarray(theta["sutures"]["tightening"]))
         per_suture = f.reshape(n_sutures, -1).mean(axis=1)
@@ -74,6 +79,26 @@ def _suture_probe(base_probe, n_sutures: int):
         out["max_suture_mean_force_N"] = float(per_suture.max()) if tight else 0.0
         return out
     return probe
+
+
+def _indentation_at_nodes(parts):
+    """q -> the indentation (mm) with the plain mean radius of the outer scleral nodes in
+    each band (the bands of eyefem.eye.outcomes.band_area_weights), the outcome's
+    definition before the bands were weighted by area: kept to show what the weighting
+    does to the convergence (docs/convergence.md)."""
+    from eyefem.eye.parts import buckle_coords
+
+    a, ok = buckle_coords(parts)
+    a, w, nodes = np.abs(a), parts.buckle.width, parts.sclera_nodes
+    under = nodes[ok & (a < w / 4)]
+    beside = nodes[ok & (a > w / 2 + 1.5) & (a < w / 2 + 3.0)]
+    X = parts.eye.mesh.nodes
+
+    def indent(q):
+        u = np.asarray(q)[: X.size].reshape(-1, 3)
+        r = lambda ids: np.linalg.norm(X[ids] + u[ids], axis=1).mean()  # noqa: E731
+        return float(r(beside) - r(under))
+    return indent
 
 
 def run_one(case_path: str, level: str, out_dir: Path) -> dict:
@@ -93,7 +118,7 @@ def run_one(case_path: str, level: str, out_dir: Path) -> dict:
     case.parameters["mesh"] = level
     setup = problems()[case.problem][1](case.parameters, case.materials)
     n_sutures = int(setup.parts.p["n_sutures"])
-    setup = dataclasses.replace(setup, probe=_suture_probe(setup.probe, n_sutures))
+    setup = dataclasses.replace(setup, probe=_study_probe(setup.probe, setup.parts, n_sutures))
     res = run_setup(setup, out_dir, case.solver, vtu=False, plots=False,
                     key=manifest.case_key(case.problem, case.parameters, case.materials,
                                           case.solver))
@@ -103,6 +128,7 @@ def run_one(case_path: str, level: str, out_dir: Path) -> dict:
                **res.summary,
                "mean_suture_force_N": last["mean_suture_force_N"],
                "max_suture_mean_force_N": last["max_suture_mean_force_N"],
+               "indentation_nodes_mm": last["indentation_nodes_mm"],
                "max_rss_GB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
@@ -127,11 +153,18 @@ def run_missing(cases, levels, runs: Path, case_dir: Path) -> None:
                      time.perf_counter() - tic)
 
 
-def fill_stress(case_path: Path, level: str, out_dir: Path) -> bool:
-    """Add the peak scleral stress (eyefem.eye.outcomes.peak_scleral_stress) to the
-    summary.json of a run made before the outcome existed, evaluated on the final state of
-    its checkpoint (a numpy archive, checked against its checkpoint.json) with the case
-    rebuilt at ``level``. Returns False (and says why) where the run has no final state."""
+FILLED = ("scleral_stress_kPa", "indentation_nodes_mm")
+"""Outcomes :func:`fill_outcomes` adds to runs made before they were recorded."""
+
+
+def fill_outcomes(case_path: Path, level: str, out_dir: Path) -> bool:
+    """Add the outcomes of FILLED that a run's summary.json lacks (runs made before they
+    were recorded: the peak scleral stress, eyefem.eye.outcomes.peak_scleral_stress; the
+    indentation with its bands at the nodes, :func:`_indentation_at_nodes`, the run's
+    ``indentation_mm`` then evaluated again, with its bands weighted by area, as the
+    outcome is now defined), evaluated on the final state of its
+    checkpoint (a numpy archive, checked against its checkpoint.json) with the case rebuilt
+    at ``level``. Returns False (and says why) where the run has no final state."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -148,16 +181,26 @@ def fill_stress(case_path: Path, level: str, out_dir: Path) -> bool:
     case.parameters["mesh"] = level
     setup = problems()[case.problem][1](case.parameters, case.materials)
     if ck["stage"] != len(setup.stages) - 1:
-        log.warning("%s: its checkpoint holds stage %d of %d, not the final state; no stress",
-                    out_dir, ck["stage"] + 1, len(setup.stages))
+        log.warning("%s: its checkpoint holds stage %d of %d, not the final state; nothing "
+                    "filled", out_dir, ck["stage"] + 1, len(setup.stages))
         return False
     if ck["q"].shape != (setup.model.n_dof,):
-        log.warning("%s: its state has %d unknowns, the case at %s %d; no stress", out_dir,
-                    ck["q"].size, level, setup.model.n_dof)
+        log.warning("%s: its state has %d unknowns, the case at %s %d; nothing filled",
+                    out_dir, ck["q"].size, level, setup.model.n_dof)
         return False
-    summary["scleral_stress_kPa"] = peak_scleral_stress(
-        setup.model, ck["q"], ck["theta"], stress_patches(setup.model.mesh))
-    summary["scleral_stress_from"] = "the run's final checkpoint, evaluated afterwards"
+    if "scleral_stress_kPa" not in summary:
+        summary["scleral_stress_kPa"] = peak_scleral_stress(
+            setup.model, ck["q"], ck["theta"], stress_patches(setup.model.mesh))
+    if "indentation_nodes_mm" not in summary:
+        from eyefem.eye.outcomes import indentation, outcome_nodes
+
+        summary["indentation_nodes_mm"] = _indentation_at_nodes(setup.parts)(ck["q"])
+        summary["indentation_mm"] = float(indentation(setup.parts.eye.mesh.nodes, ck["q"],
+                                                      outcome_nodes(setup.parts)))
+    filled = [k for k in FILLED if k not in json.loads(f.read_text())]
+    if "indentation_nodes_mm" in filled:
+        filled.append("indentation_mm")
+    summary["filled_from_checkpoint"] = filled
     f.write_text(json.dumps(summary, indent=2) + "\n")
     return True
 
@@ -322,12 +365,12 @@ def main(argv=None) -> int:
         argv = sys.argv[1:]
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s",
                         datefmt="%H:%M:%S")
-    if argv and argv[0] in ("run-one", "fill-stress"):
+    if argv and argv[0] in ("run-one", "fill"):
         case_path, level, out = argv[1:4]
         if argv[0] == "run-one":
             run_one(case_path, level, Path(out))
             return 0
-        return 0 if fill_stress(Path(case_path), level, Path(out)) else 1
+        return 0 if fill_outcomes(Path(case_path), level, Path(out)) else 1
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="case1,case5", help="case names in --case-dir")
     ap.add_argument("--levels", default="coarse,medium,default,fine",
@@ -340,22 +383,23 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", help="other run folders (RUNS/CASE/LEVEL, e.g. of an earlier "
                     "model) drawn beside these in the plots")
     ap.add_argument("--compare-label", default="compared runs", help="their legend entry")
-    ap.add_argument("--fill-stress", action="store_true",
-                    help="add the peak scleral stress to runs made before it was an outcome "
-                    "(from their final checkpoints; one process per run)")
+    ap.add_argument("--fill", action="store_true",
+                    help="add the peak scleral stress to runs made before it was recorded, "
+                    "and evaluate the indentation with its bands weighted by area (from their "
+                    "final checkpoints; one process per run)")
     args = ap.parse_args(argv)
     cases, levels = args.cases.split(","), args.levels.split(",")
     runs = Path(args.runs)
     if not args.no_run:
         run_missing(cases, levels, runs, Path(args.case_dir))
-    if args.fill_stress:
+    if args.fill:
         for case in cases:
             for lv in levels:
                 d = runs / case / lv
-                if (d / "summary.json").exists() and "scleral_stress_kPa" not in json.loads(
-                        (d / "summary.json").read_text()):
-                    log.info("peak scleral stress of %s at %s from its checkpoint", case, lv)
-                    subprocess.call([sys.executable, __file__, "fill-stress",
+                if (d / "summary.json").exists() and not set(FILLED) <= set(json.loads(
+                        (d / "summary.json").read_text())):
+                    log.info("outcomes of %s at %s from its checkpoint", case, lv)
+                    subprocess.call([sys.executable, __file__, "fill",
                                      str(Path(args.case_dir) / f"{case}.toml"), lv, str(d)])
     study = collect(cases, levels, runs)
     other = collect(cases, levels, Path(args.compare)) if args.compare else {}

@@ -20,23 +20,73 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from eyefem.eye import optics
-from eyefem.eye.parts import SurgeryParts, buckle_coords
-from eyefem.fem.mesh import hex_geometry
+from eyefem.eye.parts import SurgeryParts, buckle_coords_at
+from eyefem.fem.mesh import hex_geometry, quad_shape
 from eyefem.fem.units import KPA, MMHG
+
+
+BAND_QUADRATURE = 6
+"""Gauss points per face direction of the area weights of :func:`band_area_weights`: a
+band's edge is sampled at 1/6 of an element, not at the nodes."""
+
+
+@dataclasses.dataclass(frozen=True)
+class BandWeights:
+    """Area weights of nodes over a band of a surface: ids (k,), weights (k,) summing to 1,
+    and the band's reference area, mm^2."""
+
+    ids: np.ndarray
+    weights: np.ndarray
+    area_mm2: float
+
+
+def band_area_weights(parts: SurgeryParts, beside: bool,
+                      n_gauss: int = BAND_QUADRATURE) -> BandWeights:
+    """Area weights of the outer scleral nodes over a band of the outer sclera: under the
+    buckle's central half (``beside`` False: |a| < w/4) or 1.5-3 mm beside its edges (True:
+    w/2 + 1.5 < |a| < w/2 + 3), a the across coordinate of
+    eyefem.eye.parts.buckle_coords_at and w the buckle's width (mm). The bands are bounded
+    at Gauss points (n_gauss^2 per reference face), not at nodes. Weight of node i: the
+    integral over the band of its bilinear shape function, normalised to sum 1. ValueError
+    where the band holds no Gauss point."""
+    mesh, b = parts.eye.mesh, parts.buckle
+    faces = mesh.face_set("eye/sclera_outer")
+    g, w = np.polynomial.legendre.leggauss(n_gauss)
+    xi = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    wg = np.outer(w, w).ravel()
+    N, dN = quad_shape(xi)  # (G, 4), (G, 4, 2)
+    Xf = mesh.nodes[faces]  # (F, 4, 3)
+    xg = np.einsum("gk,fkd->fgd", N, Xf)
+    dA = np.linalg.norm(np.cross(np.einsum("gk,fkd->fgd", dN[..., 0], Xf),
+                                 np.einsum("gk,fkd->fgd", dN[..., 1], Xf)), axis=-1) * wg
+    a, ok = buckle_coords_at(parts, xg.reshape(-1, 3))
+    a, ok = np.abs(a).reshape(dA.shape), ok.reshape(dA.shape)
+    inside = ok & ((a > b.width / 2 + 1.5) & (a < b.width / 2 + 3.0) if beside
+                   else a < b.width / 4)
+    if not inside.any():
+        where = "beside" if beside else "under"
+        raise ValueError(f"indentation: no part of the outer sclera lies {where} the buckle "
+                         f"(width {b.width} mm); refine the mesh")
+    nodal = np.einsum("fg,gk->fk", dA * inside, N)
+    ids, inv = np.unique(faces, return_inverse=True)
+    wn = np.bincount(inv.ravel(), nodal.ravel(), minlength=len(ids))
+    keep = wn > 0
+    return BandWeights(ids[keep], wn[keep] / wn.sum(), float(wn.sum()))
 
 
 @dataclasses.dataclass(frozen=True)
 class OutcomeNodes:
     """The node ids the geometric outcomes read (fixed for one eye mesh).
 
-    Attributes: under, beside: outer scleral nodes under the buckle's central half and
-    1.5-3 mm beside it; apex, pole: corneal apex and outer posterior pole; cornea: the
-    anterior corneal nodes of the fit zone (cornea_zone_mm across); lens_pole: the lens's
-    anterior pole; n_nodes: nodes of the mesh (the displacement block of q).
+    Attributes: under, beside: area weights of the outer scleral nodes over the band under
+    the buckle's central half and over those 1.5-3 mm beside it (:func:`band_area_weights`);
+    apex, pole: corneal apex and outer posterior pole; cornea: the anterior corneal nodes
+    of the fit zone (cornea_zone_mm across); lens_pole: the lens's anterior pole; n_nodes:
+    nodes of the mesh (the displacement block of q).
     """
 
-    under: np.ndarray
-    beside: np.ndarray
+    under: BandWeights
+    beside: BandWeights
     apex: int
     pole: int
     cornea: np.ndarray
@@ -48,14 +98,10 @@ class OutcomeNodes:
 def outcome_nodes(parts: SurgeryParts) -> OutcomeNodes:
     """The outcome node sets of the parts' eye and buckle. The indentation reads the
     buckle's cross-section (encircling: all around; segmental: within 2 mm of the sponge
-    centre); ValueError where the mesh has no scleral node under or beside the buckle."""
-    mesh, b = parts.eye.mesh, parts.buckle
-    a, ok = buckle_coords(parts)
-    nodes = parts.sclera_nodes
-    under = nodes[ok & (np.abs(a) < b.width / 4)]
-    beside = nodes[ok & (np.abs(a) > b.width / 2 + 1.5) & (np.abs(a) < b.width / 2 + 3.0)]
-    if not len(under) or not len(beside):
-        raise ValueError("indentation: no scleral nodes under or beside the buckle; refine the mesh")
+    centre, on its side of the globe); ValueError where the mesh has no scleral face under
+    or beside the buckle."""
+    mesh = parts.eye.mesh
+    under, beside = band_area_weights(parts, False), band_area_weights(parts, True)
     cornea, zone = optics.cornea_zone(mesh)
     return OutcomeNodes(under, beside, int(mesh.node_set("eye/apex")[0]),
                         int(mesh.node_set("eye/pole")[0]), cornea, zone,
@@ -69,8 +115,10 @@ def positions(X, q, ids):
 
 def indentation(X, q, nodes: OutcomeNodes):
     """Buckle indentation height, mm: the mean outer radius of the sclera beside the buckle
-    minus that under its central half."""
-    r = lambda ids: jnp.mean(jnp.linalg.norm(positions(X, q, ids), axis=1))  # noqa: E731
+    minus that under its central half, each mean weighted by area
+    (:func:`band_area_weights`: the bands' edges fall between the nodes, so the outcome
+    does not jump with which nodes a band holds on a given mesh)."""
+    r = lambda bw: jnp.linalg.norm(positions(X, q, bw.ids), axis=1) @ bw.weights  # noqa: E731
     return r(nodes.beside) - r(nodes.under)
 
 

@@ -73,22 +73,29 @@ def snug_node(parts: SurgeryParts, q) -> int:
 def buckle_coords(parts: SurgeryParts):
     """Across (a) and along coordinates (mm) of the outer scleral nodes relative to the
     buckle centre line, and a mask of nodes within the buckle's length."""
+    return buckle_coords_at(parts, parts.eye.mesh.nodes[parts.sclera_nodes])
+
+
+def buckle_coords_at(parts: SurgeryParts, X, half_length: float = 2.0):
+    """The across coordinate a (k,) (mm from the buckle's centre line) of reference points
+    X (k, 3) on the sclera, and a mask (k,) of those within the buckle's length (a
+    segmental buckle: ``half_length`` mm either side of its centre, on the buckle's side
+    of the globe; encircling: all)."""
     eye, b = parts.eye, parts.buckle
     g = eye.geometry
-    X = eye.mesh.nodes[parts.sclera_nodes]
     th = np.arccos(np.clip(X[:, 2] / np.linalg.norm(X, axis=1), -1, 1))
     if b.encircling:
         return g.scleral_radius * (th - b.centre_angle(g)), np.ones(len(X), bool)
     cen, acr, nrm, _ = suture_anchor_frame(b, g, 1)
     v = X - cen[0]
-    return v @ acr[0], np.abs(v @ np.cross(nrm[0], acr[0])) < 2.0
+    # the far side of the globe has small across and along coordinates too: keep the
+    # hemisphere about the buckle's centre (X . n > 0)
+    near = X @ nrm[0] > 0.0
+    return v @ acr[0], near & (np.abs(v @ np.cross(nrm[0], acr[0])) < half_length)
 
 
 def buckle_zone(parts: SurgeryParts):
-    """Mask of the outer scleral nodes under the buckle."""
-    a, ok = buckle_coords(parts)
-    if not parts.buckle.encircling:
-        cen, acr, nrm, _ = suture_anchor_frame(parts.buckle, parts.eye.geometry, 1)
-        v = parts.eye.mesh.nodes[parts.sclera_nodes] - cen[0]
-        ok = np.abs(v @ np.cross(nrm[0], acr[0])) < 5.0
+    """Mask of the outer scleral nodes under the buckle (a segmental one: within 5 mm of
+    its centre along it)."""
+    a, ok = buckle_coords_at(parts, parts.eye.mesh.nodes[parts.sclera_nodes], half_length=5.0)
     return ok & (np.abs(a) < parts.buckle.width / 2)

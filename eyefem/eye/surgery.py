@@ -415,7 +415,7 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=Non
                       f"mm, {b.distance:g} mm behind the limbus")
     full = f"{title}\nstage '{s['stage']}': " + ", ".join(head)
     nodes = outcome_nodes(parts)
-    under, beside = (positions(mesh.nodes, q, ids) for ids in (nodes.under, nodes.beside))
+    under, beside = (positions(mesh.nodes, q, bw.ids) for bw in (nodes.under, nodes.beside))
     e1 = plane_basis(normal)[0]
     near = (section_segments(buckle[0], buckle[1], normal).reshape(-1, 3) if buckle
             else under[np.abs(under @ np.asarray(normal)) < 2.0])  # at the buckle
