@@ -44,11 +44,11 @@ BIOMETRY_FIELDS = [
     Field("sclera_thickness_pole", float, REFERENCE.sclera_pole,
           "scleral thickness at the posterior pole, mm", positive, "> 0", warn=(0.6, 1.5),
           refuse=(0.1, 3.0), unit="mm", slips=(("um", 1e-3),)),
-    Field("limbus_width", float, 0.0,
+    Field("limbus_width", float, 1.5,
           "arc width of the limbus ring (a tissue between cornea and sclera), mm: the wall "
-          "elements whose centroid lies within it; 0: the ring of elements the "
-          "corneoscleral junction passes through, one element wide (narrower on finer "
-          "meshes; docs/convergence.md, 'The limbus ring')",
+          "elements whose centroid lies within it (1.5: the anatomical limbus); 0: the ring "
+          "of elements the corneoscleral junction passes through, one element wide "
+          "(narrower on finer meshes; docs/convergence.md, 'The limbus ring')",
           lambda v: v == 0 or 0.5 <= v <= 3, "0 (one element) or 0.5 to 3 mm"),
 ]
 """Case-file fields of a patient's biometry (the surgery and pressure_volume problems)."""

@@ -92,9 +92,11 @@ class EyeGeometry:
         posterior pole toward +x (15); disc_diameter: optic disc (1.8).
       zonule_area: cross-section per zonule bar, mm^2 (0.01).
       limbus_width: arc width of the limbus ring, mm, centred on the corneoscleral
-        junction: the elements whose centroid lies within it are limbus (a tissue of the
-        same size on every mesh level); None: the elements the junction passes through
-        (one element wide, so the ring narrows as the mesh is refined).
+        junction: the elements whose centroid lies within it are limbus, a tissue of the
+        same size on every mesh level (1.5: the anatomical limbus, a transition zone about
+        1.5 mm wide, Hogan et al. 1971, "Histology of the Human Eye"); None: the elements
+        the junction passes through (one element wide, so the ring narrows as the mesh is
+        refined and the model changes with the mesh).
     """
 
     axial_length: float = 24.0
@@ -117,7 +119,7 @@ class EyeGeometry:
     nerve_angle_deg: float = 15.0
     disc_diameter: float = 1.8
     zonule_area: float = 0.01
-    limbus_width: float | None = None
+    limbus_width: float | None = 1.5
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
