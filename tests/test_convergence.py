@@ -230,11 +230,12 @@ def test_through_thickness_split_keeps_the_tissues():
 
 
 def test_limbus_of_fixed_width_keeps_its_volume_across_levels():
-    """The default limbus is the ring of elements the corneoscleral junction passes
-    through: one element wide, so its volume falls with the element size (a different
-    model on each level). With ``limbus_width`` (mm of arc) it is the elements whose
-    centroid lies within that ring, and its volume stays within 15 % across the levels;
-    the other tissues are assigned as before and the wall's volume is unchanged."""
+    """With ``limbus_width = None`` the limbus is the ring of elements the corneoscleral
+    junction passes through: one element wide, so its volume falls with the element size
+    (a different model on each level). With a width (mm of arc; the default 1.5) it is the
+    elements whose centroid lies within that ring, and its volume stays within 15 % across
+    the levels (the nested ones too); the other tissues are assigned as before and the
+    wall's volume is unchanged."""
     import dataclasses
 
     from eyefem.eye.eyemodel import TISSUES, EyeGeometry, build_eye
@@ -247,11 +248,12 @@ def test_limbus_of_fixed_width_keeps_its_volume_across_levels():
 
     limbus, sclera = TISSUES.index("limbus"), TISSUES.index("sclera")
     ring = {lv: volumes(lv, None) for lv in ("coarse", "medium", "default")}
-    fixed = {lv: volumes(lv, 1.5) for lv in ("coarse", "medium", "default")}
+    fixed = {lv: volumes(lv, 1.5) for lv in ("coarse", "half", "medium", "default")}
+    assert EyeGeometry().limbus_width == 1.5
     assert ring["coarse"][limbus] > 2 * ring["default"][limbus]  # 55 against 23 mm^3
     v = [fixed[lv][limbus] for lv in fixed]
     assert max(v) < 1.15 * min(v), v
-    for lv in fixed:
+    for lv in ring:
         np.testing.assert_allclose(fixed[lv].sum(), ring[lv].sum(), rtol=1e-12)
         assert fixed[lv][sclera] == pytest.approx(ring[lv][sclera], rel=0.02)
     with pytest.raises(ValueError, match="limbus_width = -1"):

@@ -323,11 +323,3 @@ def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> 
     log.info("eye model (%s): %d elements, %d nodes, worst Jacobian ratio %.3f", level,
              q["elements"], q["nodes"], q["worst_jacobian_ratio"])
     return eye_model
-
-
-def axial_length(mesh: Mesh, x) -> float:
-    """Corneal apex to outer posterior pole distance (mm) for current positions x (n, 3)."""
-    return float(np.linalg.norm(x[mesh.node_set("eye/apex")[0]] - x[mesh.node_set("eye/pole")[0]]))
-
-
-

@@ -77,9 +77,10 @@ def corneal_astigmatism_d(x, nodes):
     return 1e3 * (KERATOMETRIC_INDEX - 1.0) * (k1 - k2)
 
 
-def anterior_chamber_depth(x, apex: int, lens_pole: int):
-    """Anterior corneal apex to the lens's anterior pole along the axis (z), mm."""
-    return x[apex, 2] - x[lens_pole, 2]
+def anterior_chamber_depth(apex, lens_pole):
+    """Anterior corneal apex to the lens's anterior pole along the axis (z), mm, from their
+    positions (3,)."""
+    return apex[2] - lens_pole[2]
 
 
 def lens_anterior_pole(mesh) -> int:

@@ -21,6 +21,8 @@ from scipy.spatial import cKDTree
 
 from eyefem.eye import optics
 from eyefem.eye.parts import SurgeryParts, buckle_coords_at
+from eyefem.eye.sutures import ray_face_intersection
+from eyefem.fem.bars import bilinear
 from eyefem.fem.mesh import hex_geometry, quad_shape
 from eyefem.fem.units import KPA, MMHG
 
@@ -75,20 +77,47 @@ def band_area_weights(parts: SurgeryParts, beside: bool,
 
 
 @dataclasses.dataclass(frozen=True)
+class SurfacePoint:
+    """A point of a mesh surface as a fixed combination of node positions: ids (k,) and
+    weights (k,), the bilinear shape functions of the face it lies in at its place."""
+
+    ids: np.ndarray
+    weights: np.ndarray
+
+    def at(self, x):
+        """Its position (3,) for node positions x (n_nodes, 3) (numpy or JAX)."""
+        return self.weights @ x[self.ids]
+
+
+def axis_point(mesh, anterior: bool) -> SurfacePoint:
+    """Where the optical axis (z, through the origin) leaves the eye's outer surface
+    (face set "eye/outer"): the corneal apex (``anterior``) or the outer posterior pole.
+    A node on a mesh with an even number of elements per patch edge; on an odd one the
+    axis crosses a face's middle, and the point interpolates its four nodes."""
+    faces = mesh.face_set("eye/outer")
+    hit = ray_face_intersection(mesh.nodes, faces, np.zeros(3),
+                                np.array([0.0, 0.0, 1.0 if anterior else -1.0]))
+    if hit is None:
+        raise ValueError("eye outcomes: the optical axis misses the eye's outer surface")
+    return SurfacePoint(faces[hit[0]].copy(), np.asarray(bilinear(hit[1]), float))
+
+
+@dataclasses.dataclass(frozen=True)
 class OutcomeNodes:
     """The node ids the geometric outcomes read (fixed for one eye mesh).
 
     Attributes: under, beside: area weights of the outer scleral nodes over the band under
     the buckle's central half and over those 1.5-3 mm beside it (:func:`band_area_weights`);
-    apex, pole: corneal apex and outer posterior pole; cornea: the anterior corneal nodes
+    apex, pole: corneal apex and outer posterior pole on the optical axis
+    (:func:`axis_point`); cornea: the anterior corneal nodes
     of the fit zone (cornea_zone_mm across); lens_pole: the lens's anterior pole; n_nodes:
     nodes of the mesh (the displacement block of q).
     """
 
     under: BandWeights
     beside: BandWeights
-    apex: int
-    pole: int
+    apex: SurfacePoint
+    pole: SurfacePoint
     cornea: np.ndarray
     cornea_zone_mm: float
     lens_pole: int
@@ -103,8 +132,8 @@ def outcome_nodes(parts: SurgeryParts) -> OutcomeNodes:
     mesh = parts.eye.mesh
     under, beside = band_area_weights(parts, False), band_area_weights(parts, True)
     cornea, zone = optics.cornea_zone(mesh)
-    return OutcomeNodes(under, beside, int(mesh.node_set("eye/apex")[0]),
-                        int(mesh.node_set("eye/pole")[0]), cornea, zone,
+    return OutcomeNodes(under, beside, axis_point(mesh, True), axis_point(mesh, False),
+                        cornea, zone,
                         optics.lens_anterior_pole(mesh), int(mesh.n_nodes))
 
 
@@ -125,11 +154,12 @@ def indentation(X, q, nodes: OutcomeNodes):
 def eye_optics(X, q, nodes: OutcomeNodes) -> dict:
     """Axial length (mm), corneal power and astigmatism (D), anterior chamber depth (mm)."""
     x = X + q[: 3 * len(X)].reshape(-1, 3)
-    return {"axial_length_mm": jnp.linalg.norm(x[nodes.apex] - x[nodes.pole]),
+    apex = nodes.apex.at(x)
+    return {"axial_length_mm": jnp.linalg.norm(apex - nodes.pole.at(x)),
             "corneal_power_D": optics.corneal_power_d(x, nodes.cornea),
             "corneal_astigmatism_D": optics.corneal_astigmatism_d(x, nodes.cornea),
-            "anterior_chamber_depth_mm": optics.anterior_chamber_depth(x, nodes.apex,
-                                                                     nodes.lens_pole)}
+            "anterior_chamber_depth_mm": optics.anterior_chamber_depth(apex,
+                                                                     x[nodes.lens_pole])}
 
 
 def changes(now: dict, preop: dict) -> dict:
