@@ -230,21 +230,23 @@ def test_segmental_meridian_and_stage1_material_gradients_match_central_differen
     of the pre-operative eye (cornea c10, zonule E), against central differences.
 
     Newton is held to 1e-10 here: the IOP's derivatives are small remainders of the
-    cavity volume (the meridian's: 5e-6 mm^3 per degree) times K / V = 2600 mmHg/mm^3,
-    and at the default 1e-8 the differences scatter by 1e-4. Even so the IOP's central
-    differences for the two constants (changes of 1e-5..1e-4 mmHg) scatter by 4e-4 and
-    1.3e-3 (measured), so the IOP is held to 2e-3 for them."""
+    cavity volume (the meridian's: 5e-7 mm^3 per degree) times K / V = 2600 mmHg/mm^3.
+    That factor also turns the volume's round-off into steps of the IOP of about 1e-9
+    mmHg, so the IOP's central differences scatter: for the meridian by 1e-6 mmHg/degree
+    at h = 0.0005 to 0.004 degrees (1e-3 of the derivative; the axial length's converge
+    to the adjoint's as h^2 there), for the two constants (changes of 1e-5..1e-4 mmHg) by
+    4e-4 and 1.3e-3 (measured). The IOP is held to 2e-3 for all three, the other
+    outcomes to 1e-4."""
     p = default_parameters(mesh="coarse", buckle="sponge_radial", tightening=2.0,
                            steps_tighten=4, steps_suture=2)
     sim = SurgerySimulator(p, options=TIGHT)
     res = sim.run({"buckle_meridian_deg": 3.0})
     grads = sim.gradients(res)
-    _check_against_fd(sim, res, grads, "buckle_meridian_deg")
-    for var in ("c10_cornea", "zonule_E"):
+    for var in ("buckle_meridian_deg", "c10_cornea", "zonule_E"):
         fd = _fd(sim, res, var, H[var])
         for out in OUTCOMES:
             rel = 2e-3 if out == "iop_mmhg" else 1e-4
-            assert grads[out][var] == pytest.approx(fd[out], rel=rel), (out, var)
+            assert grads[out][var] == pytest.approx(fd[out], rel=rel, abs=1e-7), (out, var)
     # the indentation is measured at the case's buckle position (the break): turning the
     # buckle away from it lowers it
     assert grads["indentation_mm"]["buckle_meridian_deg"] < 0
