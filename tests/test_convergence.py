@@ -166,8 +166,9 @@ def test_study_of_synthetic_runs():
     assert "IOP rise" in table and "GCI of default" in table
 
 
-# recorded by benchmarks/mesh_convergence.py (docs/convergence.md), case 5 (seed materials,
-# bites spread over 1.5 mm patches: 2026-11-27)
+# case 5 (seed materials, bites spread over 1.5 mm patches, the 1.5 mm limbus ring, the
+# indentation weighted by area), recorded by `eyefem compare` (coarse) and
+# benchmarks/mesh_convergence.py (half; docs/convergence.md)
 CASE5_RECORDED = {
     "coarse": {
         "iop_mmhg": 15.101900468623562,
@@ -189,10 +190,11 @@ CASE5_RECORDED = {
 @pytest.mark.slow
 def test_case5_coarse_and_half_reproduce_the_study(tmp_path):
     """Case 5 (radial sponge) at coarse and half through the CLI, against the values of
-    the convergence study (half) and of the coarse comparison (docs/surgery_results.md). Tolerance 1e-5 relative: every step is converged to the
-    solver's tolerance (residual ~1e-10 N), so runs differ by round-off and by the
-    order of floating-point sums only; a change of the model moves these outcomes by
-    far more (coarse -> half: several per cent)."""
+    the convergence study (half) and of the coarse comparison (docs/surgery_results.md).
+    Tolerance 1e-5 relative: every step is converged to the solver's tolerance (residual
+    ~1e-10 N), so runs differ by round-off and by the order of floating-point sums only;
+    a change of the model moves these outcomes by far more (coarse -> half: tens of per
+    cent)."""
     from eyefem.cli.main import main
 
     for level, want in CASE5_RECORDED.items():
