@@ -437,6 +437,35 @@ def test_pardiso_factorisation_kept_for_an_adjoint_survives_pattern_eviction():
 
 
 @pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
+def test_pardiso_patterns_are_held_within_the_memory_budget(monkeypatch):
+    """The patterns' Pardiso instances keep at most PARDISO_MEMORY_FRACTION of the
+    machine's memory: with a budget below two factorisations only the newest pattern
+    keeps its instance, Pardiso's own estimate of its size is recorded, and an older
+    factorisation whose instance was freed still solves (analysed again)."""
+    from eyefem.solve import linsolve
+
+    rng = np.random.default_rng(5)
+
+    def spd(n):
+        A = sp.random(n, n, density=0.05, random_state=rng)
+        return (A @ A.T + n * sp.identity(n)).tocsr()
+
+    A0, A1 = spd(60), spd(61)
+    f0 = linsolve.factorize(A0, "pardiso")
+    kb = f0.entry["kb"]
+    assert kb > 0
+    monkeypatch.setattr(linsolve, "PARDISO_MEMORY_FRACTION",
+                        1.5 * kb / linsolve._physical_memory_kb())
+    f1 = linsolve.factorize(A1, "pardiso")
+    assert f1.key in linsolve._PARDISO_BY_PATTERN
+    assert f0.key not in linsolve._PARDISO_BY_PATTERN and f0.entry["freed"]
+    b = rng.standard_normal(60)
+    assert np.allclose(A0 @ f0.solve(b), b, rtol=1e-10, atol=1e-10)
+    assert np.allclose(A1 @ f1.solve(np.append(b, 1.0)), np.append(b, 1.0), rtol=1e-10,
+                       atol=1e-10)
+
+
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
 def test_a_kept_pardiso_factorisation_is_not_overwritten_by_its_pattern():
     """The stages of a surgery share one sparsity pattern; a factorisation kept for an
     adjoint (``keep``) moves into its own instance: a later factorisation of the same

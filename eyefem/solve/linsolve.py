@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import weakref
 
 import numpy as np
@@ -85,6 +86,31 @@ class _SuperLU:
 
 
 _PARDISO_BY_PATTERN: dict = {}
+
+PARDISO_PATTERNS = 8
+"""At most this many sparsity patterns keep a Pardiso instance (beyond it the oldest is
+freed; :meth:`_Pardiso._analyse`)."""
+
+PARDISO_MEMORY_FRACTION = 0.25
+"""The patterns' Pardiso instances together keep at most this share of the machine's
+physical memory (their factors, as Pardiso estimates them after the symbolic analysis);
+beyond it the oldest are freed. On a large mesh the patterns that contact re-pairing
+makes would otherwise hold several factorisations of gigabytes each."""
+
+
+def _physical_memory_kb() -> float:
+    """The machine's physical memory, KB (inf where the system does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1024.0
+    except (ValueError, OSError, AttributeError):
+        return float("inf")
+
+
+def _free_pattern(key) -> None:
+    """Free the Pardiso instance (symbolic analysis and factors) of a pattern."""
+    old = _PARDISO_BY_PATTERN.pop(key)
+    old["solver"].free_memory(everything=True)
+    old["freed"], old["owner"] = True, None
 
 
 PARDISO_IPARM = {1: 1, 2: 2, 8: 0, 10: 8, 11: 0, 13: 0, 21: 1, 25: 2}
@@ -163,16 +189,22 @@ class _Pardiso:
         self._factorize()
 
     def _analyse(self):
-        """Symbolic analysis of this pattern; evicts the oldest pattern beyond a few
-        (patterns change with contact and suture layouts). An evicted pattern's
-        factorisation kept for an adjoint solve is analysed again when it is used."""
-        if len(_PARDISO_BY_PATTERN) > 8:
-            old = _PARDISO_BY_PATTERN.pop(next(iter(_PARDISO_BY_PATTERN)))
-            old["solver"].free_memory(everything=True)
-            old["freed"], old["owner"] = True, None
+        """Symbolic analysis of this pattern; evicts the oldest patterns beyond
+        PARDISO_PATTERNS or beyond PARDISO_MEMORY_FRACTION of the machine's memory
+        (patterns change with contact and suture layouts). An evicted pattern is
+        analysed again when it is used."""
+        if len(_PARDISO_BY_PATTERN) > PARDISO_PATTERNS:
+            _free_pattern(next(iter(_PARDISO_BY_PATTERN)))
         self._call(self.entry["solver"], 11)
+        iparm = self.entry["solver"].iparm  # KB: permanent symbolic + numeric factors
+        self.entry["kb"] = float(iparm[15]) + float(iparm[16])
         self.entry["freed"] = False
         if not self.entry.get("kept"):
+            _PARDISO_BY_PATTERN.pop(self.key, None)
+            budget = PARDISO_MEMORY_FRACTION * _physical_memory_kb()
+            while _PARDISO_BY_PATTERN and (self.entry["kb"] + sum(
+                    e.get("kb", 0.0) for e in _PARDISO_BY_PATTERN.values()) > budget):
+                _free_pattern(next(iter(_PARDISO_BY_PATTERN)))
             _PARDISO_BY_PATTERN[self.key] = self.entry
 
     def keep(self):
