@@ -171,6 +171,35 @@ def test_plus_low_rank_solves_the_updated_system_on_the_same_factorisation():
                                    rtol=1e-8, atol=1e-10)
 
 
+def test_plus_sparse_solves_the_same_system_as_the_rank_one_terms_on_a_new_factorisation():
+    """Many rank-one terms with few nonzeros each (the contact look-ahead on a large mesh)
+    are added to the sparse tangent after its shift and factorised anew: the solution is
+    that of the Woodbury update with the same terms, and the base's low-rank term stays."""
+    rng, K, B, f, g = _random_saddle_point(6)
+    n, m = B.shape
+    v0 = rng.standard_normal(n)
+    for shift in (0.0, 1e-2):
+        base = SaddlePointSolver(K, B, np.full(m, 100.0), [(3.0, v0)], augmented=False,
+                                 shift=shift)
+        terms, S = [], sp.csr_matrix((n, n))
+        for i in range(0, n - 3, 7):  # sparse columns: 3 entries each
+            v = np.zeros(n)
+            v[i:i + 3] = rng.standard_normal(3)
+            al = float(rng.uniform(0.5, 2.0))
+            terms.append((al, v))
+            S = S + al * sp.csr_matrix(np.outer(v, v))
+        woodbury, sparse = base.plus_low_rank(terms), base.plus_sparse(S)
+        assert woodbury.fact is base.fact and sparse.fact is not base.fact
+        assert len(sparse.low_rank) == 1
+        np.testing.assert_allclose(np.concatenate(sparse.solve(f, g)),
+                                   np.concatenate(woodbury.solve(f, g)), rtol=1e-8, atol=1e-10)
+        twice = sparse.plus_sparse(S)  # adds S again
+        np.testing.assert_allclose(np.concatenate(twice.solve(f, g)),
+                                   np.concatenate(base.plus_low_rank(
+                                       [(2 * al, v) for al, v in terms]).solve(f, g)),
+                                   rtol=1e-8, atol=1e-10)
+
+
 def test_shifted_solve_does_not_depend_on_the_augmentation_strength():
     """A Levenberg-Marquardt shift relative to diag(K) + shift_aug diag(B D B^T): with
     shift_aug = beta_0 / beta the damped step is the same for any augmentation D ~ beta,

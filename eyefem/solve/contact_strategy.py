@@ -15,6 +15,15 @@ from eyefem.solve.records import StepResult, StepStatus
 
 log = logging.getLogger(__name__)
 
+LOOKAHEAD_DENSE_BYTES = 256 * 2**20
+"""The look-ahead adds its nodes' penalty stiffness by a Woodbury update of the step's
+factorisation while the update's dense columns (8 bytes x free dofs x nodes, three
+arrays of them: the columns, their back-solves and the solver's copies) stay below this
+size; above it the stiffness is added to the sparse tangent, which is factorised anew.
+On the finer eye (48,324 hexahedra, 180,000 free dofs) the flat tire's third
+tightening step took thousands of nodes into the look-ahead, and the dense columns
+grew the process by 18 GB until the system killed it."""
+
 UNSETTLED_REPAIRS = 3
 """A step whose state, converged with the contact pairs frozen, changes pairing for the
 third time and leaves below contact_cycle_rtol x the load unbalanced is accepted
@@ -111,7 +120,9 @@ def lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4, end_
     alpha G G^T) and the step is solved again; a node the new step keeps outside
     (g + dg > 0) leaves the set again (a primal-dual active-set update), for at most
     ``rounds`` solves. Each node's stiffness is a rank-one update alpha v v^T (v: G on
-    the free dofs) of the step's factorised ``solver`` (Woodbury: no refactorisation).
+    the free dofs) of the step's factorised ``solver`` (Woodbury: no refactorisation;
+    for more nodes than LOOKAHEAD_DENSE_BYTES allows, a new factorisation of the tangent
+    with their stiffness added).
     With ``end_gap`` the exact gap at the step's end must be below -eps too, which keeps
     out nodes whose linearised gap is meaningless over the step: beyond the edges of an
     encircling buckle the gap grows with the cube of the distance from the edge, and a
@@ -138,17 +149,28 @@ def lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4, end_
         if not changed:
             break
         gx = np.zeros(model.n_dof)
-        terms = []
+        n_nodes = sum(int(np.sum(m)) for m in members.values())
+        sparse = 3 * 8.0 * len(asm.free_primal) * n_nodes > LOOKAHEAD_DENSE_BYTES
+        terms, blocks = [], []
         for t, g, dg, G, _ in lin:
             m = np.nonzero(members[t.name])[0]
             a = t.data["alpha"][m]
             gx += np.bincount(t.dofs[m].ravel(), ((a * g[m])[:, None] * G[m]).ravel(),
                               minlength=model.n_dof)
+            if sparse:  # alpha G G^T per node, on the free dofs
+                blocks.append(asm.coo(t.dofs[m], a[:, None, None] * G[m][:, :, None]
+                                      * G[m][:, None, :]))
+                continue
             for i, al in zip(m, a):
                 v = np.zeros(model.n_dof)
                 v[t.dofs[i]] = G[i]
                 terms.append((al, v[asm.free_primal]))
-        la_solver = solver.plus_low_rank(terms) if terms else solver
+        if sparse:
+            log.debug("  contact look-ahead: %d nodes, added to the tangent and factorised "
+                      "anew", n_nodes)
+            la_solver = solver.plus_sparse(sum(blocks[1:], blocks[0]))
+        else:
+            la_solver = solver.plus_low_rank(terms) if terms else solver
         try:
             x, y = la_solver.solve(-(rf + gx[asm.free_primal]), -rm)
         except NegativeCurvature:  # roundoff of the update on a nearly singular tangent

@@ -283,6 +283,8 @@ class SaddlePointSolver:
       reuse: a solver of the same K, B, D, shift whose factorisation (and low-rank
         solves) this one shares; ``low_rank`` then extends that solver's (see
         ``plus_low_rank``).
+      extra: a sparse symmetric (n, n) term added to the factorised block after the
+        shift (see ``plus_sparse``), or None.
       indefinite: "kkt" solves an indefinite system exactly (direct factorisation of the
         whole saddle point), "raise" raises NegativeCurvature.
       refine: at most this many refinement steps of a solve whose residual exceeds
@@ -305,6 +307,7 @@ class SaddlePointSolver:
     refine_above: float = 1e-7
     shift_aug: float = 1.0
     reuse: "SaddlePointSolver | None" = None
+    extra: sp.spmatrix | None = None
 
     def __post_init__(self):
         if self.reuse is not None:
@@ -319,6 +322,8 @@ class SaddlePointSolver:
             if self.shift:
                 d = K.diagonal() if aug is None else K.diagonal() - (1.0 - self.shift_aug) * aug
                 K = K + self.shift * sp.diags(np.abs(d))
+            if self.extra is not None:
+                K = K + self.extra
             self.K_aug = sp.csr_matrix(K)
             self.fact = factorize(self.K_aug, self.backend)
         if self.low_rank:
@@ -345,6 +350,13 @@ class SaddlePointSolver:
         """This tangent plus further rank-one terms (alpha, v (n,)), on the same
         factorisation (Woodbury: one back-solve per new term, all at once)."""
         return dataclasses.replace(self, low_rank=list(self.low_rank) + list(extra), reuse=self)
+
+    def plus_sparse(self, S: sp.spmatrix) -> "SaddlePointSolver":
+        """This tangent plus a sparse symmetric (n, n) S, factorised anew (for many
+        rank-one terms, whose dense Woodbury columns would not fit in memory); the
+        shift is that of this tangent, and its own low-rank terms stay."""
+        extra = S if self.extra is None else self.extra + S
+        return dataclasses.replace(self, reuse=None, extra=extra)
 
     def _solve_aug(self, b):
         x = self.fact.solve(b)
