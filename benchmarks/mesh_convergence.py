@@ -62,7 +62,8 @@ FORMAL_ORDER = 2.0
 above it, the default level's GCI is also given with this order (Roache's conservative
 choice), whose Richardson extrapolation lies further from the fine level."""
 
-ABBREV = {"coarse": "c", "half": "h", "medium": "m", "default": "D", "fine": "f", "finer": "F"}
+ABBREV = {"coarse": "c", "half": "h", "medium": "m", "default": "D", "fine": "f", "finer": "F",
+          "graded_half": "gh", "graded": "G", "graded_fine": "gf"}
 
 
 # --------------------------------------------------------------------------- running
@@ -220,11 +221,12 @@ def outcome_values(summary: dict) -> dict:
     return {k: float(v) for k, v in out.items() if v is not None}
 
 
-def study_case(runs: dict, levels: list[str]) -> dict:
+def study_case(runs: dict, levels: list[str], candidate: str = "default") -> dict:
     """The study of one case. runs: level -> summary (levels fine to coarse not needed:
     sorted by h here). Returns {"levels", "h", "values": {outcome: [...]}, "triples":
-    {outcome: [ThreeGridStudy dict per consecutive triple]}, "default_gci": {outcome:
-    GCI of the default level against the finest triple's extrapolation}}."""
+    {outcome: [ThreeGridStudy dict per consecutive triple]}, "candidate": the level judged
+    against the bounds, "default_gci": {outcome: GCI of the candidate level against the
+    finest triple's extrapolation}} (the key keeps its name for the JSON's readers)."""
     from eyefem.eye.convergence import relative_gci, three_grid_study
 
     levels = sorted([lv for lv in levels if lv in runs], key=lambda lv: -runs[lv]["n_per_edge"])
@@ -237,17 +239,17 @@ def study_case(runs: dict, levels: list[str]) -> dict:
            "newton_iterations": [runs[lv].get("newton_iterations") for lv in levels],
            "max_rss_GB": [runs[lv].get("max_rss_GB") for lv in levels],
            "values": {k: [vals[lv][k] for lv in levels] for k in keys},
-           "triples": {}, "default_gci": {}, "default_gci_p2": {}}
+           "triples": {}, "candidate": candidate, "default_gci": {}, "default_gci_p2": {}}
     for k in keys:
         trip = []
         for i in range(len(levels) - 2):
             s = three_grid_study(h[i:i + 3], out["values"][k][i:i + 3])
             trip.append({"levels": levels[i:i + 3], **s.as_dict()})
         out["triples"][k] = trip
-        if trip and "default" in levels:
+        if trip and candidate in levels:
             finest = trip[0]
             ext = finest["extrapolated"]
-            v = out["values"][k][levels.index("default")]
+            v = out["values"][k][levels.index(candidate)]
             out["default_gci"][k] = (relative_gci(v, ext) if ext is not None
                                      else None)
             if ext is not None:  # Roache's conservative choice: the order at most 2
@@ -274,6 +276,7 @@ def markdown(study: dict) -> str:
     lines = []
     for case, s in study.items():
         lv = s["levels"]
+        cand = s.get("candidate", "default")
         lines += [f"### {case}", "",
                   "| outcome | " + " | ".join(f"{x} (n={round(1 / h)})" for x, h in
                                               zip(lv, s["h"])) + " |",
@@ -289,7 +292,7 @@ def markdown(study: dict) -> str:
         for t in next(iter(s["triples"].values()), []):
             name = "/".join(ABBREV.get(x, x) for x in t["levels"])
             hdr += [f"{name}: behaviour", "p", "extrapolated", "GCI fine"]
-        hdr += ["GCI of default", "GCI of default, p <= 2", "default - finest", "bound"]
+        hdr += [f"GCI of {cand}", f"GCI of {cand}, p <= 2", f"{cand} - finest", "bound"]
         lines += ["| " + " | ".join(hdr) + " |", "|---|" + "---:|" * (len(hdr) - 1)]
         for k, trips in s["triples"].items():
             row = [OUTCOMES[k][0]]
@@ -302,18 +305,19 @@ def markdown(study: dict) -> str:
             ok = "" if g is None or bound is None else (" ok" if g <= bound else " **over**")
             ok2 = "" if g2 is None or bound is None else (" ok" if g2 <= bound else " **over**")
             vals = s["values"][k]
-            d = (None if "default" not in lv or lv[0] == "default" or vals[0] == 0
-                 else (vals[lv.index("default")] - vals[0]) / abs(vals[0]))
+            d = (None if cand not in lv or lv[0] == cand or vals[0] == 0
+                 else (vals[lv.index(cand)] - vals[0]) / abs(vals[0]))
             diff = "-" if d is None else f"{100 * d:+.2g} %"
             row += [_pct(g) + ok, _pct(g2) + ok2, diff, _pct(bound) if bound else "-"]
             lines.append("| " + " | ".join(row) + " |")
-        legend = ("(levels: c coarse, h half, m medium, D default, f fine, F finer; behaviour of "
+        legend = ("(levels: c coarse, h half, m medium, D default, f fine, F finer, gh "
+                  "graded_half, G graded, gf graded_fine; behaviour of "
                   "each triple, observed order p, Richardson value and GCI_fine of its "
-                  "finest level; (!): p outside 0.5..4 or the extrapolation changes sign; "
-                  "'GCI of default': Fs |phi_ext - phi_default| / |phi_default| against "
+                  f"finest level; (!): p outside 0.5..4 or the extrapolation changes sign; "
+                  f"'GCI of {cand}': Fs |phi_ext - phi_{cand}| / |phi_{cand}| against "
                   "the finest triple's extrapolation; 'p <= 2': the same with that "
-                  "triple's order capped at the elements' formal order 2; 'default - "
-                  "finest': the default level's value relative to the finest level's, a "
+                  f"triple's order capped at the elements' formal order 2; '{cand} - "
+                  f"finest': the {cand} level's value relative to the finest level's, a "
                   "lower bound of its error where no order can be given)")
         lines += ["", textwrap.fill(legend, 92), ""]
     return "\n".join(lines)
@@ -360,7 +364,7 @@ def plot(case: str, s: dict, path: Path, other: dict | None = None, other_label:
     plt.close(fig)
 
 
-def collect(cases, levels, runs: Path) -> dict:
+def collect(cases, levels, runs: Path, candidate: str = "default") -> dict:
     """case -> :func:`study_case` of the runs RUNS/CASE/LEVEL/summary.json there (cases
     with fewer than three levels run are left out, with a warning)."""
     study = {}
@@ -375,7 +379,7 @@ def collect(cases, levels, runs: Path) -> dict:
         if len(found) < 3:
             log.warning("%s: %d level(s) run; a study needs three", case, len(found))
             continue
-        study[case] = study_case(found, levels)
+        study[case] = study_case(found, levels, candidate)
     return study
 
 
@@ -394,6 +398,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", default="case1,case5", help="case names in --case-dir")
     ap.add_argument("--levels", default="coarse,medium,default,fine",
                     help="mesh levels (eyefem.eye.eyemodel.LEVELS), at least three")
+    ap.add_argument("--candidate", default="default",
+                    help="the level judged against the bounds (its GCI against the finest "
+                    "triple's extrapolation; default: default)")
     ap.add_argument("--case-dir", default="cases/surgery")
     ap.add_argument("--runs", default="/tmp/conv", help="run folders RUNS/CASE/LEVEL")
     ap.add_argument("--out", default="/tmp/conv/report", help="where the table and JSON go")
@@ -420,8 +427,8 @@ def main(argv=None) -> int:
                     log.info("outcomes of %s at %s from its checkpoint", case, lv)
                     subprocess.call([sys.executable, __file__, "fill",
                                      str(Path(args.case_dir) / f"{case}.toml"), lv, str(d)])
-    study = collect(cases, levels, runs)
-    other = collect(cases, levels, Path(args.compare)) if args.compare else {}
+    study = collect(cases, levels, runs, args.candidate)
+    other = collect(cases, levels, Path(args.compare), args.candidate) if args.compare else {}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     images = Path(args.images) if args.images else out / "images"

@@ -524,7 +524,9 @@ def main(argv=None) -> int:
                    help="check that every stage ends in a stable equilibrium (the tangent's "
                    "3 eigenvalues nearest zero; summary.json 'stability'): each check costs "
                    "about 5-20 Newton iterations (coarse to medium eye)")
-    p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, half, medium, default, fine, finer)")
+    p.add_argument("--mesh", help="override the case's eye mesh level (coarse, half, medium, "
+                   "default, fine, finer; graded_half, graded, graded_fine: finer toward the "
+                   "band zone; the suffix x2: 8 wall layers)")
     p.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
                    help="tissue constants preset (eyefem.eye.presets): replaces the case's "
                    "materials_preset and its own [materials] tables of the eye's tissues")

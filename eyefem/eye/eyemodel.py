@@ -38,7 +38,8 @@ log = logging.getLogger(__name__)
 TISSUES = ("cornea", "limbus", "sclera", "ciliary_body", "choroid", "retina", "optic_nerve", "lens")
 
 LEVELS = {"coarse": (10, 4), "half": (11, 4), "medium": (14, 4), "default": (22, 6),
-          "fine": (32, 8), "finer": (44, 12)}
+          "fine": (32, 8), "finer": (44, 12),
+          "graded_half": (15, 4), "graded": (30, 8), "graded_fine": (45, 12)}
 """Mesh density levels: (cubed-sphere elements per patch edge, lens elements per edge).
 
 These levels refine in-plane only: each keeps 4 element layers through the wall (retina,
@@ -47,9 +48,45 @@ choroid, two of sclera); "half", "fine" and "finer" serve the mesh convergence s
 elements in-plane (ratio 2), so the wall's nodes of one are nodes of the next. The lens
 needs an even count (its equator holds the zonule's nodes). A level name with the suffix "x2" (``mediumx2``, ``defaultx2``...)
 splits every one of the 4 layers in two (8 through the wall), the same in-plane: the
-through-thickness check of the study (:func:`level_spec`)."""
+through-thickness check of the study (:func:`level_spec`).
+
+The "graded..." levels (GRADED_LEVELS) place their cubed-sphere nodes by the polar-angle map
+:func:`graded_polar_angle`: elements BAND_REFINEMENT times shorter along the meridians in
+the band zone BAND_ZONE_DEG, where encircling buckles sit, longer elsewhere
+(docs/convergence.md, "A mesh graded toward the buckle")."""
 
 THROUGH_SPLIT = "x2"
+
+GRADED_LEVELS = ("graded_half", "graded", "graded_fine")
+"""Levels whose nodes are graded toward the band zone (:func:`graded_polar_angle`)."""
+
+BAND_ZONE_DEG = (55.0, 130.0)
+"""Polar angles (deg from the corneal apex) of the graded levels' refined zone: the buckle
+centre 12 mm (position A, 90 deg) to 15 mm (position B, 105 deg) behind the limbus, with
+its sutures' bites (+-4.5 mm) and the wall's bending beside them."""
+
+BAND_REFINEMENT = 2.2
+"""Ratio of the meridional element length outside the band zone to that inside it."""
+
+BAND_TRANSITION_DEG = 5.0
+"""Width (deg) of the smooth (tanh) transitions of the element density at the zone's edges."""
+
+
+def graded_polar_angle(theta_ref, zone_deg=BAND_ZONE_DEG, refinement=BAND_REFINEMENT,
+                       transition_deg=BAND_TRANSITION_DEG):
+    """Polar angles (n,) rad of nodes at reference polar angles theta_ref (n,) rad.
+
+    The map theta(theta_ref) of [0, pi] onto itself is monotone and smooth, with
+    d theta / d theta_ref proportional to 1 / rho(theta), the element density
+    rho = 1 + (refinement - 1) b(theta), b a smooth box (tanh edges) over the zone: a node
+    spacing even in theta_ref becomes `refinement` times denser inside the zone than
+    outside. Nested reference meshes stay nested."""
+    lo, hi = np.radians(zone_deg)
+    w = np.radians(transition_deg)
+    grid = np.linspace(0.0, np.pi, 20001)
+    rho = 1.0 + (refinement - 1.0) * 0.5 * (np.tanh((grid - lo) / w) - np.tanh((grid - hi) / w))
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (rho[1:] + rho[:-1]) * np.diff(grid))])
+    return np.interp(theta_ref, np.pi * cum / cum[-1], grid)
 
 
 def level_spec(level: str) -> tuple[int, int, int]:
@@ -230,6 +267,10 @@ def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> 
     X = shell.nodes
     r = np.linalg.norm(X, axis=1)
     d = X / r[:, None]
+    if level.removesuffix(THROUGH_SPLIT) in GRADED_LEVELS:
+        th = graded_polar_angle(np.arccos(np.clip(d[:, 2], -1, 1)))
+        ph = np.arctan2(d[:, 1], d[:, 0])
+        d = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], 1)
     level_k = np.rint((r - 1.0) * 4 * split).astype(int)  # 0 (inside) .. 4 split (outside)
     theta = np.arccos(np.clip(d[:, 2], -1, 1))
     ro = g.outer_radius(d)

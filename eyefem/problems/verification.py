@@ -397,3 +397,44 @@ PROBLEMS = {
     "patch_test": (PATCH_FIELDS, patch_test),
     "inflated_shell": (SHELL_FIELDS, inflated_shell),
 }
+
+
+def cantilever_bending_stiffness(element_length: float, layers: int, *, length: float = 8.0,
+                                 thickness: float = 0.4, c10: float = 0.0833) -> dict:
+    """Tip stiffness of a clamped plane-strain strip of Q1P0 hexahedra against beam theory.
+
+    The linear (small-strain) stiffness of the neo-Hookean strip (length x thickness x
+    thickness, mm; one element across, y held on every node: plane strain; the root face
+    clamped; the tip face given a transverse displacement, free to rotate) against
+    Timoshenko's k = 1 / (L^3 / (3 E' I) + L / (kappa G A)) with E' = E / (1 - nu^2) = 8 c10
+    (nu = 1/2), G = 2 c10, kappa = 5/6. Fully integrated trilinear hexahedra carry a
+    parasitic shear in bending that grows with (element_length / thickness)^2 ("shear
+    locking"); the constant pressure of Q1P0 removes volumetric locking, not this.
+
+    Args:
+      element_length: hexahedron length along the strip, mm (length / element_length
+        elements, rounded).
+      layers: elements through the thickness.
+    Returns:
+      {"aspect": element_length / thickness, "ratio": k_FE / k_beam, "k_fe_N_per_mm",
+       "k_beam_N_per_mm"}.
+    """
+    n_x = max(1, int(round(length / element_length)))
+    mesh = generators.box(length, thickness, thickness, n_x, 1, layers, material="wall")
+    model = solid_model(mesh, {"wall": mooney_rivlin("wall", c10, 0.0)})
+    n = model.n_dof
+    K = np.asarray(model.hvp_many(np.zeros(n), np.eye(n), model.theta0()))
+    fixed = np.zeros(n, bool)
+    fixed[node_dofs(mesh.node_set("x0"), "xyz")] = True
+    fixed[node_dofs(mesh.node_set("all"), "y")] = True
+    tip = node_dofs(mesh.node_set("x1"), "z")
+    fixed[tip] = True
+    u = np.zeros(n)
+    u[tip] = 1e-3
+    free = ~fixed
+    u[free] = np.linalg.solve(K[np.ix_(free, free)], -K[np.ix_(free, fixed)] @ u[fixed])
+    k_fe = float((K @ u)[tip].sum() / 1e-3)
+    area, inertia = thickness**2, thickness**4 / 12
+    k_beam = 1.0 / (length**3 / (3 * 8 * c10 * inertia) + length / (5 / 6 * 2 * c10 * area))
+    return {"aspect": length / n_x / thickness, "ratio": k_fe / k_beam, "k_fe_N_per_mm": k_fe,
+            "k_beam_N_per_mm": k_beam}
