@@ -313,7 +313,7 @@ def markdown(study: dict) -> str:
         legend = ("(levels: c coarse, h half, m medium, D default, f fine, F finer, gh "
                   "graded_half, G graded, gf graded_fine; behaviour of "
                   "each triple, observed order p, Richardson value and GCI_fine of its "
-                  f"finest level; (!): p outside 0.5..4 or the extrapolation changes sign; "
+                  "finest level; (!): p outside 0.5..4 or the extrapolation changes sign; "
                   f"'GCI of {cand}': Fs |phi_ext - phi_{cand}| / |phi_{cand}| against "
                   "the finest triple's extrapolation; 'p <= 2': the same with that "
                   f"triple's order capped at the elements' formal order 2; '{cand} - "
