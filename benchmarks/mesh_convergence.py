@@ -383,11 +383,63 @@ def collect(cases, levels, runs: Path, candidate: str = "default") -> dict:
     return study
 
 
+def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Path,
+           out: Path) -> dict:
+    """Write the study record that runs quote their mesh error from
+    (eyefem.eye.mesh_error.STUDY_FILE): the outcome values of RUNS/CASE/LEVEL/summary.json
+    for the levels of ``families`` (each three levels, fine first)."""
+    from eyefem.catalog import schemas
+    from eyefem.eye.buckles import Buckle
+    from eyefem.io.casefile import load_case
+
+    record = {"source": "docs/convergence.md; python benchmarks/mesh_convergence.py export "
+              f"--cases {','.join(cases)} --families "
+              f"'{';'.join(','.join(f) for f in families)}'",
+              "materials": "seed", "families": families, "cases": {}}
+    for case in cases:
+        params = load_case(case_dir / f"{case}.toml", schemas()).parameters
+        levels = {}
+        for lv in sorted({lv for f in families for lv in f}):
+            f = runs / case / lv / "summary.json"
+            if not f.exists():
+                log.warning("%s: no run at %s (%s missing); left out", case, lv, f)
+                continue
+            summary = json.loads(f.read_text())
+            if summary.get("unbalanced_steps", {}).get("count", 0):
+                raise SystemExit(f"{f}: the run accepted unbalanced steps; its outcomes are "
+                                 "not equilibrium values: run it again")
+            levels[lv] = {"n_per_edge": summary["n_per_edge"],
+                          "elements": summary.get("elements"),
+                          "values": outcome_values(summary)}
+        record["cases"][case] = {"buckle": params["buckle"],
+                                 "encircling": Buckle(params["buckle"]).encircling,
+                                 "tightening_mm": params.get("tightening"),
+                                 "levels": levels}
+    out.write_text(json.dumps(record, indent=1) + "\n")
+    log.info("wrote %s", out)
+    return record
+
+
 def main(argv=None) -> int:
     if argv is None:
         argv = sys.argv[1:]
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s",
                         datefmt="%H:%M:%S")
+    if argv and argv[0] == "export":
+        ap = argparse.ArgumentParser(prog="mesh_convergence.py export",
+                                     description="write the study record runs quote their "
+                                     "mesh error from (eyefem/eye/mesh_study.json)")
+        ap.add_argument("--cases", default="case1,case4,case5")
+        ap.add_argument("--families", default="finer,default,half;"
+                        "graded_fine,graded,graded_half",
+                        help="level triples, fine first, separated by ';'")
+        ap.add_argument("--case-dir", default="cases/surgery")
+        ap.add_argument("--runs", required=True, help="run folders RUNS/CASE/LEVEL")
+        ap.add_argument("--out", default="eyefem/eye/mesh_study.json")
+        a = ap.parse_args(argv[1:])
+        export(Path(a.runs), a.cases.split(","), [f.split(",") for f in a.families.split(";")],
+               Path(a.case_dir), Path(a.out))
+        return 0
     if argv and argv[0] in ("run-one", "fill"):
         case_path, level, out = argv[1:4]
         if argv[0] == "run-one":

@@ -325,3 +325,21 @@ def test_q1p0_strip_in_bending_against_beam_theory():
     assert default["ratio"] == pytest.approx(1.8963, rel=5e-3)
     half = cantilever_bending_stiffness(1.6, 2)
     assert half["ratio"] == pytest.approx(5.0656, rel=5e-3)
+
+
+def test_graded_family_levels_name_their_elements_per_edge():
+    """'graded<N>' levels: N elements per patch edge graded like the named graded levels
+    (graded30 is the level 'graded', node for node), an even lens count, the suffix 'x2',
+    and a clear error outside 12..64."""
+    from eyefem.eye.eyemodel import build_eye, is_graded, is_level, level_spec
+
+    assert level_spec("graded30") == level_spec("graded") == (30, 8, 1)
+    assert level_spec("graded36x2") == (36, 10, 2)
+    assert all(level_spec(f"graded{n}")[1] % 2 == 0 for n in range(12, 65))
+    assert is_graded("graded18") and is_graded("graded_half") and not is_graded("default")
+    assert is_level("graded") and not is_level("graded7") and not is_level("gradedx")
+    with pytest.raises(ValueError, match="'graded99': 99 elements per patch edge; choose 12 to 64"):
+        level_spec("graded99")
+    a, b = build_eye(level="graded15"), build_eye(level="graded_half")
+    np.testing.assert_array_equal(a.mesh.nodes, b.mesh.nodes)
+    np.testing.assert_array_equal(a.mesh.hexes, b.mesh.hexes)

@@ -153,8 +153,15 @@ def cmd_run(args) -> int:
         return 4
     print(f"\n{case.title}")
     for k, v in summary.items():
-        if k not in ("case", "title"):
+        if k not in ("case", "title", "mesh_error"):
             print(f"  {k:<32} {v:.6g}" if isinstance(v, float) else f"  {k:<32} {v}")
+    if isinstance(summary.get("mesh_error"), dict):
+        from eyefem.eye.mesh_error import quote_lines
+
+        err = summary["mesh_error"]
+        for line in quote_lines(err) + ([f"  {err['note']}"] if err.get("outcomes")
+                                        and err.get("note") else []):
+            print(f"  {line}")
     print(f"  results in {out}/")
     return 0
 
@@ -525,8 +532,9 @@ def main(argv=None) -> int:
                    "3 eigenvalues nearest zero; summary.json 'stability'): each check costs "
                    "about 5-20 Newton iterations (coarse to medium eye)")
     p.add_argument("--mesh", help="override the case's eye mesh level (coarse, half, medium, "
-                   "default, fine, finer; graded_half, graded, graded_fine: finer toward the "
-                   "band zone; the suffix x2: 8 wall layers)")
+                   "default, fine, finer; graded_half, graded, graded_fine, or graded<N> with N "
+                   "elements per patch edge, 12-64: finer toward the band zone; the suffix "
+                   "x2: 8 wall layers)")
     p.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
                    help="tissue constants preset (eyefem.eye.presets): replaces the case's "
                    "materials_preset and its own [materials] tables of the eye's tissues")

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 
 import numpy as np
 
@@ -60,6 +61,12 @@ THROUGH_SPLIT = "x2"
 GRADED_LEVELS = ("graded_half", "graded", "graded_fine")
 """Levels whose nodes are graded toward the band zone (:func:`graded_polar_angle`)."""
 
+GRADED_FAMILY = re.compile(r"graded(\d+)")
+"""Level names "graded<N>": graded like GRADED_LEVELS, N elements per patch edge."""
+
+GRADED_N_RANGE = (12, 64)
+"""Accepted N of the "graded<N>" levels (64: about 100,000 hexahedra)."""
+
 BAND_ZONE_DEG = (55.0, 130.0)
 """Polar angles (deg from the corneal apex) of the graded levels' refined zone: the buckle
 centre 12 mm (position A, 90 deg) to 15 mm (position B, 105 deg) behind the limbus, with
@@ -89,16 +96,43 @@ def graded_polar_angle(theta_ref, zone_deg=BAND_ZONE_DEG, refinement=BAND_REFINE
     return np.interp(theta_ref, np.pi * cum / cum[-1], grid)
 
 
+def _graded_family_spec(base: str):
+    """(n, lens elements) of a "graded<N>" name, None for other names."""
+    m = GRADED_FAMILY.fullmatch(base)
+    if m is None:
+        return None
+    n = int(m.group(1))
+    lo, hi = GRADED_N_RANGE
+    if not lo <= n <= hi:
+        raise ValueError(f"eye mesh level '{base}': {n} elements per patch edge; choose "
+                         f"{lo} to {hi} (graded36: the default level's elements outside the "
+                         "band zone, 0.32 mm inside it)")
+    # the lens: an even count (its equator holds the zonules), as the named graded levels
+    return n, max(4, 2 * round(n / 7.5))
+
+
 def level_spec(level: str) -> tuple[int, int, int]:
     """(elements per patch edge, lens elements per edge, sub-layers per wall layer) of a
-    mesh level name: a key of LEVELS, or one with the suffix "x2" (8 wall layers)."""
+    mesh level name: a key of LEVELS, "graded<N>" (N elements per patch edge, graded like
+    GRADED_LEVELS), or either with the suffix "x2" (8 wall layers)."""
     base, split = level, 1
-    if level.endswith(THROUGH_SPLIT) and level[:-len(THROUGH_SPLIT)] in LEVELS:
+    if isinstance(level, str) and level.endswith(THROUGH_SPLIT):
         base, split = level[:-len(THROUGH_SPLIT)], 2
+    family = _graded_family_spec(base) if isinstance(base, str) else None
+    if family is not None:
+        return family + (split,)
     if base not in LEVELS:
-        raise ValueError(f"eye mesh level '{level}'; choose one of {sorted(LEVELS)}, or one of "
-                         f"them with the suffix '{THROUGH_SPLIT}' (8 wall layers instead of 4)")
+        raise ValueError(f"eye mesh level '{level}'; choose one of {sorted(LEVELS)}, "
+                         f"'graded<N>' (N elements per patch edge, {GRADED_N_RANGE[0]} to "
+                         f"{GRADED_N_RANGE[1]}, graded toward the band zone), or one of them "
+                         f"with the suffix '{THROUGH_SPLIT}' (8 wall layers instead of 4)")
     return LEVELS[base] + (split,)
+
+
+def is_graded(level: str) -> bool:
+    """True for the levels graded toward the band zone (GRADED_LEVELS, "graded<N>")."""
+    base = level.removesuffix(THROUGH_SPLIT)
+    return base in GRADED_LEVELS or GRADED_FAMILY.fullmatch(base) is not None
 
 
 def is_level(level) -> bool:
@@ -259,15 +293,15 @@ class EyeModel:
 
 
 def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> EyeModel:
-    """Mesh the eye at a density level (a key of LEVELS: "coarse" .. "finer", or one of them
-    with the suffix "x2": 8 wall layers instead of 4; :func:`level_spec`)."""
+    """Mesh the eye at a density level (a key of LEVELS: "coarse" .. "finer", "graded<N>", or
+    one of them with the suffix "x2": 8 wall layers instead of 4; :func:`level_spec`)."""
     g = geometry
     n, n_lens, split = level_spec(level)
     shell = spherical_shell(1.0, 1.0, n, 4 * split)
     X = shell.nodes
     r = np.linalg.norm(X, axis=1)
     d = X / r[:, None]
-    if level.removesuffix(THROUGH_SPLIT) in GRADED_LEVELS:
+    if is_graded(level):
         th = graded_polar_angle(np.arccos(np.clip(d[:, 2], -1, 1)))
         ph = np.arctan2(d[:, 1], d[:, 0])
         d = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], 1)

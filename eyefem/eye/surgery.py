@@ -30,6 +30,7 @@ from eyefem.eye.bodies import BASE_TERMS, LoadPath, buckle_body
 from eyefem.eye.buckle_meshes import BAND_C10, RING_KINDS, SPONGE_C10, TIRE_C10
 from eyefem.eye.buckles import KINDS, Buckle, suture_anchor_frame
 from eyefem.eye.eyemodel import LEVELS, build_eye, is_level
+from eyefem.eye.mesh_error import mesh_error
 from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import PRESETS, SEED_MATERIALS, with_overrides
@@ -58,9 +59,10 @@ TIGHTENINGS = ("pulled_ends", "shortened_loop")
 """How a deformable band or tire is tightened (eyefem.eye.band)."""
 
 SURGERY_FIELDS = [
-    Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)} (the suffix 'x2', "
+    Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)}, or graded<N> (N "
+          "elements per patch edge, 12-64, graded toward the band zone); the suffix 'x2' ("
           "e.g. 'defaultx2': 8 wall layers instead of 4)", is_level,
-          f"one of {list(LEVELS)}, or one with the suffix 'x2'"),
+          f"one of {list(LEVELS)}, graded<N> (N 12-64), or one with the suffix 'x2'"),
     Field("buckle", str, "tire_flat", f"buckle kind: {', '.join(KINDS)}", lambda v: v in KINDS,
           f"one of {list(KINDS)}"),
     Field("buckle_body", str, "rigid", "'rigid' (exact analytic surface, radial motion) or "
@@ -206,6 +208,7 @@ def surgery(p, materials):
                     "buckle_body": p.get("buckle_body", "rigid")})
         if rows:
             out.update({k: rows[-1][k] for k in body.summary_outcomes})
+        out["mesh_error"] = run_mesh_error(p, parts.buckle.encircling, out)
         warn_high_iop(out["iop_mmhg"]) or warn_low_iop(out["iop_mmhg"])
         if parts.buckle.encircling and len(summary) > 1:
             warn_broken_symmetry(final["corneal_astigmatism_D"]
@@ -213,6 +216,22 @@ def surgery(p, materials):
         return out
 
     return Setup("surgery", model, body.stages(parts, path), probe, finish, parts=parts)
+
+
+def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
+    """summary.json's "mesh_error": the mesh study's error estimates at the run's level
+    (eyefem.eye.mesh_error), with the run's own values for the errors in units."""
+    values = {**out, "iop_rise_mmhg": out["iop_mmhg"] - p["iop_mmhg"]}
+    err = mesh_error(p["mesh"], encircling, values)
+    preset = p.get("materials_preset", "seed")
+    if preset != err["materials"]:
+        err["note"] = (err["note"] + " " if err["note"] else "") + (
+            f"The study used the {err['materials']} materials; this run uses the {preset} "
+            "preset, so the figures are those of the studied cases, not of this run.")
+    if p.get("buckle_body", "rigid") != "rigid":
+        err["note"] = (err["note"] + " " if err["note"] else "") + (
+            "The study used rigid buckles; this run's buckle is deformable.")
+    return err
 
 
 def warn_high_iop(iop_mmhg: float) -> bool:

@@ -41,9 +41,10 @@ PALLIKARIS_K = 0.0126
 """Ocular rigidity of living human eyes, 1/uL, in P = P0 exp(K dV) (Pallikaris et al. 2005)."""
 
 PV_FIELDS = [
-    Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)} (the suffix 'x2', "
+    Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)}, or graded<N> (N "
+          "elements per patch edge, 12-64, graded toward the band zone); the suffix 'x2' ("
           "e.g. 'defaultx2': 8 wall layers instead of 4)", is_level,
-          f"one of {list(LEVELS)}, or one with the suffix 'x2'"),
+          f"one of {list(LEVELS)}, graded<N> (N 12-64), or one with the suffix 'x2'"),
     Field("materials_preset", str, "physiological", f"tissue constants: {', '.join(PRESETS)} "
           "(eyefem.eye.presets; [materials] tables override single tissues)",
           lambda v: v in PRESETS, f"one of {list(PRESETS)}"),

@@ -1,0 +1,143 @@
+"""The mesh error a surgical run quotes beside its outcomes, from the mesh study.
+
+The mesh study (docs/convergence.md) ran cases 1, 4 and 5 on families of three nested or
+graded levels; its outcome values are in ``mesh_study.json`` beside this module (written by
+``python benchmarks/mesh_convergence.py export``). For a run on one of those levels, each
+outcome's error is estimated from the studied cases of the same kind of buckle (encircling:
+cases 1 and 4; segmental: case 5), case by case:
+
+- ``gci``: the three levels converge monotonically with an observed order in 0.5..4; the
+  level's GCI against the Richardson extrapolation (Fs = 1.25, relative);
+- ``from_finest``: they do not (oscillatory, divergent or an order outside 0.5..4); the
+  relative difference from the family's finest level, which the error is not known to be
+  below (a lower estimate, not a bound);
+- ``not_estimated``: the level is the finest of a family that does not converge
+  monotonically, or is in no family (coarse, medium, fine, graded<N> not studied).
+
+The study used the seed's tissue constants and the case files' other parameters: for other
+materials, tightenings or positions the figures say what the mesh did on the studied cases,
+not on this run. Pure numpy; the file is read once per call (it is small).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from functools import lru_cache
+from pathlib import Path
+
+from eyefem.eye.convergence import MONOTONE, relative_gci, three_grid_study
+
+STUDY_FILE = Path(__file__).with_name("mesh_study.json")
+"""The mesh study's outcome values per case and level (JSON, no code)."""
+
+QUOTED = {  # summary key -> (label, unit)
+    "iop_rise_mmhg": ("IOP rise", "mmHg"),
+    "indentation_mm": ("indentation", "mm"),
+    "axial_length_change_mm": ("axial length change", "mm"),
+    "refraction_change_D": ("refraction change", "D"),
+    "max_suture_force_N": ("largest suture force", "N"),
+    "scleral_stress_kPa": ("scleral stress", "kPa"),
+}
+"""The outcomes a run quotes a mesh error for (the bounded ones of issue 29 and the stress)."""
+
+GCI, FROM_FINEST, NOT_ESTIMATED = "gci", "from_finest", "not_estimated"
+
+
+@lru_cache(maxsize=4)
+def load_study(path: str | None = None) -> dict:
+    """The study record: {"materials", "families": [[fine, mid, coarse], ...], "cases":
+    {case: {"encircling": bool, "levels": {level: {"n_per_edge", "elements", "values":
+    {outcome: value}}}}}}."""
+    p = Path(path) if path else STUDY_FILE
+    try:
+        study = json.loads(p.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"mesh study record {p}: cannot read it ({exc}); reinstall eyefem, "
+                         "or write it with 'python benchmarks/mesh_convergence.py export'") \
+            from exc
+    for key in ("families", "cases"):
+        if key not in study:
+            raise ValueError(f"mesh study record {p}: no '{key}'; write it with "
+                             "'python benchmarks/mesh_convergence.py export'")
+    return study
+
+
+def case_estimate(levels: dict, family: list[str], level: str, outcome: str) -> dict:
+    """The error estimate of one outcome at ``level`` from one case's runs of one family.
+
+    Args: levels: level -> {"n_per_edge", "values"}; family: three level names, fine first.
+    Returns: {"kind", "relative" (or None), "behaviour", "p" (or None)}."""
+    vals = [levels[lv]["values"].get(outcome) for lv in family]
+    if any(v is None or not math.isfinite(v) for v in vals):
+        return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": "not run", "p": None}
+    h = [1.0 / levels[lv]["n_per_edge"] for lv in family]
+    s = three_grid_study(h, vals)
+    phi = vals[family.index(level)]
+    p = s.p if math.isfinite(s.p) else None
+    if s.behaviour == MONOTONE and not s.note:
+        return {"kind": GCI, "relative": relative_gci(phi, s.extrapolated),
+                "behaviour": s.behaviour, "p": p}
+    if level != family[0] and vals[0] != 0:
+        return {"kind": FROM_FINEST, "relative": abs(phi - vals[0]) / abs(vals[0]),
+                "behaviour": s.behaviour, "p": p}
+    return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": s.behaviour, "p": p}
+
+
+def mesh_error(level: str, encircling: bool, values: dict | None = None,
+               study: dict | None = None) -> dict:
+    """The mesh error of a run's outcomes at ``level`` (for summary.json's "mesh_error").
+
+    Args: level: the run's eye mesh level; encircling: its buckle encircles the globe;
+      values: the run's outcomes (keys of QUOTED), for the errors in their units.
+    Returns: {"level", "materials", "cases": [studied cases used], "family": [levels] or
+    None, "outcomes": {outcome: {case: case_estimate + "absolute" (the run's value times
+    the relative error, in the outcome's unit; None without it)}}, "note"}."""
+    study = study or load_study()
+    kind = "encircling" if encircling else "segmental"
+    cases = {c: rec for c, rec in sorted(study["cases"].items())
+             if bool(rec.get("encircling")) == bool(encircling)}
+    out = {"level": level, "materials": study.get("materials", "seed"), "cases": list(cases),
+           "family": None, "outcomes": {}, "note": ""}
+    families = [f for f in study["families"] if level in f]
+    usable = {c: rec for c, rec in cases.items()
+              if families and all(lv in rec["levels"] for lv in families[0])}
+    if not usable:
+        out["note"] = (f"no studied {kind} case ran level '{level}' in a family of three; "
+                       "its mesh error is not estimated (docs/convergence.md)")
+        return out
+    family = families[0]
+    out["family"] = family
+    out["cases"] = list(usable)
+    values = values or {}
+    for k in QUOTED:
+        out["outcomes"][k] = {}
+        for c, rec in usable.items():
+            e = case_estimate(rec["levels"], family, level, k)
+            v = values.get(k)
+            e["absolute"] = (abs(v) * e["relative"] if e["relative"] is not None
+                             and isinstance(v, (int, float)) else None)
+            out["outcomes"][k][c] = e
+    return out
+
+
+def quote_lines(err: dict) -> list[str]:
+    """Lines that quote the mesh error of :func:`mesh_error` (for the terminal)."""
+    if not err.get("outcomes"):
+        return [f"mesh error: {err.get('note', 'not estimated')}"]
+    head = (f"mesh error of level '{err['level']}' (study of {', '.join(err['cases'])} on "
+            f"{'/'.join(err['family'])}, {err['materials']} materials; docs/convergence.md):")
+    lines = [head]
+    for k, per_case in err["outcomes"].items():
+        label, unit = QUOTED[k]
+        parts = []
+        for case, e in per_case.items():
+            if e["relative"] is None:
+                parts.append(f"{case} not estimated ({e['behaviour']})")
+                continue
+            pct = 100 * e["relative"]
+            absolute = f", {e['absolute']:.2g} {unit}" if e["absolute"] is not None else ""
+            what = "GCI" if e["kind"] == GCI else f"from {err['family'][0]}, {e['behaviour']}"
+            parts.append(f"{case} {pct:.1f} %{absolute} ({what})")
+        lines.append(f"  {label:<22} " + "; ".join(parts))
+    return lines

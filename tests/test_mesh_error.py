@@ -1,0 +1,111 @@
+"""The mesh error a surgical run quotes (eyefem.eye.mesh_error) and its study record."""
+
+import json
+
+import pytest
+
+from eyefem.eye.convergence import SAFETY_FACTOR
+from eyefem.eye.eyemodel import is_level
+from eyefem.eye.mesh_error import (FROM_FINEST, GCI, NOT_ESTIMATED, QUOTED, load_study,
+                                   mesh_error, quote_lines)
+from eyefem.eye.surgery import run_mesh_error
+
+FAMILY = ["finer", "default", "half"]
+N = {"finer": 44, "default": 22, "half": 11}
+
+
+def _study(values_by_level, encircling=True):
+    """A one-case study record with the outcome values given per level."""
+    return {"materials": "seed", "families": [FAMILY],
+            "cases": {"caseX": {"encircling": encircling, "levels": {
+                lv: {"n_per_edge": N[lv], "values": vals}
+                for lv, vals in values_by_level.items()}}}}
+
+
+def test_monotone_family_gives_the_gci_against_the_exact_extrapolation():
+    # phi = f0 + C h^p, h = 1/n: Richardson recovers f0 exactly, so the GCI of each level
+    # is Fs |f0 - phi| / |phi|
+    f0, c, p = 12.0, -40.0, 1.5
+    vals = {lv: {"iop_rise_mmhg": f0 + c * (1.0 / N[lv]) ** p} for lv in FAMILY}
+    study = _study(vals)
+    for lv in FAMILY:
+        e = mesh_error(lv, True, {"iop_rise_mmhg": 11.0}, study)["outcomes"]["iop_rise_mmhg"]
+        phi = vals[lv]["iop_rise_mmhg"]
+        assert e["caseX"]["kind"] == GCI
+        assert e["caseX"]["p"] == pytest.approx(p, rel=1e-9)
+        assert e["caseX"]["relative"] == pytest.approx(SAFETY_FACTOR * abs(f0 - phi) / abs(phi),
+                                                       rel=1e-9)
+        assert e["caseX"]["absolute"] == pytest.approx(11.0 * e["caseX"]["relative"])
+
+
+def test_oscillating_family_gives_the_difference_from_the_finest_level_only():
+    vals = {"finer": {"indentation_mm": 1.00}, "default": {"indentation_mm": 0.95},
+            "half": {"indentation_mm": 0.99}}
+    study = _study(vals)
+    e = mesh_error("default", True, None, study)["outcomes"]["indentation_mm"]["caseX"]
+    assert (e["kind"], e["behaviour"]) == (FROM_FINEST, "oscillatory")
+    assert e["relative"] == pytest.approx(0.05)
+    assert e["absolute"] is None  # no run values given
+    finest = mesh_error("finer", True, None, study)["outcomes"]["indentation_mm"]["caseX"]
+    assert finest["kind"] == NOT_ESTIMATED and finest["relative"] is None
+    # an outcome the study did not record is not estimated, not zero
+    assert mesh_error("default", True, None, study)["outcomes"]["scleral_stress_kPa"][
+        "caseX"]["kind"] == NOT_ESTIMATED
+
+
+def test_levels_and_buckles_outside_the_study_are_not_estimated():
+    study = _study({lv: {"iop_rise_mmhg": 1.0 + N[lv]} for lv in FAMILY}, encircling=True)
+    for level, encircling in (("coarse", True), ("default", False)):
+        err = mesh_error(level, encircling, None, study)
+        assert err["outcomes"] == {} and "not estimated" in err["note"]
+        assert quote_lines(err) == [f"mesh error: {err['note']}"]
+
+
+def test_shipped_record_matches_the_convergence_page():
+    study = load_study()
+    for family in study["families"]:
+        assert len(family) == 3 and all(is_level(lv) for lv in family)
+    assert set(study["cases"]) == {"case1", "case4", "case5"}
+    assert [c for c, r in study["cases"].items() if not r["encircling"]] == ["case5"]
+    # docs/convergence.md, "Honest statement": case 4's default GCI 7.8 % (IOP rise), 15 %
+    # (axial length change), 3.0 % (indentation); case 5's IOP rise 12 %, indentation 4.1 %;
+    # case 1 default at least 5 % (IOP rise) and 8.8 % (axial length) from the finer level
+    enc = mesh_error("default", True)["outcomes"]
+    assert enc["iop_rise_mmhg"]["case4"]["relative"] == pytest.approx(0.078, abs=5e-4)
+    assert enc["axial_length_change_mm"]["case4"]["relative"] == pytest.approx(0.146, abs=5e-4)
+    assert enc["indentation_mm"]["case4"]["relative"] == pytest.approx(0.030, abs=5e-4)
+    assert enc["iop_rise_mmhg"]["case1"]["kind"] == FROM_FINEST
+    assert enc["iop_rise_mmhg"]["case1"]["relative"] == pytest.approx(0.050, abs=5e-4)
+    assert enc["axial_length_change_mm"]["case1"]["relative"] == pytest.approx(0.088, abs=5e-4)
+    seg = mesh_error("default", False)["outcomes"]
+    assert seg["iop_rise_mmhg"]["case5"]["relative"] == pytest.approx(0.124, abs=5e-4)
+    assert seg["indentation_mm"]["case5"]["relative"] == pytest.approx(0.041, abs=5e-4)
+    assert set(enc) == set(QUOTED)
+
+
+def test_run_record_says_when_the_run_is_not_like_the_study():
+    out = {"iop_mmhg": 27.0, "indentation_mm": 0.95, "axial_length_change_mm": 1.1,
+           "refraction_change_D": -2.5, "max_suture_force_N": 0.09, "scleral_stress_kPa": 56.0}
+    p = {"mesh": "default", "iop_mmhg": 15.0, "materials_preset": "seed"}
+    err = run_mesh_error(p, True, out)
+    assert err["note"] == ""
+    rise = err["outcomes"]["iop_rise_mmhg"]["case4"]
+    assert rise["absolute"] == pytest.approx(12.0 * rise["relative"])
+    lines = quote_lines(err)
+    assert lines[0].startswith("mesh error of level 'default' (study of case1, case4")
+    assert any(line.lstrip().startswith("IOP rise") and "case4 7.8 %, 0.93 mmHg (GCI)" in line
+               for line in lines)
+    json.dumps(err)  # summary.json takes it as it is
+    other = run_mesh_error({**p, "materials_preset": "physiological", "buckle_body": "ring"},
+                           True, out)
+    assert "physiological" in other["note"] and "deformable" in other["note"]
+
+
+def test_unreadable_record_names_the_file(tmp_path):
+    bad = tmp_path / "study.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match="study.json: cannot read it"):
+        load_study(str(bad))
+    bad.write_text(json.dumps({"cases": {}}))
+    with pytest.raises(ValueError, match="no 'families'"):
+        load_study(str(bad))
