@@ -55,3 +55,31 @@ def test_equibiaxial_closed_form_from_hand_stress(terms):
         w1, w2 = invariant_derivatives(2 * lam**2 + lam**-4, lam**4 + 2 * lam**-2, mat.coeffs)
         assert sig[0, 0] - sig[2, 2] == pytest.approx(
             2 * (lam**2 - lam**-4) * (w1 + lam**2 * w2), rel=1e-12)
+
+
+def test_q1p0_kernel_in_chunks_equals_the_kernel_at_once(monkeypatch):
+    """The Q1P0 tangent kernel evaluated over chunks of elements in turn (KERNEL_CHUNK,
+    eyefem.fem.solid.chunked; padded last chunk) gives the blocks of the whole at once,
+    element by element, to round-off."""
+    import jax
+
+    from eyefem.fem import solid
+    from eyefem.fem.generators import box
+
+    jax.config.update("jax_enable_x64", True)
+    mesh = box(2.0, 1.0, 1.0, 5, 3, 3)  # 45 elements: chunks of 7 leave 4 padded
+    coeffs = MooneyRivlin.from_terms("default", {"c10": 0.1, "c01": 0.02}).coeffs[None]
+    term = solid.SolidQ1P0("solid", mesh, coeffs, multiplier_offset=3 * mesh.n_nodes)
+    rng = np.random.default_rng(0)
+    q = np.concatenate([0.05 * rng.standard_normal(3 * mesh.n_nodes),
+                        0.01 * rng.standard_normal(mesh.n_elem)])
+    backend = jax.default_backend()
+    monkeypatch.setitem(solid.KERNEL_CHUNK, backend, None)
+    whole = jax.jit(term.grad_hess_condensed)(q, term.params, term.data, term.dofs, 1e4)
+    monkeypatch.setitem(solid.KERNEL_CHUNK, backend, 7)
+    parts = jax.jit(term.grad_hess_condensed)(q, term.params, term.data, term.dofs, 1e4)
+    assert len(parts) == len(whole) == 4
+    for a, b in zip(parts, whole):
+        assert a.shape == b.shape and a.shape[0] == mesh.n_elem
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12,
+                                   atol=1e-14 * float(np.abs(np.asarray(b)).max()))

@@ -45,6 +45,8 @@ class ShortenedLoopSolid(SolidQ1P0):
 
     loop_nodes: np.ndarray | None = None
 
+    chunked_kernel = False  # data also holds the loop's own arrays (loop_el, loop_X)
+
     def __post_init__(self):
         super().__post_init__()
         if self.loop_nodes is None:

@@ -59,6 +59,32 @@ def invariant_energy(inv, lam, coeffs):
     return strain_energy(J ** (-2.0 / 3.0) * i1, J ** (-4.0 / 3.0) * i2, coeffs) + 2.0 * lam * (J - 1.0)
 
 
+KERNEL_CHUNK = {"cpu": 1000}
+"""Elements per chunk of the Q1P0 tangent kernel, per JAX backend (absent: one chunk). On
+the CPU the kernel's intermediates (per Gauss point: 8 x 24 x 24 and the like) of 12,000
+elements at once took about 300 MB more at the peak than chunks of 1,000 evaluated in turn
+(``jax.lax.map``), in no more time (docs/performance.md, "Where the memory goes")."""
+
+
+def chunked(fn, data, dofs, chunk: int | None):
+    """``fn(data, dofs)`` evaluated over chunks of ``chunk`` items in turn (jax.lax.map),
+    the outputs concatenated: the same values with the intermediates of one chunk alive at
+    a time. data: arrays with the items on their first axis; dofs (n, k). The last chunk is
+    padded by repeating the last item (its results are dropped)."""
+    n = dofs.shape[0]
+    if not chunk or n <= chunk:
+        return fn(data, dofs)
+    m = -(-n // chunk)
+    pad = m * chunk - n
+
+    def split(a):
+        a = jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) if pad else a
+        return a.reshape((m, chunk) + a.shape[1:])
+
+    out = jax.lax.map(lambda xs: fn(*xs), (jax.tree_util.tree_map(split, data), split(dofs)))
+    return jax.tree_util.tree_map(lambda a: a.reshape((m * chunk,) + a.shape[2:])[:n], out)
+
+
 _inv_grad_hess = jax.vmap(jax.vmap(
     lambda inv, lam, c: (jax.grad(invariant_energy)(inv, lam, c),
                          jax.hessian(invariant_energy)(inv, lam, c)), (0, None, None)), (0, 0, 0))
@@ -82,6 +108,7 @@ class SolidQ1P0(Term):
     multiplier_offset: int
     elements: np.ndarray | None = None
     multiplier_slots = (24,)
+    chunked_kernel = True  # data holds per-element arrays only (see :func:`chunked`)
 
     def __post_init__(self):
         m = self.mesh
@@ -113,8 +140,11 @@ class SolidQ1P0(Term):
         return jnp.concatenate([gu, gl[:, None]], axis=1), H
 
     def grad_hess_condensed(self, q, params, data, dofs, beta):
-        gu, gl, kuu, kul = self._blocks(q[dofs], params, data)
-        return (jnp.concatenate([gu, gl[:, None]], axis=1),) + condense(kuu, kul, beta)
+        def one(data, dofs):
+            gu, gl, kuu, kul = self._blocks(q[dofs], params, data)
+            return (jnp.concatenate([gu, gl[:, None]], axis=1),) + condense(kuu, kul, beta)
+        chunk = KERNEL_CHUNK.get(jax.default_backend()) if self.chunked_kernel else None
+        return chunked(one, data, dofs, chunk)
 
     def _blocks(self, q_loc, params, data):
         """Blocks g_u (n, 24), g_lambda (n,), K_uu (n, 24, 24), K_ulambda (n, 24).

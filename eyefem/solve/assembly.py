@@ -28,7 +28,6 @@ class _TermPattern:
     prim: np.ndarray  # (k_p,) local positions of primal dofs
     mult: int | None  # local position of the multiplier
     k_slots: np.ndarray  # (n * k_p * k_p,) CSR data slot (nnz: a dropped entry)
-    k_valid: np.ndarray  # indices into the flattened (n, k_p, k_p) block that are kept
     b_slots: np.ndarray | None
     b_valid: np.ndarray | None
 
@@ -72,7 +71,6 @@ class Assembler:
         rows, cols, brow, bcol = [], [], [], []
         pats, offs, boffs = {}, 0, 0
         staged = []
-        t_rows = {}
         for t in model.terms:
             if getattr(t, "dynamic", False):
                 continue
@@ -82,12 +80,14 @@ class Assembler:
                 raise ValueError(f"term '{t.name}': at most one multiplier per item is supported")
             prim = np.array([i for i in range(k) if i not in ms], np.int64)
             rd = self.red[t.dofs[:, prim]]  # (n, kp)
+            if self.n_p < 2 ** 31:  # halves the pattern's temporaries
+                rd = rd.astype(np.int32)
             r = np.repeat(rd, len(prim), axis=1).ravel()
             c = np.tile(rd, (1, len(prim))).ravel()
             valid = np.nonzero((r >= 0) & (c >= 0))[0]
             rows.append(r[valid]); cols.append(c[valid])
-            t_rows[t.name] = r
-            staged.append((t.name, prim, ms[0] if ms else None, valid, offs))
+            staged.append((t.name, prim, ms[0] if ms else None, valid, offs, len(r)))
+            del r, c
             offs += len(valid)
             if ms:
                 bc = np.repeat(self.mred[t.dofs[:, ms[0]]], len(prim))
@@ -98,6 +98,7 @@ class Assembler:
                 boffs += len(bvalid)
         if rows:
             self.indptr, self.indices, inv = _pattern(np.concatenate(rows), np.concatenate(cols), self.n_p)
+            del rows, cols
         else:
             self.indptr, self.indices, inv = np.zeros(self.n_p + 1, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
         if brow:
@@ -108,14 +109,14 @@ class Assembler:
             binv = np.empty_like(order)
             binv[order] = np.arange(len(order))
         self.patterns: dict[str, _TermPattern] = {}
-        for name, prim, m, valid, off in staged:
+        for name, prim, m, valid, off, n_entries in staged:
             bs = bv = None
             if name in pats:
                 bv, boff = pats[name]
                 bs = binv[boff: boff + len(bv)]
-            slots = np.full(len(t_rows[name]), len(self.indices), np.int64)
+            slots = np.full(n_entries, len(self.indices), np.int64)
             slots[valid] = inv[off: off + len(valid)]
-            self.patterns[name] = _TermPattern(prim, m, slots, valid, bs, bv)
+            self.patterns[name] = _TermPattern(prim, m, slots, bs, bv)
 
     def assemble(self, q, theta, active=None, pressure_stiffness=True, gauss_newton=False,
                  beta=None, model: Model | None = None):
