@@ -81,6 +81,15 @@ def test_shipped_record_matches_the_convergence_page():
     assert seg["iop_rise_mmhg"]["case5"]["relative"] == pytest.approx(0.124, abs=5e-4)
     assert seg["indentation_mm"]["case5"]["relative"] == pytest.approx(0.041, abs=5e-4)
     assert set(enc) == set(QUOTED)
+    # "The graded family": case 1's graded24 within 0.7 % of graded36 in the IOP rise,
+    # whose triple's order (4.6) is outside 0.5..4, so graded36 itself is not estimated;
+    # case 5's largest suture force converges monotonically, at an order (4.2) outside it too
+    g24 = mesh_error("graded24", True)["outcomes"]["iop_rise_mmhg"]["case1"]
+    assert g24["kind"] == FROM_FINEST and g24["relative"] == pytest.approx(0.0072, abs=5e-4)
+    assert mesh_error("graded36", True)["outcomes"]["iop_rise_mmhg"]["case1"]["kind"] \
+        == NOT_ESTIMATED
+    g36 = mesh_error("graded36", False)["outcomes"]["max_suture_force_N"]["case5"]
+    assert g36["kind"] == NOT_ESTIMATED and g36["p"] == pytest.approx(4.20, abs=0.01)
 
 
 def test_run_record_says_when_the_run_is_not_like_the_study():

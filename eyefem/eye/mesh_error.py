@@ -132,12 +132,15 @@ def quote_lines(err: dict) -> list[str]:
         label, unit = QUOTED[k]
         parts = []
         for case, e in per_case.items():
+            how = e["behaviour"]
+            if how == MONOTONE and e["p"] is not None and e["kind"] != GCI:
+                how = f"monotone, p = {e['p']:.1f} outside 0.5..4"
             if e["relative"] is None:
-                parts.append(f"{case} not estimated ({e['behaviour']})")
+                parts.append(f"{case} not estimated ({how})")
                 continue
             pct = 100 * e["relative"]
             absolute = f", {e['absolute']:.2g} {unit}" if e["absolute"] is not None else ""
-            what = "GCI" if e["kind"] == GCI else f"from {err['family'][0]}, {e['behaviour']}"
+            what = "GCI" if e["kind"] == GCI else f"from {err['family'][0]}, {how}"
             parts.append(f"{case} {pct:.1f} %{absolute} ({what})")
         lines.append(f"  {label:<22} " + "; ".join(parts))
     return lines
