@@ -108,6 +108,7 @@ def test_run_record_says_when_the_run_is_not_like_the_study():
     other = run_mesh_error({**p, "materials_preset": "physiological", "buckle_body": "ring"},
                            True, out)
     assert "physiological" in other["note"] and "deformable" in other["note"]
+    assert quote_lines(other)[-1] == f"  {other['note']}"
 
 
 def test_unreadable_record_names_the_file(tmp_path):

@@ -158,9 +158,7 @@ def cmd_run(args) -> int:
     if isinstance(summary.get("mesh_error"), dict):
         from eyefem.eye.mesh_error import quote_lines
 
-        err = summary["mesh_error"]
-        for line in quote_lines(err) + ([f"  {err['note']}"] if err.get("outcomes")
-                                        and err.get("note") else []):
+        for line in quote_lines(summary["mesh_error"]):
             print(f"  {line}")
     print(f"  results in {out}/")
     return 0

@@ -122,7 +122,8 @@ def mesh_error(level: str, encircling: bool, values: dict | None = None,
 
 
 def quote_lines(err: dict) -> list[str]:
-    """Lines that quote the mesh error of :func:`mesh_error` (for the terminal)."""
+    """Lines that quote the mesh error of :func:`mesh_error` (for the terminal), its note
+    last."""
     if not err.get("outcomes"):
         return [f"mesh error: {err.get('note', 'not estimated')}"]
     head = (f"mesh error of level '{err['level']}' (study of {', '.join(err['cases'])} on "
@@ -143,4 +144,6 @@ def quote_lines(err: dict) -> list[str]:
             what = "GCI" if e["kind"] == GCI else f"from {err['family'][0]}, {how}"
             parts.append(f"{case} {pct:.1f} %{absolute} ({what})")
         lines.append(f"  {label:<22} " + "; ".join(parts))
+    if err.get("note"):
+        lines.append(f"  {err['note']}")
     return lines
