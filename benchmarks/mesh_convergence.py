@@ -431,8 +431,9 @@ def main(argv=None) -> int:
                                      "mesh error from (eyefem/eye/mesh_study.json)")
         ap.add_argument("--cases", default="case1,case4,case5")
         ap.add_argument("--families", default="finer,default,half;"
-                        "graded_fine,graded,graded_half",
-                        help="level triples, fine first, separated by ';'")
+                        "graded_fine,graded,graded_half;graded36,graded24,graded18",
+                        help="level triples, fine first, separated by ';' (default: those of "
+                        "the shipped record)")
         ap.add_argument("--case-dir", default="cases/surgery")
         ap.add_argument("--runs", required=True, help="run folders RUNS/CASE/LEVEL")
         ap.add_argument("--out", default="eyefem/eye/mesh_study.json")
