@@ -63,7 +63,8 @@ above it, the default level's GCI is also given with this order (Roache's conser
 choice), whose Richardson extrapolation lies further from the fine level."""
 
 ABBREV = {"coarse": "c", "half": "h", "medium": "m", "default": "D", "fine": "f", "finer": "F",
-          "graded_half": "gh", "graded": "G", "graded_fine": "gf"}
+          "graded_half": "gh", "graded": "G", "graded_fine": "gf", "gradedc18": "c18",
+          "gradedc26": "c26", "gradedc36": "c36"}
 
 
 # --------------------------------------------------------------------------- running
@@ -311,7 +312,8 @@ def markdown(study: dict) -> str:
             row += [_pct(g) + ok, _pct(g2) + ok2, diff, _pct(bound) if bound else "-"]
             lines.append("| " + " | ".join(row) + " |")
         legend = ("(levels: c coarse, h half, m medium, D default, f fine, F finer, gh "
-                  "graded_half, G graded, gf graded_fine; behaviour of "
+                  "graded_half, G graded, gf graded_fine, c18 gradedc18 (c26, c36); "
+                  "behaviour of "
                   "each triple, observed order p, Richardson value and GCI_fine of its "
                   "finest level; (!): p outside 0.5..4 or the extrapolation changes sign; "
                   f"'GCI of {cand}': Fs |phi_ext - phi_{cand}| / |phi_{cand}| against "
@@ -431,7 +433,7 @@ def main(argv=None) -> int:
                                      "mesh error from (eyefem/eye/mesh_study.json)")
         ap.add_argument("--cases", default="case1,case4,case5")
         ap.add_argument("--families", default="finer,default,half;"
-                        "graded_fine,graded,graded_half;graded36,graded24,graded18",
+                        "gradedc36,gradedc26,gradedc18",
                         help="level triples, fine first, separated by ';' (default: those of "
                         "the shipped record)")
         ap.add_argument("--case-dir", default="cases/surgery")

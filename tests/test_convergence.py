@@ -184,12 +184,12 @@ CASE5_RECORDED = {
         "refraction_change_D": -0.019042094528233026,
         "max_suture_force_N": 0.017690120047079292,
     },
-    "half": {
-        "iop_mmhg": 15.024258571532553,
-        "indentation_mm": 0.15257165736993983,
-        "axial_length_change_mm": 0.007611203993239002,
-        "refraction_change_D": -0.015605060276541498,
-        "max_suture_force_N": 0.011654556663764342,
+    "half": {  # with the orbit's springs on the whole equatorial ring (44 nodes, not 4)
+        "iop_mmhg": 15.026178280675918,
+        "indentation_mm": 0.14900471741829868,
+        "axial_length_change_mm": 0.008022686396074619,
+        "refraction_change_D": -0.01782559962750128,
+        "max_suture_force_N": 0.011954793156174526,
     },
 }
 
@@ -343,3 +343,68 @@ def test_graded_family_levels_name_their_elements_per_edge():
     a, b = build_eye(level="graded15"), build_eye(level="graded_half")
     np.testing.assert_array_equal(a.mesh.nodes, b.mesh.nodes)
     np.testing.assert_array_equal(a.mesh.hexes, b.mesh.hexes)
+
+
+def test_gradedc_levels_refine_the_cornea_too():
+    """'gradedc<N>' levels: graded like 'graded<N>' and, below CORNEA_ZONE_DEG, with
+    meridional elements CORNEA_REFINEMENT times shorter than outside both zones (the map's
+    derivative, by differences); the band zone keeps BAND_REFINEMENT. Same element counts
+    as 'graded<N>' (the same topology, nodes placed elsewhere), more of them in the cornea;
+    gradedc18's wall nodes are nodes of gradedc36 (nested, ratio 2)."""
+    from eyefem.eye.eyemodel import (BAND_REFINEMENT, BAND_ZONE_DEG, CORNEA_REFINEMENT,
+                                     CORNEA_ZONE_DEG, build_eye, cornea_refinement,
+                                     graded_polar_angle, is_graded, level_spec)
+
+    assert cornea_refinement("gradedc26") == CORNEA_REFINEMENT
+    assert cornea_refinement("gradedc26x2") == CORNEA_REFINEMENT
+    assert cornea_refinement("graded26") == 1.0 and cornea_refinement("default") == 1.0
+    assert level_spec("gradedc26") == level_spec("graded26") == (26, 6, 1)
+    assert is_graded("gradedc26")
+    with pytest.raises(ValueError, match="'gradedc8': 8 elements per patch edge"):
+        level_spec("gradedc8")
+
+    ref = np.linspace(0.0, np.pi, 100001)
+    slope = np.gradient(graded_polar_angle(ref, cornea_refinement=CORNEA_REFINEMENT), ref)
+    deg = np.degrees(graded_polar_angle(ref, cornea_refinement=CORNEA_REFINEMENT))
+    mid = slope[np.abs(deg - np.mean(BAND_ZONE_DEG)) < 10].mean()
+    cornea = slope[deg < CORNEA_ZONE_DEG - 10].mean()
+    pole = slope[deg > 160].mean()
+    assert cornea / mid == pytest.approx(BAND_REFINEMENT / CORNEA_REFINEMENT, rel=1e-3)
+    assert pole / mid == pytest.approx(BAND_REFINEMENT, rel=1e-3)
+
+    plain, refined = build_eye(level="graded18"), build_eye(level="gradedc18")
+    assert refined.quality()["elements"] == plain.quality()["elements"]
+    assert refined.quality()["elements_cornea"] > 1.5 * plain.quality()["elements_cornea"]
+    fine = build_eye(level="gradedc36")
+    nodes_fine = {tuple(np.round(x, 9)) for x in fine.mesh.nodes}
+    outer = refined.mesh.nodes[refined.mesh.face_set("eye/sclera_outer")].reshape(-1, 3)
+    assert all(tuple(np.round(x, 9)) in nodes_fine for x in outer)
+
+
+@pytest.mark.parametrize("level,n_row", [("default", 22), ("half", 11), ("graded_half", 15),
+                                         ("graded24", 24), ("gradedc26", 26),
+                                         ("graded27", 27)])
+def test_orbit_ring_goes_round_the_globe_on_every_level(level, n_row):
+    """The orbit's springs hold the equatorial ring (eyefem.eye.surgery.equatorial_ring):
+    on every level a full row of the outer sclera, about 4 N nodes (N per patch edge) with
+    no gap wider than two elements, within an element of the equator; on the uniform
+    levels with an even count the plane row z = 0 (the default's 88 nodes). Before, the
+    ring was the nodes at the widest node's z to 1e-6 mm, 4 or 8 nodes on the graded and
+    odd levels: the orbit's forces fell on 4 points there, a mesh-dependent load."""
+    from eyefem.eye.eyemodel import build_eye
+    from eyefem.eye.surgery import equatorial_ring, orbit_spring
+
+    mesh = build_eye(level=level).mesh
+    ring = equatorial_ring(mesh.nodes, mesh.face_set("eye/sclera_outer"))
+    X = mesh.nodes[ring]
+    assert len(set(ring.tolist())) == len(ring)
+    assert 4 * n_row <= len(ring) <= 4 * n_row + 8
+    phi = np.sort(np.arctan2(X[:, 1], X[:, 0]))
+    assert np.max(np.diff(np.r_[phi, phi[0] + 2 * np.pi])) < 2 * (2 * np.pi / (4 * n_row))
+    element = np.pi * 11.5 / (2 * n_row)  # the mean meridional element length, mm
+    assert np.max(np.abs(X[:, 2])) < element
+    if level == "default":
+        assert len(ring) == 88 and np.all(X[:, 2] == 0.0)
+    p = {"globe_rotation": 70.0, "globe_torsion": 7.0, "globe_translation": 1.0,
+         "globe_axial": 10.0}
+    assert orbit_spring(mesh, p).nodes.tolist() == ring.tolist()

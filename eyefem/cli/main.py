@@ -531,8 +531,8 @@ def main(argv=None) -> int:
                    "about 5-20 Newton iterations (coarse to medium eye)")
     p.add_argument("--mesh", help="override the case's eye mesh level (coarse, half, medium, "
                    "default, fine, finer; graded_half, graded, graded_fine, or graded<N> with N "
-                   "elements per patch edge, 12-64: finer toward the band zone; the suffix "
-                   "x2: 8 wall layers)")
+                   "elements per patch edge, 12-64: finer toward the band zone; gradedc<N>: "
+                   "also finer in the cornea; the suffix x2: 8 wall layers)")
     p.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
                    help="tissue constants preset (eyefem.eye.presets): replaces the case's "
                    "materials_preset and its own [materials] tables of the eye's tissues")

@@ -61,8 +61,9 @@ THROUGH_SPLIT = "x2"
 GRADED_LEVELS = ("graded_half", "graded", "graded_fine")
 """Levels whose nodes are graded toward the band zone (:func:`graded_polar_angle`)."""
 
-GRADED_FAMILY = re.compile(r"graded(\d+)")
-"""Level names "graded<N>": graded like GRADED_LEVELS, N elements per patch edge."""
+GRADED_FAMILY = re.compile(r"graded(c?)(\d+)")
+"""Level names "graded<N>": graded like GRADED_LEVELS, N elements per patch edge; and
+"gradedc<N>": the same with the cornea refined too (CORNEA_ZONE_DEG, CORNEA_REFINEMENT)."""
 
 GRADED_N_RANGE = (12, 64)
 """Accepted N of the "graded<N>" levels (64: about 100,000 hexahedra)."""
@@ -78,20 +79,33 @@ BAND_REFINEMENT = 2.2
 BAND_TRANSITION_DEG = 5.0
 """Width (deg) of the smooth (tanh) transitions of the element density at the zone's edges."""
 
+CORNEA_ZONE_DEG = 40.0
+"""Polar angle (deg from the corneal apex) below which the "gradedc<N>" levels refine the
+wall: the cornea (to about 33 deg), its limbus and the corneal fit zone of the refraction."""
+
+CORNEA_REFINEMENT = 1.4
+"""Ratio of the meridional element length outside both refined zones to that in the cornea
+zone of the "gradedc<N>" levels: at N = 26 the cornea has the default level's density."""
+
 
 def graded_polar_angle(theta_ref, zone_deg=BAND_ZONE_DEG, refinement=BAND_REFINEMENT,
-                       transition_deg=BAND_TRANSITION_DEG):
+                       transition_deg=BAND_TRANSITION_DEG, cornea_refinement=1.0,
+                       cornea_deg=CORNEA_ZONE_DEG):
     """Polar angles (n,) rad of nodes at reference polar angles theta_ref (n,) rad.
 
     The map theta(theta_ref) of [0, pi] onto itself is monotone and smooth, with
     d theta / d theta_ref proportional to 1 / rho(theta), the element density
     rho = 1 + (refinement - 1) b(theta), b a smooth box (tanh edges) over the zone: a node
     spacing even in theta_ref becomes `refinement` times denser inside the zone than
-    outside. Nested reference meshes stay nested."""
+    outside. With cornea_refinement > 1 the density is also that much higher below the polar
+    angle cornea_deg (deg; a smooth step): rho is the larger of the two zones' densities.
+    Nested reference meshes stay nested."""
     lo, hi = np.radians(zone_deg)
     w = np.radians(transition_deg)
     grid = np.linspace(0.0, np.pi, 20001)
     rho = 1.0 + (refinement - 1.0) * 0.5 * (np.tanh((grid - lo) / w) - np.tanh((grid - hi) / w))
+    cornea = 0.5 * (1.0 - np.tanh((grid - np.radians(cornea_deg)) / w))
+    rho = np.maximum(rho, 1.0 + (cornea_refinement - 1.0) * cornea)
     cum = np.concatenate([[0.0], np.cumsum(0.5 * (rho[1:] + rho[:-1]) * np.diff(grid))])
     return np.interp(theta_ref, np.pi * cum / cum[-1], grid)
 
@@ -101,12 +115,13 @@ def _graded_family_spec(base: str):
     m = GRADED_FAMILY.fullmatch(base)
     if m is None:
         return None
-    n = int(m.group(1))
+    n = int(m.group(2))
     lo, hi = GRADED_N_RANGE
     if not lo <= n <= hi:
         raise ValueError(f"eye mesh level '{base}': {n} elements per patch edge; choose "
                          f"{lo} to {hi} (graded36: the default level's elements outside the "
-                         "band zone, 0.32 mm inside it)")
+                         "band zone, 0.32 mm inside it; gradedc26: the default's in the "
+                         "cornea)")
     # the lens: an even count (its equator holds the zonules), as the named graded levels
     return n, max(4, 2 * round(n / 7.5))
 
@@ -124,15 +139,34 @@ def level_spec(level: str) -> tuple[int, int, int]:
     if base not in LEVELS:
         raise ValueError(f"eye mesh level '{level}'; choose one of {sorted(LEVELS)}, "
                          f"'graded<N>' (N elements per patch edge, {GRADED_N_RANGE[0]} to "
-                         f"{GRADED_N_RANGE[1]}, graded toward the band zone), or one of them "
+                         f"{GRADED_N_RANGE[1]}, graded toward the band zone), 'gradedc<N>' "
+                         "(the same with the cornea refined too), or one of them "
                          f"with the suffix '{THROUGH_SPLIT}' (8 wall layers instead of 4)")
     return LEVELS[base] + (split,)
 
 
+LEVEL_HELP = (f"eye mesh level: {', '.join(LEVELS)}, graded<N> (N elements per patch edge, "
+              f"{GRADED_N_RANGE[0]}-{GRADED_N_RANGE[1]}, graded toward the band zone), or "
+              "gradedc<N> (the same with the cornea refined too); the suffix 'x2' (e.g. "
+              "'defaultx2': 8 wall layers instead of 4)")
+"""What a case file's ``mesh`` field takes (the help of its schema)."""
+
+LEVEL_EXPECTED = (f"one of {list(LEVELS)}, graded<N> or gradedc<N> (N {GRADED_N_RANGE[0]}-"
+                  f"{GRADED_N_RANGE[1]}), or one with the suffix 'x2'")
+"""What a case file's ``mesh`` field expects, for its error message."""
+
+
 def is_graded(level: str) -> bool:
-    """True for the levels graded toward the band zone (GRADED_LEVELS, "graded<N>")."""
+    """True for the levels graded toward the band zone (GRADED_LEVELS, "graded<N>",
+    "gradedc<N>")."""
     base = level.removesuffix(THROUGH_SPLIT)
     return base in GRADED_LEVELS or GRADED_FAMILY.fullmatch(base) is not None
+
+
+def cornea_refinement(level: str) -> float:
+    """The cornea zone's refinement of a level: CORNEA_REFINEMENT for "gradedc<N>", else 1."""
+    m = GRADED_FAMILY.fullmatch(level.removesuffix(THROUGH_SPLIT))
+    return CORNEA_REFINEMENT if m is not None and m.group(1) == "c" else 1.0
 
 
 def is_level(level) -> bool:
@@ -302,7 +336,8 @@ def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> 
     r = np.linalg.norm(X, axis=1)
     d = X / r[:, None]
     if is_graded(level):
-        th = graded_polar_angle(np.arccos(np.clip(d[:, 2], -1, 1)))
+        th = graded_polar_angle(np.arccos(np.clip(d[:, 2], -1, 1)),
+                                cornea_refinement=cornea_refinement(level))
         ph = np.arctan2(d[:, 1], d[:, 0])
         d = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], 1)
     level_k = np.rint((r - 1.0) * 4 * split).astype(int)  # 0 (inside) .. 4 split (outside)

@@ -29,7 +29,7 @@ from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
 from eyefem.eye.bodies import BASE_TERMS, LoadPath, buckle_body
 from eyefem.eye.buckle_meshes import BAND_C10, RING_KINDS, SPONGE_C10, TIRE_C10
 from eyefem.eye.buckles import KINDS, Buckle, suture_anchor_frame
-from eyefem.eye.eyemodel import LEVELS, build_eye, is_level
+from eyefem.eye.eyemodel import LEVEL_EXPECTED, LEVEL_HELP, build_eye, is_level
 from eyefem.eye.mesh_error import mesh_error
 from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
 from eyefem.eye.parts import SurgeryParts
@@ -59,10 +59,7 @@ TIGHTENINGS = ("pulled_ends", "shortened_loop")
 """How a deformable band or tire is tightened (eyefem.eye.band)."""
 
 SURGERY_FIELDS = [
-    Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)}, or graded<N> (N "
-          "elements per patch edge, 12-64, graded toward the band zone); the suffix 'x2' ("
-          "e.g. 'defaultx2': 8 wall layers instead of 4)", is_level,
-          f"one of {list(LEVELS)}, graded<N> (N 12-64), or one with the suffix 'x2'"),
+    Field("mesh", str, "default", LEVEL_HELP, is_level, LEVEL_EXPECTED),
     Field("buckle", str, "tire_flat", f"buckle kind: {', '.join(KINDS)}", lambda v: v in KINDS,
           f"one of {list(KINDS)}"),
     Field("buckle_body", str, "rigid", "'rigid' (exact analytic surface, radial motion) or "
@@ -310,7 +307,7 @@ def _eye_terms(parts: SurgeryParts) -> tuple:
     return (zonule, PressureLoad("iop", mesh, "wetted", 0.0),
             FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"]),
             NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3),
-            orbit_spring(mesh, parts.sclera_nodes, p))
+            orbit_spring(mesh, p))
 
 
 def check_parameters(p):
@@ -354,7 +351,43 @@ def _check_deformable(p):
                          "by its sutures alone (suture_tightening); set tightening = 0")
 
 
-def orbit_spring(mesh, sclera_nodes, p) -> OrbitSpring:
+def equatorial_ring(X, faces) -> np.ndarray:
+    """Node ids (k,) of the globe's equatorial ring on the outer scleral surface: the closed
+    path of surface edges through the widest node (largest distance from the eye axis z)
+    that goes round the axis keeping nearest that node's z.
+
+    Args: X (n_nodes, 3) reference positions, mm; faces (m, 4) the outer scleral quads.
+    On the uniform levels with an even count per edge the ring is the node row in the
+    plane z = 0; on graded levels and odd counts, whose rows near the equator are not
+    plane, it is the row nearest the equator, never a few nodes of it."""
+    nbrs = {}
+    for a, b in np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 3]],
+                                faces[:, [3, 0]]]):
+        nbrs.setdefault(int(a), set()).add(int(b))
+        nbrs.setdefault(int(b), set()).add(int(a))
+    nodes = np.array(sorted(nbrs))
+    rho = np.hypot(X[:, 0], X[:, 1])
+    phi = np.arctan2(X[:, 1], X[:, 0])
+    start = int(nodes[np.argmax(rho[nodes])])
+    z0 = X[start, 2]
+    ring, cur, turned = [start], start, 0.0
+    while True:
+        ahead = [b for b in nbrs[cur]
+                 if 0.0 < (phi[b] - phi[cur]) % (2 * np.pi) < np.pi / 4]
+        if not ahead:
+            raise ValueError(f"the orbit's equatorial ring: no surface edge leads round the "
+                             f"eye axis from node {cur} (z = {X[cur, 2]:.4g} mm); the outer "
+                             "scleral surface does not go round the globe")
+        nxt = min(ahead, key=lambda b: abs(X[b, 2] - z0))
+        turned += (phi[nxt] - phi[cur]) % (2 * np.pi)
+        if nxt == start or turned >= 2 * np.pi - 1e-9 or len(ring) > len(nodes):
+            break
+        ring.append(nxt)
+        cur = nxt
+    return np.sort(ring)  # ascending ids: the order the plane rows had, sums and all
+
+
+def orbit_spring(mesh, p) -> OrbitSpring:
     """The orbit's hold on the globe: springs on the rigid rotation (N mm/rad) and the
     lateral and axial translation (N/mm) of the outer scleral ring at the equator (case
     fields globe_torsion, globe_rotation, globe_translation, globe_axial).
@@ -377,11 +410,9 @@ def orbit_spring(mesh, sclera_nodes, p) -> OrbitSpring:
     it: coarse case 2's largest suture force is 0.216 N without the hold, 0.162 N with
     0.1 N/mm and 0.142 N with 10 N/mm, where 3 N/mm moves no other outcome by more than
     0.05%. A deformation without net rotation or shift feels nothing."""
-    X = mesh.nodes[sclera_nodes]
-    rho = np.hypot(X[:, 0], X[:, 1])
-    ring = np.abs(X[:, 2] - X[np.argmax(rho), 2]) < 1e-6
+    ring = equatorial_ring(mesh.nodes, mesh.face_set("eye/sclera_outer"))
     k_rot = (p["globe_rotation"], p["globe_rotation"], p["globe_torsion"])
-    return OrbitSpring("orbit", sclera_nodes[ring], X[ring], k_rot=k_rot,
+    return OrbitSpring("orbit", ring, mesh.nodes[ring], k_rot=k_rot,
                        k_trans=p["globe_translation"], k_axial=p["globe_axial"])
 
 

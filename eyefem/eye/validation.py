@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
-from eyefem.eye.eyemodel import LEVELS, build_eye, is_level
+from eyefem.eye.eyemodel import LEVEL_EXPECTED, LEVEL_HELP, build_eye, is_level
 from eyefem.eye.presets import PRESETS, with_overrides
 from eyefem.fem.bars import Bars
 from eyefem.fem.cavity import WATER_BULK, FluidCavity, closing_hook
@@ -41,10 +41,7 @@ PALLIKARIS_K = 0.0126
 """Ocular rigidity of living human eyes, 1/uL, in P = P0 exp(K dV) (Pallikaris et al. 2005)."""
 
 PV_FIELDS = [
-    Field("mesh", str, "default", f"eye mesh level: {', '.join(LEVELS)}, or graded<N> (N "
-          "elements per patch edge, 12-64, graded toward the band zone); the suffix 'x2' ("
-          "e.g. 'defaultx2': 8 wall layers instead of 4)", is_level,
-          f"one of {list(LEVELS)}, graded<N> (N 12-64), or one with the suffix 'x2'"),
+    Field("mesh", str, "default", LEVEL_HELP, is_level, LEVEL_EXPECTED),
     Field("materials_preset", str, "physiological", f"tissue constants: {', '.join(PRESETS)} "
           "(eyefem.eye.presets; [materials] tables override single tissues)",
           lambda v: v in PRESETS, f"one of {list(PRESETS)}"),
