@@ -38,6 +38,7 @@ from eyefem.fem.bars import Bars
 from eyefem.fem.buckle_contact import RIDGE_FLANK
 from eyefem.fem.cavity import WATER_BULK, FluidCavity
 from eyefem.fem.materials import MooneyRivlin
+from eyefem.fem.mesh import face_edges
 from eyefem.fem.surface import PressureLoad
 from eyefem.fem.terms import NodeSprings, OrbitSpring
 from eyefem.fem.units import MMHG
@@ -361,8 +362,7 @@ def equatorial_ring(X, faces) -> np.ndarray:
     plane z = 0; on graded levels and odd counts, whose rows near the equator are not
     plane, it is the row nearest the equator, never a few nodes of it."""
     nbrs = {}
-    for a, b in np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 3]],
-                                faces[:, [3, 0]]]):
+    for a, b in face_edges(faces):
         nbrs.setdefault(int(a), set()).add(int(b))
         nbrs.setdefault(int(b), set()).add(int(a))
     nodes = np.array(sorted(nbrs))
@@ -380,8 +380,12 @@ def equatorial_ring(X, faces) -> np.ndarray:
                              "scleral surface does not go round the globe")
         nxt = min(ahead, key=lambda b: abs(X[b, 2] - z0))
         turned += (phi[nxt] - phi[cur]) % (2 * np.pi)
-        if nxt == start or turned >= 2 * np.pi - 1e-9 or len(ring) > len(nodes):
+        if nxt == start or turned >= 2 * np.pi - 1e-9:
             break
+        if len(ring) >= len(nodes):
+            raise ValueError("the orbit's equatorial ring: the path round the eye axis from "
+                             f"node {start} does not close; the outer scleral surface is "
+                             "not a closed band round the globe")
         ring.append(nxt)
         cur = nxt
     return np.sort(ring)  # ascending ids: the order the plane rows had, sums and all
