@@ -15,13 +15,20 @@ at every level, so the refinement is in-plane only (a level with the suffix "x2"
     python benchmarks/mesh_convergence.py ... --compare OTHER_RUNS   # drawn beside, grey
     python benchmarks/mesh_convergence.py ... --no-run --fill   # runs made before the
               # peak scleral stress was recorded or the indentation weighted by area
+    python benchmarks/mesh_convergence.py --record eyefem/eye/mesh_study.json \
+        --cases case1,case4,case5 --levels gradedc36,gradedc26,gradedc18 \
+        --candidate gradedc26 --out /tmp/conv/report   # from the shipped record
+    python benchmarks/mesh_convergence.py export --runs RUNS [--update]   # the record
 
 Each run goes to RUNS/CASE/LEVEL (summary.json, stages.csv, surgery_history.csv, run.log),
 one at a time in a subprocess (``run-one``), skipped when its summary.json exists. Besides
 the case's own outcomes the runs record two suture forces that do not hang on one bar:
 the mean bar force over all sutures and the largest per-suture mean bar force.
 Writes OUT/convergence.json, OUT/convergence_table.md and IMAGES/convergence_<case>.png
-(docs/convergence.md quotes them).
+(docs/convergence.md quotes them). ``export`` writes the outcome values of the runs (and
+their iterations, times and memory) to the record runs quote their mesh error from;
+``--update`` keeps the record's levels that the run folders lack, and ``--record``
+tabulates and plots from the record alone, once the run folders are gone.
 """
 
 from __future__ import annotations
@@ -215,7 +222,10 @@ def fill_outcomes(case_path: Path, level: str, out_dir: Path) -> bool:
 # --------------------------------------------------------------------------- the study
 
 def outcome_values(summary: dict) -> dict:
-    """The studied outcomes of one run's summary (IOP rise = iop_mmhg - the case's IOP)."""
+    """The studied outcomes of one run's summary (IOP rise = iop_mmhg - the case's IOP), or
+    of one level of the study record (its "values")."""
+    if "values" in summary:
+        return {k: float(v) for k, v in summary["values"].items() if k in OUTCOMES}
     out = {k: summary.get(k) for k in OUTCOMES if k in summary}
     iop0 = summary.get("iop_param_mmhg", 15.0)
     out["iop_rise_mmhg"] = summary["iop_mmhg"] - iop0
@@ -285,8 +295,8 @@ def markdown(study: dict) -> str:
         for k, v in s["values"].items():
             lines.append(f"| {OUTCOMES[k][0]} | " + " | ".join(_fmt(x, 5) for x in v) + " |")
         lines.append("| elements | " + " | ".join(str(e) for e in s["elements"]) + " |")
-        lines.append("| Newton iterations | " + " | ".join(str(e) for e in
-                                                          s["newton_iterations"]) + " |")
+        lines.append("| Newton iterations | " + " | ".join("-" if e is None else str(e)
+                                                          for e in s["newton_iterations"]) + " |")
         lines.append("| wall time, s | " + " | ".join(_fmt(e, 3) for e in s["wall_s"]) + " |")
         lines.append("")
         hdr = ["outcome"]
@@ -385,15 +395,38 @@ def collect(cases, levels, runs: Path, candidate: str = "default") -> dict:
     return study
 
 
+def collect_record(record: dict, cases, levels, candidate: str = "default") -> dict:
+    """As :func:`collect`, from the study record's levels instead of run folders (the
+    shipped record keeps the values after the run folders are gone)."""
+    study = {}
+    for case in cases:
+        have = record["cases"].get(case, {}).get("levels", {})
+        found = {lv: have[lv] for lv in levels if lv in have}
+        for lv in set(levels) - set(found):
+            log.warning("%s: the record has no level %s; left out", case, lv)
+        if len(found) < 3:
+            log.warning("%s: %d level(s) in the record; a study needs three", case, len(found))
+            continue
+        study[case] = study_case(found, levels, candidate)
+    return study
+
+
+RUN_FIGURES = ("newton_iterations", "wall_s", "max_rss_GB")
+"""What the record keeps of each run besides its outcomes (for the tables)."""
+
+
 def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Path,
-           out: Path) -> dict:
+           out: Path, update: bool = False) -> dict:
     """Write the study record that runs quote their mesh error from
     (eyefem.eye.mesh_error.STUDY_FILE): the outcome values of RUNS/CASE/LEVEL/summary.json
-    for the levels of ``families`` (each three levels, fine first)."""
+    for the levels of ``families`` (each three levels, fine first). ``update``: keep the
+    levels of the record already at ``out`` that RUNS does not hold (the runs found there
+    replace theirs)."""
     from eyefem.catalog import schemas
     from eyefem.eye.buckles import Buckle
     from eyefem.io.casefile import load_case
 
+    old = json.loads(out.read_text()) if update and out.exists() else {"cases": {}}
     record = {"source": "docs/convergence.md; python benchmarks/mesh_convergence.py export "
               f"--cases {','.join(cases)} --families "
               f"'{';'.join(','.join(f) for f in families)}'",
@@ -401,9 +434,14 @@ def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Pa
     for case in cases:
         params = load_case(case_dir / f"{case}.toml", schemas()).parameters
         levels = {}
+        kept = old["cases"].get(case, {}).get("levels", {})
         for lv in sorted({lv for f in families for lv in f}):
             f = runs / case / lv / "summary.json"
             if not f.exists():
+                if lv in kept:
+                    levels[lv] = kept[lv]
+                    log.info("%s: %s kept from %s", case, lv, out)
+                    continue
                 log.warning("%s: no run at %s (%s missing); left out", case, lv, f)
                 continue
             summary = json.loads(f.read_text())
@@ -412,6 +450,7 @@ def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Pa
                                  "not equilibrium values: run it again")
             levels[lv] = {"n_per_edge": summary["n_per_edge"],
                           "elements": summary.get("elements"),
+                          **{k: summary.get(k) for k in RUN_FIGURES},
                           "values": outcome_values(summary)}
         record["cases"][case] = {"buckle": params["buckle"],
                                  "encircling": Buckle(params["buckle"]).encircling,
@@ -439,9 +478,11 @@ def main(argv=None) -> int:
         ap.add_argument("--case-dir", default="cases/surgery")
         ap.add_argument("--runs", required=True, help="run folders RUNS/CASE/LEVEL")
         ap.add_argument("--out", default="eyefem/eye/mesh_study.json")
+        ap.add_argument("--update", action="store_true",
+                        help="keep the levels of the record at --out that --runs lacks")
         a = ap.parse_args(argv[1:])
         export(Path(a.runs), a.cases.split(","), [f.split(",") for f in a.families.split(";")],
-               Path(a.case_dir), Path(a.out))
+               Path(a.case_dir), Path(a.out), update=a.update)
         return 0
     if argv and argv[0] in ("run-one", "fill"):
         case_path, level, out = argv[1:4]
@@ -461,6 +502,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="/tmp/conv/report", help="where the table and JSON go")
     ap.add_argument("--images", help="where the plots go (default OUT/images)")
     ap.add_argument("--no-run", action="store_true", help="only tabulate the runs there")
+    ap.add_argument("--record", help="tabulate the values of this study record (e.g. "
+                    "eyefem/eye/mesh_study.json) instead of run folders; implies --no-run")
     ap.add_argument("--compare", help="other run folders (RUNS/CASE/LEVEL, e.g. of an earlier "
                     "model) drawn beside these in the plots")
     ap.add_argument("--compare-label", default="compared runs", help="their legend entry")
@@ -471,9 +514,13 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     cases, levels = args.cases.split(","), args.levels.split(",")
     runs = Path(args.runs)
-    if not args.no_run:
+    if args.record:
+        study = collect_record(json.loads(Path(args.record).read_text()), cases, levels,
+                               args.candidate)
+        other = {}
+    elif not args.no_run:
         run_missing(cases, levels, runs, Path(args.case_dir))
-    if args.fill:
+    if args.fill and not args.record:
         for case in cases:
             for lv in levels:
                 d = runs / case / lv
@@ -482,8 +529,10 @@ def main(argv=None) -> int:
                     log.info("outcomes of %s at %s from its checkpoint", case, lv)
                     subprocess.call([sys.executable, __file__, "fill",
                                      str(Path(args.case_dir) / f"{case}.toml"), lv, str(d)])
-    study = collect(cases, levels, runs, args.candidate)
-    other = collect(cases, levels, Path(args.compare), args.candidate) if args.compare else {}
+    if not args.record:
+        study = collect(cases, levels, runs, args.candidate)
+        other = (collect(cases, levels, Path(args.compare), args.candidate) if args.compare
+                 else {})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     images = Path(args.images) if args.images else out / "images"

@@ -173,6 +173,45 @@ def test_study_of_synthetic_runs():
     assert "GCI of medium" in bench.markdown({"caseX": m})
 
 
+def test_record_update_keeps_levels_and_tabulates_like_the_runs(tmp_path):
+    """export --update keeps the record's levels the run folders lack; --record tabulates
+    the record as the run folders were tabulated (the IOP rise stored, not recomputed)."""
+    bench = _benchmark()
+    runs = {}
+    for lv in ("medium", "default", "fine"):
+        h = 1.0 / LEVELS[lv][0]
+        runs[lv] = {"n_per_edge": LEVELS[lv][0], "iop_param_mmhg": 15.0,
+                    "iop_mmhg": 25.0 - 40 * h**2, "indentation_mm": 1.0 + 3 * h,
+                    "elements": 7, "wall_s": 2.0, "newton_iterations": 9,
+                    "unbalanced_steps": {"count": 0}}
+    for lv in ("default", "fine"):  # medium's run folder is gone: only the record has it
+        d = tmp_path / "runs" / "case1" / lv
+        d.mkdir(parents=True)
+        (d / "summary.json").write_text(json.dumps(runs[lv]))
+    rec = tmp_path / "record.json"
+    medium = {"n_per_edge": LEVELS["medium"][0], "elements": 7,
+              "values": bench.outcome_values(runs["medium"])}
+    rec.write_text(json.dumps({"cases": {"case1": {"levels": {"medium": medium}}}}))
+    family = [["fine", "default", "medium"]]
+    out = bench.export(tmp_path / "runs", ["case1"], family, ROOT / "cases" / "surgery", rec,
+                       update=True)
+    levels = out["cases"]["case1"]["levels"]
+    assert set(levels) == {"fine", "default", "medium"} and levels["medium"] == medium
+    assert levels["fine"]["newton_iterations"] == 9 and levels["fine"]["wall_s"] == 2.0
+    from_record = bench.collect_record(json.loads(rec.read_text()), ["case1"], family[0])
+    direct = bench.study_case(runs, family[0])
+    assert set(from_record["case1"]["values"]) == set(direct["values"])
+    for k, v in direct["values"].items():
+        assert from_record["case1"]["values"][k] == pytest.approx(v, rel=1e-14)
+    assert from_record["case1"]["default_gci"] == pytest.approx(direct["default_gci"])
+    assert from_record["case1"]["values"]["iop_rise_mmhg"][0] == pytest.approx(
+        10.0 - 40 / LEVELS["fine"][0] ** 2)
+    # without --update the level whose run folder is gone is left out
+    out = bench.export(tmp_path / "runs", ["case1"], family, ROOT / "cases" / "surgery", rec)
+    assert set(out["cases"]["case1"]["levels"]) == {"fine", "default"}
+    assert bench.collect_record(out, ["case1"], family[0]) == {}
+
+
 # case 5 (seed materials, bites spread over 1.5 mm patches, the 1.5 mm limbus ring, the
 # indentation weighted by area), recorded by `eyefem compare` (coarse) and
 # benchmarks/mesh_convergence.py (half; docs/convergence.md)
