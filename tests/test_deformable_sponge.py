@@ -15,6 +15,7 @@ from eyefem.eye.sponge import (
     SPONGE_SPRING,
     fit_sponge,
     sponge_contact_term,
+    sponge_divisions,
     sponge_spring_term,
 )
 from eyefem.eye.surgery import SURGERY_FIELDS, surgery
@@ -29,6 +30,17 @@ def _params(**kw):
              n_sutures=2, suture_width=8.5)
     p.update(kw)
     return p
+
+
+def test_sponge_divisions_on_every_eye_level():
+    """The levels with their own divisions keep them; any other level takes those of the
+    finest listed level it is at least as fine as (half was a KeyError)."""
+    assert sponge_divisions("coarse") == (8, 10) and sponge_divisions("default") == (16, 20)
+    assert sponge_divisions("half") == (8, 10)  # 11 per patch edge: coarse's (10)
+    assert sponge_divisions("medium") == (16, 16) and sponge_divisions("fine") == (16, 20)
+    assert sponge_divisions("gradedc26") == (16, 20) and sponge_divisions("defaultx2") == (16, 20)
+    with pytest.raises(ValueError, match="eye mesh level 'nonsense'"):
+        sponge_divisions("nonsense")
 
 
 def test_sponge_mesh_dimensions_and_sets():

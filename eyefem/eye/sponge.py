@@ -17,7 +17,7 @@ import numpy as np
 
 from eyefem.eye.buckle_meshes import deformable_sponge
 from eyefem.eye.buckles import Buckle
-from eyefem.eye.eyemodel import EyeGeometry
+from eyefem.eye.eyemodel import LEVELS, EyeGeometry, level_spec
 from eyefem.eye.sutures import generate_sutures, suture_bars
 from eyefem.fem.contact import SurfaceContact
 from eyefem.fem.mesh import Mesh
@@ -38,12 +38,23 @@ across on the coarse eye and Newton crawled at 1/8 steps. Their force
 SPONGE_SMOOTHING = 2e-3
 """Smoothing length of the sponge's contact on the sclera, mm (SurfaceContact smoothing)."""
 SPONGE_DIVISIONS = {"coarse": (8, 10), "medium": (16, 16), "default": (16, 20)}
-"""Elements around and along the deformable sponge per eye mesh level."""
+"""Elements around and along the deformable sponge per eye mesh level; another level takes
+those of the finest of these whose elements per patch edge it has at least
+(:func:`sponge_divisions`)."""
+
+
+def sponge_divisions(level: str) -> tuple[int, int]:
+    """(elements around, elements along) the deformable sponge on eye mesh ``level``."""
+    if level in SPONGE_DIVISIONS:
+        return SPONGE_DIVISIONS[level]
+    n = level_spec(level)[0]
+    fitting = [lv for lv in SPONGE_DIVISIONS if LEVELS[lv][0] <= n]
+    return SPONGE_DIVISIONS[max(fitting or ["coarse"], key=lambda lv: LEVELS[lv][0])]
 
 
 def sponge_mesh(buckle: Buckle, g: EyeGeometry, level: str, gap: float) -> Mesh:
     """The sponge with its lowest mantle line ``gap`` mm off the (unloaded) sclera."""
-    n_circ, n_len = SPONGE_DIVISIONS[level]
+    n_circ, n_len = sponge_divisions(level)
     return deformable_sponge(buckle, g, g.scleral_radius + buckle.width / 2 + gap,
                              n_len=n_len, n_circ=n_circ)
 
