@@ -88,6 +88,17 @@ def test_shipped_record_matches_the_convergence_page():
     assert c26["kind"] == GCI and c26["relative"] == pytest.approx(0.135, abs=5e-4)
     assert c26["p"] == pytest.approx(1.24, abs=0.01)
     assert mesh_error("graded24", True)["outcomes"] == {}
+    # cases 1 and 4 on the whole gradedc triple: gradedc36's IOP rise and axial length
+    # change lie further above gradedc26's than gradedc26's above gradedc18's (divergent),
+    # so the surgical cases' level quotes its difference from gradedc36
+    c26 = mesh_error("gradedc26", True)["outcomes"]
+    for k, case, rel in (("iop_rise_mmhg", "case1", 0.041), ("iop_rise_mmhg", "case4", 0.052),
+                         ("axial_length_change_mm", "case1", 0.065),
+                         ("axial_length_change_mm", "case4", 0.090)):
+        e = c26[k][case]
+        assert e["kind"] == FROM_FINEST and e["behaviour"] == "divergent", (k, case)
+        assert e["relative"] == pytest.approx(rel, abs=5e-4), (k, case)
+    assert c26["indentation_mm"]["case4"]["relative"] == pytest.approx(0.0006, abs=5e-5)
 
 def test_run_record_says_when_the_run_is_not_like_the_study():
     out = {"iop_mmhg": 27.0, "indentation_mm": 0.95, "axial_length_change_mm": 1.1,

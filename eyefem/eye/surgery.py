@@ -29,7 +29,7 @@ from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
 from eyefem.eye.bodies import BASE_TERMS, LoadPath, buckle_body
 from eyefem.eye.buckle_meshes import BAND_C10, RING_KINDS, SPONGE_C10, TIRE_C10
 from eyefem.eye.buckles import KINDS, Buckle, suture_anchor_frame
-from eyefem.eye.eyemodel import LEVEL_EXPECTED, LEVEL_HELP, build_eye, is_level
+from eyefem.eye.eyemodel import LEVEL_EXPECTED, LEVEL_HELP, SURGICAL_LEVEL, build_eye, is_level
 from eyefem.eye.mesh_error import mesh_error
 from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
 from eyefem.eye.parts import SurgeryParts
@@ -60,7 +60,7 @@ TIGHTENINGS = ("pulled_ends", "shortened_loop")
 """How a deformable band or tire is tightened (eyefem.eye.band)."""
 
 SURGERY_FIELDS = [
-    Field("mesh", str, "default", LEVEL_HELP, is_level, LEVEL_EXPECTED),
+    Field("mesh", str, SURGICAL_LEVEL, LEVEL_HELP, is_level, LEVEL_EXPECTED),
     Field("buckle", str, "tire_flat", f"buckle kind: {', '.join(KINDS)}", lambda v: v in KINDS,
           f"one of {list(KINDS)}"),
     Field("buckle_body", str, "rigid", "'rigid' (exact analytic surface, radial motion) or "
