@@ -506,6 +506,8 @@ def main(argv=None) -> int:
                     "eyefem/eye/mesh_study.json) instead of run folders; implies --no-run")
     ap.add_argument("--compare", help="other run folders (RUNS/CASE/LEVEL, e.g. of an earlier "
                     "model) drawn beside these in the plots")
+    ap.add_argument("--compare-levels", help="with --record: levels of the record drawn "
+                    "beside, grey (e.g. another family: finer,default,half)")
     ap.add_argument("--compare-label", default="compared runs", help="their legend entry")
     ap.add_argument("--fill", action="store_true",
                     help="add the peak scleral stress to runs made before it was recorded, "
@@ -515,9 +517,10 @@ def main(argv=None) -> int:
     cases, levels = args.cases.split(","), args.levels.split(",")
     runs = Path(args.runs)
     if args.record:
-        study = collect_record(json.loads(Path(args.record).read_text()), cases, levels,
-                               args.candidate)
-        other = {}
+        record = json.loads(Path(args.record).read_text())
+        study = collect_record(record, cases, levels, args.candidate)
+        other = (collect_record(record, cases, args.compare_levels.split(","), args.candidate)
+                 if args.compare_levels else {})
     elif not args.no_run:
         run_missing(cases, levels, runs, Path(args.case_dir))
     if args.fill and not args.record:

@@ -93,6 +93,24 @@ def test_outside_draws_buckle_sutures_and_excludes(shell, tmp_path):
     assert drawn.title == "outside"
 
 
+def test_outside_with_every_suture_hidden_draws_without_warnings(shell, tmp_path):
+    """No suture on the visible side: nothing is added for them (an empty collection
+    made matplotlib autoscale from infinite limits and warn of an overflow)."""
+    import warnings
+
+    mesh, x, values, buckle, _ = shell
+    view = np.array([np.cos(np.radians(10.0)) * np.cos(np.radians(-60.0)),
+                     np.cos(np.radians(10.0)) * np.sin(np.radians(-60.0)),
+                     np.sin(np.radians(10.0))])
+    far = -11.0 * view  # the default view's far side
+    sutures = (np.array([far, far * 1.03]), np.array([[0, 1]]), np.array([0.2]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        drawn = plot_outside(tmp_path / "h.png", x, mesh.hexes, values, buckle=buckle,
+                             sutures=sutures)
+    assert drawn.n_sutures == 0 and (tmp_path / "h.png").read_bytes().startswith(PNG)
+
+
 class _Clock:
     def __init__(self):
         self.now = 0.0

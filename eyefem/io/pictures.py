@@ -450,8 +450,9 @@ def plot_outside(path: Path, x, hexes, values, *, elev=10.0, azim=-60.0,
         seg = np.asarray(sutures[0], float)[np.asarray(sutures[1])]
         seg = seg[seg.mean(1) @ view > 0]
         seg = seg * (1 + 0.3 / np.linalg.norm(seg, axis=2))[..., None]  # off the sclera
-        ax.add_collection3d(Line3DCollection(seg, colors=SUTURE_COLOUR, linewidths=1.8,
-                                             zorder=10))
+        if len(seg):  # an empty collection autoscales the axes from infinite limits
+            ax.add_collection3d(Line3DCollection(seg, colors=SUTURE_COLOUR, linewidths=1.8,
+                                                 zorder=10))
         n_sut = len(seg)
     lo, hi = x.min(0), x.max(0)
     c, r = (lo + hi) / 2, (hi - lo).max() / 2
