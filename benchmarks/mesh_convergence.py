@@ -376,11 +376,23 @@ def plot(case: str, s: dict, path: Path, other: dict | None = None, other_label:
     plt.close(fig)
 
 
+def _studies(cases, levels, candidate: str, found_of) -> dict:
+    """case -> :func:`study_case` of ``found_of(case)`` (level -> summary or record level);
+    cases with fewer than three levels are left out, with a warning."""
+    study = {}
+    for case in cases:
+        found = found_of(case)
+        if len(found) < 3:
+            log.warning("%s: %d level(s) found; a study needs three", case, len(found))
+            continue
+        study[case] = study_case(found, levels, candidate)
+    return study
+
+
 def collect(cases, levels, runs: Path, candidate: str = "default") -> dict:
     """case -> :func:`study_case` of the runs RUNS/CASE/LEVEL/summary.json there (cases
     with fewer than three levels run are left out, with a warning)."""
-    study = {}
-    for case in cases:
+    def found_of(case):
         found = {}
         for lv in levels:
             f = runs / case / lv / "summary.json"
@@ -388,27 +400,21 @@ def collect(cases, levels, runs: Path, candidate: str = "default") -> dict:
                 found[lv] = json.loads(f.read_text())
             else:
                 log.warning("%s: no run at %s (%s missing); left out", case, lv, f)
-        if len(found) < 3:
-            log.warning("%s: %d level(s) run; a study needs three", case, len(found))
-            continue
-        study[case] = study_case(found, levels, candidate)
-    return study
+        return found
+
+    return _studies(cases, levels, candidate, found_of)
 
 
 def collect_record(record: dict, cases, levels, candidate: str = "default") -> dict:
     """As :func:`collect`, from the study record's levels instead of run folders (the
     shipped record keeps the values after the run folders are gone)."""
-    study = {}
-    for case in cases:
+    def found_of(case):
         have = record["cases"].get(case, {}).get("levels", {})
-        found = {lv: have[lv] for lv in levels if lv in have}
-        for lv in set(levels) - set(found):
+        for lv in [lv for lv in levels if lv not in have]:
             log.warning("%s: the record has no level %s; left out", case, lv)
-        if len(found) < 3:
-            log.warning("%s: %d level(s) in the record; a study needs three", case, len(found))
-            continue
-        study[case] = study_case(found, levels, candidate)
-    return study
+        return {lv: have[lv] for lv in levels if lv in have}
+
+    return _studies(cases, levels, candidate, found_of)
 
 
 RUN_FIGURES = ("newton_iterations", "wall_s", "max_rss_GB")
