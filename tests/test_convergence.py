@@ -447,3 +447,39 @@ def test_orbit_ring_goes_round_the_globe_on_every_level(level, n_row):
     p = {"globe_rotation": 70.0, "globe_torsion": 7.0, "globe_translation": 1.0,
          "globe_axial": 10.0}
     assert orbit_spring(mesh, p).nodes.tolist() == ring.tolist()
+
+
+def test_spread_zonule_has_the_same_cross_section_on_every_level():
+    """With point insertions (the default, zonule_insertion_radius None) every zonule bar
+    has 0.01 mm^2, so the zonule's total stiffness follows the lens mesh's bar count (16
+    bars on the coarse level, 24 on the default); with spread insertions the bars share
+    zonule_total_area, and each pulls on a disc of the ciliary body's inner surface: its
+    weights sum to 1, reach beyond the hit face on the default level and are smooth
+    (no node carries more than half of the pull)."""
+    import dataclasses
+
+    from eyefem.eye.eyemodel import EyeGeometry, build_eye
+    from eyefem.fem.bars import patch_weights
+
+    E = 100.0
+    point = {lv: build_eye(level=lv) for lv in ("coarse", "default")}
+    spread_geometry = dataclasses.replace(EyeGeometry(), zonule_insertion_radius=1.5)
+    spread = {lv: build_eye(spread_geometry, lv) for lv in ("coarse", "default")}
+    n = {lv: len(e.zonule[0]) for lv, e in point.items()}
+    assert n == {"coarse": 16, "default": 24}
+    for lv, e in point.items():
+        assert e.zonule_bar_EA(E) == pytest.approx(E * 0.01)
+        assert e.zonule_bars(E).patch_b is None
+    for lv, e in spread.items():
+        assert n[lv] * e.zonule_bar_EA(E) == pytest.approx(E * 0.24, rel=1e-12)
+        bars = e.zonule_bars(E)
+        assert bars.params["EA"] == pytest.approx(np.full(n[lv], E * 0.24 / n[lv]))
+        pb = bars.patch_b.data()
+        X = e.mesh.nodes[bars.patch_b.nodes]
+        w = np.asarray(patch_weights(X, np.asarray(e.zonule[2]), pb))
+        np.testing.assert_allclose(w.sum(1), 1.0, rtol=1e-12)
+        assert w.max() < 0.5, (lv, w.max())
+        if lv == "default":
+            assert np.all(np.count_nonzero(w > 1e-6, axis=1) > 8)
+    with pytest.raises(ValueError, match="zonule_insertion_radius = -1"):
+        EyeGeometry(zonule_insertion_radius=-1.0)

@@ -50,6 +50,13 @@ BIOMETRY_FIELDS = [
           "of elements the corneoscleral junction passes through, one element wide "
           "(narrower on finer meshes; docs/convergence.md, 'The limbus ring')",
           lambda v: v == 0 or 0.5 <= v <= 3, "0 (one element) or 0.5 to 3 mm"),
+    Field("zonule_insertion_radius", float, 0.0,
+          "radius of the disc of the ciliary body over which each zonule bar pulls, mm; the "
+          "bars then share the zonule's cross-section (0.24 mm^2), so the eye's rigidity is "
+          "the same on every mesh level; 0: each bar pulls on a point with 0.01 mm^2 (the "
+          "recorded results' model, which changes with the mesh; docs/convergence.md, "
+          "'The zonule')",
+          lambda v: v == 0 or 0.5 <= v <= 3, "0 (point insertions) or 0.5 to 3 mm"),
 ]
 """Case-file fields of a patient's biometry (the surgery and pressure_volume problems)."""
 
@@ -73,7 +80,8 @@ def eye_geometry(p: dict) -> EyeGeometry:
         sclera_limbus=b["sclera_thickness_limbus"], sclera_equator=b["sclera_thickness_equator"],
         sclera_pole=b["sclera_thickness_pole"],
         lens_centre_depth=b["anterior_chamber_depth"] + REFERENCE.lens_thickness / 2,
-        limbus_width=b["limbus_width"] or None)
+        limbus_width=b["limbus_width"] or None,
+        zonule_insertion_radius=b["zonule_insertion_radius"] or None)
     try:
         g.limbus_angle  # noqa: B018 - raises if the corneal and scleral spheres do not meet
     except ValueError as exc:

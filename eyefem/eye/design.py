@@ -187,7 +187,7 @@ class SurgerySimulator(DesignGradients):
                "cavity": {"dv": full("cavity", "dv", -design["drain_volume"]),
                           "bulk": full("cavity", "bulk", design["liquid_bulk"])},
                "zonule": {"EA": full("zonule", "EA",
-                                     design["zonule_E"] * self.parts.eye.geometry.zonule_area)},
+                                     self.parts.eye.zonule_bar_EA(design["zonule_E"]))},
                "solid": {"coeffs": jnp.asarray(like["solid"]["coeffs"]).at[rows, 1, 0].set(c10)}}
         if self.pulled:
             out["band_pull"] = {"f": full("band_pull", "f", design["band_tension"])}

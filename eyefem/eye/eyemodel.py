@@ -31,6 +31,7 @@ import re
 import numpy as np
 
 from eyefem.eye.sutures import ray_face_intersection
+from eyefem.fem.bars import Bars, end_patches
 from eyefem.fem.generators import spherical_shell
 from eyefem.fem.mesh import Mesh, boundary_faces, merge
 
@@ -203,7 +204,17 @@ class EyeGeometry:
       lens_diameter, lens_thickness: (9, 4); lens_centre_depth: from the corneal apex (5.6).
       nerve_diameter: optic nerve (3), nerve_length: stub (3), nerve_angle_deg: from the
         posterior pole toward +x (15); disc_diameter: optic disc (1.8).
-      zonule_area: cross-section per zonule bar, mm^2 (0.01).
+      zonule_area: cross-section per zonule bar with point insertions, mm^2 (0.01).
+      zonule_insertion_radius: None: each zonule bar pulls on one point of the ciliary
+        body with the cross-section zonule_area (the model of the recorded results); a
+        radius, mm: the bars share the zonule's total cross-section zonule_total_area and
+        spread their pull over discs of that radius of the ciliary body's inner surface, so
+        that the zonule is the same on every mesh level. Point insertions are not: their
+        number follows the lens mesh and a point pull deflects the soft ciliary body by an
+        amount that grows as the elements shrink, which made the graded levels' eyes up to
+        2.4 % more rigid than the uniform ones (docs/convergence.md, "The zonule").
+      zonule_total_area: the zonule's total cross-section with spread insertions, mm^2
+        (0.24: the default level's 24 bars of 0.01).
       limbus_width: arc width of the limbus ring, mm, centred on the corneoscleral
         junction: the elements whose centroid lies within it are limbus, a tissue of the
         same size on every mesh level (1.5: the anatomical limbus, a transition zone about
@@ -232,12 +243,14 @@ class EyeGeometry:
     nerve_angle_deg: float = 15.0
     disc_diameter: float = 1.8
     zonule_area: float = 0.01
+    zonule_insertion_radius: float | None = None
+    zonule_total_area: float = 0.24
     limbus_width: float | None = 1.5
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if v is None and f.name == "limbus_width":
+            if v is None and f.name in ("limbus_width", "zonule_insertion_radius"):
                 continue
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"eye geometry: {f.name} = {v} mm; must be a positive number")
@@ -323,6 +336,25 @@ class EyeModel:
     geometry: EyeGeometry
     zonule: tuple
     level: str
+
+    def zonule_bar_EA(self, E: float) -> float:
+        """Axial stiffness of one zonule bar, N: E (MPa) x zonule_area with point
+        insertions, x zonule_total_area shared by the bars with spread ones (EyeGeometry)."""
+        g = self.geometry
+        if g.zonule_insertion_radius is None:
+            return E * g.zonule_area
+        return E * g.zonule_total_area / len(self.zonule[0])
+
+    def zonule_bars(self, E: float, name: str = "zonule") -> Bars:
+        """Zinn's zonule: one bar from each lens equator node radially out to the ciliary
+        body's inner surface, Young's modulus E (MPa), with point or spread insertions
+        (EyeGeometry.zonule_insertion_radius; eyefem.fem.bars.EndPatches)."""
+        lens_eq, faces, xi = self.zonule
+        nodes, radius = self.mesh.nodes, self.geometry.zonule_insertion_radius
+        patch = None if radius is None else end_patches(
+            nodes, self.mesh.face_set("eye/inner"), faces, xi, True, radius)
+        return Bars(name, np.repeat(lens_eq[:, None], 4, 1), faces, np.zeros((len(lens_eq), 2)),
+                    xi, nodes, EA=self.zonule_bar_EA(E), patch_b=patch)
 
     def quality(self) -> dict:
         """Element counts per tissue and the worst Jacobian ratio."""

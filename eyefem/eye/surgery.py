@@ -34,7 +34,6 @@ from eyefem.eye.mesh_error import mesh_error
 from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import PRESETS, SEED_MATERIALS, with_overrides
-from eyefem.fem.bars import Bars
 from eyefem.fem.buckle_contact import RIDGE_FLANK
 from eyefem.fem.cavity import WATER_BULK, FluidCavity
 from eyefem.fem.materials import MooneyRivlin
@@ -302,10 +301,7 @@ def _with_wetted_surface(mesh):
 def _eye_terms(parts: SurgeryParts) -> tuple:
     """The eye's own terms: zonule, IOP load, cavity, lens springs, orbit."""
     eye, p, mesh = parts.eye, parts.p, parts.eye.mesh
-    lens_eq, zf, zxi = eye.zonule
-    zonule = Bars("zonule", np.repeat(lens_eq[:, None], 4, 1), zf, np.zeros((len(lens_eq), 2)),
-                  zxi, mesh.nodes, EA=p["zonule_E"] * eye.geometry.zonule_area)
-    return (zonule, PressureLoad("iop", mesh, "wetted", 0.0),
+    return (eye.zonule_bars(p["zonule_E"]), PressureLoad("iop", mesh, "wetted", 0.0),
             FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"]),
             NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3),
             orbit_spring(mesh, p))
@@ -499,7 +495,7 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=Non
 ADVANCED_FIELDS = frozenset({
     "globe_torsion", "globe_rotation", "globe_translation", "globe_axial", "steps_pressurise",
     "steps_tighten", "steps_suture", "contact_smoothing", "contact_normals", "n_segments",
-    "ridge_flank", "bite_length", "limbus_width",
+    "ridge_flank", "bite_length", "limbus_width", "zonule_insertion_radius",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
     "sclera_thickness_equator", "sclera_thickness_pole"})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all

@@ -24,7 +24,6 @@ import numpy as np
 from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
 from eyefem.eye.eyemodel import LEVEL_EXPECTED, LEVEL_HELP, build_eye, is_level
 from eyefem.eye.presets import PRESETS, with_overrides
-from eyefem.fem.bars import Bars
 from eyefem.fem.cavity import WATER_BULK, FluidCavity, closing_hook
 from eyefem.fem.surface import PressureLoad
 from eyefem.fem.terms import NodeSprings
@@ -77,10 +76,7 @@ def pv_parts(p, materials=None):
     if unknown:
         raise ValueError(f"materials {unknown} are not tissues of the eye mesh; it has "
                          f"{list(mesh.materials)}")
-    g = eye.geometry
-    lens_eq, zf, zxi = eye.zonule
-    zonule = Bars("zonule", np.repeat(lens_eq[:, None], 4, 1), zf, np.zeros((len(lens_eq), 2)),
-                  zxi, mesh.nodes, EA=p["zonule_E"] * g.zonule_area)
+    zonule = eye.zonule_bars(p["zonule_E"])
     iop = PressureLoad("iop", mesh, "wetted", 0.0)
     cavity = FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"])
     lens_hold = NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3)
