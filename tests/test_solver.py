@@ -326,6 +326,48 @@ def test_newton_directions_to_a_looser_cg_tolerance_reach_the_same_state():
         NewtonOptions(cg_rtol=0.0)
 
 
+def test_newton_evaluates_the_residual_once_per_state(monkeypatch):
+    """The residual the line search (or the predictor) computed at the state it returns is
+    the one Newton's next iteration uses (globalisation.Evaluated): no state of a solve is
+    evaluated twice. The converged state is the one the uniaxial problem always reaches."""
+    from eyefem.solve.model import Model
+
+    seen, repeats = set(), []
+    original = Model.gradient_and_load
+
+    def recording(self, q, theta, dofs, active=None):
+        key = np.asarray(q).tobytes()
+        if key in seen:
+            repeats.append(len(seen))
+        seen.add(key)
+        return original(self, q, theta, dofs, active)
+
+    monkeypatch.setattr(Model, "gradient_and_load", recording)
+    setup = PROBLEMS["uniaxial"][1](_params("uniaxial", stretch=2.0, steps=2), {})
+    sol = solve(setup.model, setup.stages)
+    assert sum(r.iterations for r in sol.history) >= 4 and len(seen) >= 6
+    assert repeats == []
+    monkeypatch.setattr(Model, "gradient_and_load", original)
+    r = setup.model.gradient(sol.q, sol.theta)
+    free = ~np.isin(np.arange(setup.model.n_dof), setup.stages[-1].prescribed[0])
+    assert np.linalg.norm(r[free]) <= 1e-8 * np.abs(r).max()
+
+
+def test_the_load_of_a_trial_with_huge_forces_is_its_norm_without_overflow():
+    """A line-search trial near an inverted element can carry forces whose squares
+    overflow; the load (eyefem.solve.model._norm) is still their norm, with no warning."""
+    import warnings
+
+    from eyefem.solve.model import _norm
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _norm(np.array([3e200, -4e200])) == pytest.approx(5e200, rel=1e-14)
+        assert _norm(np.array([3.0, 4.0])) == 5.0
+        assert _norm(np.zeros(3)) == 0.0
+        assert _norm(np.array([1.0, np.inf])) == np.inf
+
+
 def test_seed1_equibiaxial_sheet_case(tmp_path):
     """Seed problem 1 from its case file: within 1% of theory at every step (here ~1e-12)."""
     rc = cli_main(["-q", "run", "cases/verification/seed1_equibiaxial_sheet.toml",

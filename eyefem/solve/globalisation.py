@@ -4,6 +4,7 @@ damping of long steps, and the fallback when no trial lowers the residual."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -158,12 +159,36 @@ class Restoration:
         return qa + self.W @ s
 
 
-def merit(model, q, theta, active, asm, fref, vref):
-    """Line-search merit at q: force residual / reference and volume residual / solid
-    volume, combined; None where the residual is not finite (an inverted element)."""
-    r = model.gradient(q, theta, active)
-    if not np.all(np.isfinite(r)):
+@dataclasses.dataclass(frozen=True)
+class Evaluated:
+    """The residual (n_dof,) of ``model`` at the state q (n_dof,) and the load it carries
+    on the free dofs, N (:meth:`Model.gradient_and_load`): what the line search computed
+    at the point it returns, so that Newton's next iteration need not compute it again."""
+
+    model: object
+    q: np.ndarray
+    r: np.ndarray
+    load: float
+
+    def at(self, model, q):
+        """(r, load) if this is the evaluation of ``model`` at ``q`` (the same objects), else
+        None."""
+        return (self.r, self.load) if model is self.model and q is self.q else None
+
+
+def evaluate(model, q, theta, active, asm) -> Evaluated | None:
+    """The residual and load at q (:class:`Evaluated`); None where the residual is not
+    finite (an inverted element)."""
+    r, load = model.gradient_and_load(q, theta, asm.free_primal, active)
+    return Evaluated(model, q, r, load) if np.all(np.isfinite(r)) else None
+
+
+def merit(ev: Evaluated | None, asm, fref, vref):
+    """Line-search merit of an evaluated point: force residual / reference and volume
+    residual / solid volume, combined; None where the residual is not finite."""
+    if ev is None:
         return None
+    r = ev.r
     return np.hypot(np.linalg.norm(r[asm.free_primal]) / max(fref, 1e-300),
                     np.linalg.norm(r[asm.mult]) / vref if len(asm.mult) else 0.0)
 
@@ -173,7 +198,8 @@ def line_search(model, q, dq, theta, active, asm, m0, fref, vref, alphas, restor
     residual / solid volume) over the step lengths ``alphas``. When the full step fails
     and the model has stiff low-rank terms (closed cavities), the trials are restored to
     the linearised volumes (:class:`Restoration`). Returns (the first trial that lowers
-    the merit, True), else (the best trial, False)."""
+    the merit, True, its :class:`Evaluated`), else (the best trial, False, its
+    :class:`Evaluated`)."""
     if restore is not None and restore.ok and len(alphas) > 0:
         trials = [(alphas[0], False)] + [(a, True) for a in alphas]
     else:
@@ -187,19 +213,20 @@ def line_search(model, q, dq, theta, active, asm, m0, fref, vref, alphas, restor
             if alpha in tried:  # the restoration failed: this plain trial was evaluated
                 continue
             tried.add(alpha)
-        m = merit(model, qa, theta, active, asm, fref, vref)
+        ev = evaluate(model, qa, theta, active, asm)
+        m = merit(ev, asm, fref, vref)
         if m is None:
             continue
         if m < m0:
             if alpha < 1.0 or restored:
                 log.debug("  line search: step length %g%s", alpha,
                           " (volumes restored)" if restored else "")
-            return qa, True
+            return qa, True, ev
         if best is None or m < best[0]:
-            best = (m, qa)
+            best = (m, qa, ev)
     if best is None:
         raise StepFailed("every line-search trial gave non-finite values (inverted elements)")
-    return best[1], False
+    return best[1], False, best[2]
 
 
 def globalised_update(model, asm, q, theta, active, opts: NewtonOptions, rf, rm, nf: float,
@@ -208,7 +235,8 @@ def globalised_update(model, asm, q, theta, active, opts: NewtonOptions, rf, rm,
     and nm, relative): the direction (with the contact look-ahead), a line search, then
     Levenberg-Marquardt shifts while no trial lowers the residual; with the contact pairs
     ``frozen``, a fallback trial that raises the residual FALLBACK_RISE-fold cuts the load
-    step (StepFailed). Returns (the new state, the last factorised tangent)."""
+    step (StepFailed). Returns (the new state, the last factorised tangent, the new
+    state's :class:`Evaluated` residual)."""
     cache = {}
 
     gn = nf > opts.contact_curvature * fref if opts.contact_curvature else False
@@ -241,12 +269,12 @@ def globalised_update(model, asm, q, theta, active, opts: NewtonOptions, rf, rm,
             dq = asm.expand(xl, yl)
             restore = Restoration(model, q, dq, theta, active, asm, la_solver) if opts.restore else None
             try:
-                q_try, lowered = line_search(model, q, dq, theta, active, asm, m0, fref, vref,
-                                              alphas[:3], restore)
+                q_try, lowered, ev = line_search(model, q, dq, theta, active, asm, m0, fref,
+                                                  vref, alphas[:3], restore)
             except StepFailed:
                 lowered = False
             if lowered:
-                return q_try, solver
+                return q_try, solver, ev
             log.debug("  look-ahead step: no trial lowers the residual; the plain step")
         dq = asm.expand(x, y)
         longest = longest_move(model, dq)
@@ -258,29 +286,29 @@ def globalised_update(model, asm, q, theta, active, opts: NewtonOptions, rf, rm,
         restore = (Restoration(model, q, dq, theta, active, asm, solver, (vgrad, W))
                    if opts.restore else None)
         try:
-            q_try, lowered = line_search(model, q, dq, theta, active, asm, m0, fref, vref, alphas,
-                                          restore)
+            q_try, lowered, ev = line_search(model, q, dq, theta, active, asm, m0, fref, vref,
+                                              alphas, restore)
         except StepFailed:
             if last and undamped is None:
                 raise
-            q_try, lowered = None, False
-        if undamped is None and shift == 0.0:
-            undamped = q_try
+            q_try, lowered, ev = None, False, None
+        if undamped is None and shift == 0.0 and q_try is not None:
+            undamped = (q_try, ev)
         if lowered or last:
             # no damped step lowers the residual either: the undamped step's best trial
             # (the last shift's if every undamped trial inverted an element), unless the
             # pairs are frozen (Newton near convergence on one pairing) and that trial
             # raises the residual FALLBACK_RISE-fold: then the load step is cut
-            fallback = q_try if lowered or undamped is None else undamped
+            fallback, ev = (q_try, ev) if lowered or undamped is None else undamped
             if not lowered and frozen:
-                m1 = merit(model, fallback, theta, active, asm, fref, vref)
+                m1 = merit(ev, asm, fref, vref)
                 if m1 is None or m1 > FALLBACK_RISE * m0:
                     raise StepFailed(
                         f"no trial of a Newton step lowers the residual |r_u| = {nf:.3e} N "
                         f"(reference {fref:.3e} N; the best raises it "
                         f"{'to non-finite values' if m1 is None else f'{m1 / m0:.0f}-fold'}"
                         "; near-singular modes of the tangent, -v names their nodes)")
-            return fallback, solver
+            return fallback, solver, ev
         # no trial lowers the residual, or every trial inverts an element (a
         # near-singular tangent: the soft retina's tangential modes): damp the step
         far, shift = True, min(mu for mu in SHIFTS if mu > max(shift, solver.shift))

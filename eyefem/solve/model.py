@@ -127,7 +127,7 @@ class Model:
         for t in self._active(active):
             g = np.asarray(self._kernel(t, "grad")(q, theta[t.name], t.data, t.dofs))
             if dofs is not None:
-                load = max(load, float(np.linalg.norm(g[dofs])))
+                load = max(load, _norm(g[dofs]))
             r += g
         return r, load
 
@@ -216,6 +216,17 @@ class Model:
         if active is None:
             return self.terms
         return [t for t in self.terms if t.name in active]
+
+
+def _norm(v) -> float:
+    """Euclidean norm of v without overflow: a line-search trial near an inverted element
+    can carry a term's forces beyond 1e154 N, whose squares overflow."""
+    with np.errstate(over="ignore"):
+        n = float(np.linalg.norm(v))
+    if np.isfinite(n):
+        return n
+    m = float(np.max(np.abs(v)))
+    return m * float(np.linalg.norm(v / m)) if np.isfinite(m) and m > 0 else m
 
 
 def _hvp(term: Term):

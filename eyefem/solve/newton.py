@@ -11,7 +11,7 @@ import numpy as np
 
 from eyefem.solve.assembly import Assembler
 from eyefem.solve.contact_strategy import has_contact, repaired, settle_pairing
-from eyefem.solve.globalisation import globalised_update
+from eyefem.solve.globalisation import evaluate, globalised_update
 from eyefem.solve.model import Model
 from eyefem.solve.options import NewtonOptions
 from eyefem.solve.records import StepFailed, StepResult, StepStatus
@@ -53,6 +53,7 @@ class _Iterate:
     history: list = dataclasses.field(default_factory=list)  # force residuals, N
     best: tuple | None = None  # (force residual, q, model, paired earlier, load) of the best
     flips: list = dataclasses.field(default_factory=list)  # forces left by re-pairings
+    evaluated: object = None  # the line search's residual at q (globalisation.Evaluated)
 
 
 def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOptions,
@@ -81,7 +82,8 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         if paired_here:
             s.model = s.model.update(s.q, theta)
         asm.model = s.model
-        r, fload = s.model.gradient_and_load(s.q, theta, free, active)
+        known = s.evaluated.at(s.model, s.q) if s.evaluated is not None else None
+        r, fload = known or s.model.gradient_and_load(s.q, theta, free, active)
         if not np.all(np.isfinite(r)):
             raise StepFailed("non-finite residual (an element inverted?)")
         rf, rm, nf = r[free], r[mult], np.linalg.norm(r[free])
@@ -123,8 +125,8 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                              f"residual {nm:.2e}) after {it} iterations")
         if it == opts.max_iter:
             break
-        s.q, s.solver = globalised_update(s.model, asm, s.q, theta, active, opts, rf, rm, nf, nm,
-                                          s.fref, vref, s.frozen)
+        s.q, s.solver, s.evaluated = globalised_update(s.model, asm, s.q, theta, active, opts,
+                                                       rf, rm, nf, nm, s.fref, vref, s.frozen)
     raise StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
                      f"load {s.load:.3e} N, volume residual {nm:.2e})")
 
@@ -138,8 +140,14 @@ def _predict(s: _Iterate, asm: Assembler, theta, dq_prescribed, opts: NewtonOpti
     s.solver = asm.solver(K, B, D, lr, opts.backend, cg_rtol=opts.cg_rtol)
     rhs = r + hv
     x, y = s.solver.solve(-rhs[free], -rhs[mult])
-    s.q = predicted(q + dq_prescribed, asm.expand(x, y),
-                    lambda z: model.gradient(z, theta, active))
+    tried = []
+
+    def residual(z):
+        tried.append(evaluate(model, z, theta, active, asm))
+        return tried[-1].r if tried[-1] is not None else np.full(1, np.nan)
+
+    s.q = predicted(q + dq_prescribed, asm.expand(x, y), residual)
+    s.evaluated = tried[-1] if tried else None
     s.fref = np.linalg.norm(rhs[free])
 
 
