@@ -478,7 +478,7 @@ def main(argv=None) -> int:
                                      "mesh error from (eyefem/eye/mesh_study.json)")
         ap.add_argument("--cases", default="case1,case4,case5")
         ap.add_argument("--families", default="finer,default,half;"
-                        "gradedc36,gradedc26,gradedc18",
+                        "gradedc36,gradedc26,gradedc18;finer,fine,default",
                         help="level triples, fine first, separated by ';' (default: those of "
                         "the shipped record)")
         ap.add_argument("--case-dir", default="cases/surgery")
