@@ -128,3 +128,78 @@ def test_assembled_tangent_is_the_autodiff_tangent(loaded_cube):
     got = assembled_tangent(model, asm, sol.q, sol.theta, sol.active)(V)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
     assert np.abs(want[asm.mult]).max() > 0  # the multiplier rows are compared too
+
+
+def _exact_residual(model, sol, lam, rhs):
+    """Relative residual of K lam = rhs (columns) on the free primal and multiplier rows,
+    K the exact tangent assembled at the solution."""
+    from eyefem.solve.adjoint import assembled_tangent
+
+    asm = sol.assembler
+    keep = np.concatenate([asm.free_primal, asm.mult])
+    res = assembled_tangent(model, asm, sol.q, sol.theta, sol.active)(lam)[keep] - rhs[keep]
+    return np.linalg.norm(res, axis=0) / np.linalg.norm(rhs[keep], axis=0)
+
+
+def test_adjoint_sweeps_are_checked_against_the_exact_tangent_alone(loaded_cube, monkeypatch):
+    """Each refinement sweep of adjoint_solve is one pass of the saddle-point solve without
+    the solve's own residual check (SaddlePointSolver.approximate_solve): the sweep's
+    residual against the exact tangent is the check. The k adjoints still meet the
+    refinement tolerance (1e-10) against the exact tangent."""
+    from eyefem.solve.adjoint import ASSEMBLED_FROM, adjoint_solve
+    from eyefem.solve.linsolve import SaddlePointSolver
+
+    model, x1, run = loaded_cube
+    sol = run(model.theta0()).factorised()
+    rhs = np.random.default_rng(3).normal(size=(model.n_dof, ASSEMBLED_FROM + 1))
+
+    def checked_solve(self, f, g=None):
+        raise AssertionError("an adjoint sweep called the checked solve")
+
+    passes = []
+    approximate = SaddlePointSolver.approximate_solve
+
+    def counted(self, f, g=None, rtol=None):
+        passes.append(f.shape)
+        return approximate(self, f, g, rtol)
+
+    monkeypatch.setattr(SaddlePointSolver, "solve", checked_solve)
+    monkeypatch.setattr(SaddlePointSolver, "approximate_solve", counted)
+    lam = adjoint_solve(model, sol.solver, sol.assembler, sol.q, sol.theta, rhs,
+                        active=sol.active)
+    assert 1 <= len(passes) <= 3  # the last Newton factorisation is nearly exact
+    assert _exact_residual(model, sol, lam, rhs).max() <= 1e-10
+
+
+class _Damped:
+    """A preconditioner that returns ``factor`` times the solver's answer (or NaN)."""
+
+    def __init__(self, solver, factor):
+        self.solver, self.factor, self.passes = solver, factor, 0
+
+    def approximate_solve(self, f, g=None, rtol=None):
+        self.passes += 1
+        x, y = self.solver.approximate_solve(f, g, rtol)
+        return self.factor * x, self.factor * y
+
+
+def test_an_adjoint_refinement_that_stalls_stops_and_says_so(loaded_cube, caplog):
+    """A sweep that lowers no column's residual by half (here a preconditioner that gives
+    a tenth of the solve) ends the refinement with a warning after that one sweep, not
+    after max_refine; a non-finite residual raises LinearSolveError naming the sweep."""
+    from eyefem.solve.adjoint import adjoint_solve
+    from eyefem.solve.errors import LinearSolveError
+
+    model, x1, run = loaded_cube
+    sol = run(model.theta0()).factorised()
+    rhs = np.random.default_rng(4).normal(size=model.n_dof)
+    damped = _Damped(sol.solver, 0.1)
+    with caplog.at_level("WARNING", logger="eyefem.solve.adjoint"):
+        lam = adjoint_solve(model, damped, sol.assembler, sol.q, sol.theta, rhs,
+                            active=sol.active)
+    assert damped.passes == 1
+    assert "adjoint refinement stalled at relative residual 9.00e-01 after 1 sweeps" in caplog.text
+    assert lam.shape == rhs.shape
+    with pytest.raises(LinearSolveError, match="sweep 1 is not finite"):
+        adjoint_solve(model, _Damped(sol.solver, np.nan), sol.assembler, sol.q, sol.theta,
+                      rhs, active=sol.active)

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from eyefem.solve.errors import LinearSolveError
 from eyefem.solve.model import Model
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,13 @@ tangent-vector products per sweep (on the default eye one assembly costs about a
 as the products of 8 vectors; the two agree to 1e-12 relative)."""
 
 
+SWEEP_CG_RTOL = 1e-8
+"""The Schur-complement CG of one refinement sweep stops at this constraint residual,
+relative (whatever the factorisation's own ``cg_rtol``): on the eye each sweep then lowers
+the residual by 1e-4..1e-8 (the factorisation is the last Newton iteration's), so two or
+three sweeps reach ``tol``."""
+
+
 def adjoint_solve(model: Model, solver, asm, q, theta, rhs, *, active=None, tol=1e-10,
                   max_refine=20):
     """Solve K lam = rhs on the free dofs with a (possibly slightly stale) factorisation.
@@ -41,7 +49,13 @@ def adjoint_solve(model: Model, solver, asm, q, theta, rhs, *, active=None, tol=
     tangent-vector products, or the tangent assembled at q for ASSEMBLED_FROM or more
     right-hand sides), so the result is the adjoint at q itself. rhs (n_dof,) or
     (n_dof, k): k adjoints at once (one block back-solve per sweep, each column refined
-    to ``tol`` relative). Returns lam like rhs, zero on prescribed dofs.
+    to ``tol`` relative). Each sweep is one pass of the saddle-point solve without its own
+    residual check (``SaddlePointSolver.approximate_solve``): the sweep's residual against
+    the exact tangent is that check. Returns lam like rhs, zero on prescribed dofs.
+
+    Raises LinearSolveError when a sweep's residual is not finite; stops with a warning
+    when a sweep lowers no column's residual by half (a singular or indefinite tangent)
+    or after ``max_refine`` sweeps.
     """
     one = np.ndim(rhs) == 1
     rhs = np.asarray(rhs, float).reshape(model.n_dof, -1)
@@ -60,17 +74,25 @@ def adjoint_solve(model: Model, solver, asm, q, theta, rhs, *, active=None, tol=
             return _apply(model, q, V, theta, active, asm)
     for it in range(max_refine):
         res = b[:, todo] - (apply(lam[:, todo]) if it else 0.0)
+        before = rel[todo].copy()
         rel[todo] = np.linalg.norm(res, axis=0) / nb[todo]
         if log.isEnabledFor(logging.DEBUG):
             log.debug("adjoint sweep %d: relative residuals %s", it,
                       np.array2string(rel, precision=1))
+        if not np.all(np.isfinite(rel)):
+            raise LinearSolveError(f"adjoint solve: the residual of sweep {it} is not finite; "
+                                   "the tangent at the converged state is singular")
         done = rel[todo] <= tol
         if done.all():
+            break
+        if it and not np.any(rel[todo] < 0.5 * before):
+            log.warning("adjoint refinement stalled at relative residual %.2e after %d "
+                        "sweeps (a singular or indefinite tangent)", float(rel.max()), it)
             break
         cols = np.nonzero(todo)[0]
         todo[cols[done]] = False
         res = res[:, ~done]
-        x, y = solver.solve(res[free], res[mult])
+        x, y = solver.approximate_solve(res[free], res[mult], SWEEP_CG_RTOL)
         lam[:, todo] += asm.expand(x.reshape(len(free), -1), y.reshape(len(mult), -1))
     else:
         log.warning("adjoint refinement stopped at relative residual %.2e", float(rel.max()))

@@ -364,10 +364,11 @@ class SaddlePointSolver:
             x = x - self.KiV @ (self.cap_inv @ (self.V.T @ x))
         return x
 
-    def _schur_cg(self, f, g):
+    def _schur_cg(self, f, g, rtol=None):
         """CG on the Schur complement; f (n,) or (n, k), g (m,) or (m, k): k right-hand
         sides iterated together (one back-solve with k columns per iteration), each with
-        its own step lengths and stopping test."""
+        its own step lengths and stopping test (``rtol``, default ``cg_rtol``)."""
+        rtol = self.cg_rtol if rtol is None else rtol
         if getattr(self, "_kkt", None) is not None:  # negative curvature met before
             return self._kkt_solve(f, g)
         B, D = self.B, self.D
@@ -383,7 +384,7 @@ class SaddlePointSolver:
         scale = np.maximum(np.maximum(np.linalg.norm(Dc * g, axis=0),
                                       np.linalg.norm(Dc * (B.T @ x), axis=0)), 1e-300)
         for it in range(self.max_uzawa + 1):
-            act = np.sqrt(np.abs(rz)) > self.cg_rtol * scale
+            act = np.sqrt(np.abs(rz)) > rtol * scale
             if not act.any():
                 break
             if it == self.max_uzawa:
@@ -454,10 +455,21 @@ class SaddlePointSolver:
             y = y + self.V @ (self.alpha * (self.V.T @ x))
         return y
 
-    def _solve_once(self, f, g):
+    def _solve_once(self, f, g, rtol=None):
         if self.B is None:
             return self._solve_aug(f), np.zeros((0,) + f.shape[1:])
-        return self._schur_cg(f, g)
+        return self._schur_cg(f, g, rtol)
+
+    def approximate_solve(self, f, g=None, rtol=None):
+        """One pass of :meth:`solve` without its residual check and refinement, the Schur
+        CG stopped at ``rtol`` relative (default ``cg_rtol``): the preconditioner of an
+        outer refinement that computes its own residuals against the exact tangent
+        (eyefem.solve.adjoint.adjoint_solve). f (n,) or (n, k), g (m,) or (m, k).
+        Returns (x, y) like f and g."""
+        self.n_solves += 1
+        m = 0 if self.B is None else self.B.shape[1]
+        g = np.zeros((m,) + f.shape[1:]) if g is None else g
+        return self._solve_once(f, g, rtol)
 
     def _residual(self, f, g, x, y):
         """Residuals (K x + B y - f, B^T x - g) and the first's norm relative to the size
