@@ -54,8 +54,8 @@ def adjoint_solve(model: Model, solver, asm, q, theta, rhs, *, active=None, tol=
     the exact tangent is that check. Returns lam like rhs, zero on prescribed dofs.
 
     Raises LinearSolveError when a sweep's residual is not finite; stops with a warning
-    when a sweep lowers no column's residual by half (a singular or indefinite tangent)
-    or after ``max_refine`` sweeps.
+    when a sweep lowers no column's residual (a singular or indefinite tangent) or after
+    ``max_refine`` sweeps.
     """
     one = np.ndim(rhs) == 1
     rhs = np.asarray(rhs, float).reshape(model.n_dof, -1)
@@ -85,7 +85,7 @@ def adjoint_solve(model: Model, solver, asm, q, theta, rhs, *, active=None, tol=
         done = rel[todo] <= tol
         if done.all():
             break
-        if it and not np.any(rel[todo] < 0.5 * before):
+        if it and not np.any(rel[todo] < before):
             log.warning("adjoint refinement stalled at relative residual %.2e after %d "
                         "sweeps (a singular or indefinite tangent)", float(rel.max()), it)
             break
