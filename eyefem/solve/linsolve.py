@@ -467,9 +467,12 @@ class SaddlePointSolver:
         (eyefem.solve.adjoint.adjoint_solve). f (n,) or (n, k), g (m,) or (m, k).
         Returns (x, y) like f and g."""
         self.n_solves += 1
+        return self._solve_once(f, self._constraint_rhs(f, g), rtol)
+
+    def _constraint_rhs(self, f, g):
+        """g, or zeros (m,) / (m, k) like f's columns where g is None."""
         m = 0 if self.B is None else self.B.shape[1]
-        g = np.zeros((m,) + f.shape[1:]) if g is None else g
-        return self._solve_once(f, g, rtol)
+        return np.zeros((m,) + f.shape[1:]) if g is None else g
 
     def _residual(self, f, g, x, y):
         """Residuals (K x + B y - f, B^T x - g) and the first's norm relative to the size
@@ -494,10 +497,8 @@ class SaddlePointSolver:
         ``refine_above`` (Pardiso's perturbed pivots on a badly conditioned tangent) is
         refined against the exact system, up to ``refine`` times, while that lowers it.
         """
-        self.n_solves += 1
-        m = 0 if self.B is None else self.B.shape[1]
-        g = np.zeros((m,) + f.shape[1:]) if g is None else g
-        x, y = self._solve_once(f, g)
+        g = self._constraint_rhs(f, g)
+        x, y = self.approximate_solve(f, g)
         if f.ndim == 1:
             return self._checked(f, g, x, y)
         cols = [self._checked(f[:, j], g[:, j], x[:, j], y[:, j]) for j in range(f.shape[1])]
