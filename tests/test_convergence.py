@@ -134,12 +134,57 @@ def test_fine_level_keeps_four_wall_layers_and_sound_elements():
     assert q["worst_jacobian_ratio"] == pytest.approx(0.4752, abs=1e-4)
 
 
-def _benchmark():
-    spec = importlib.util.spec_from_file_location(
-        "mesh_convergence", ROOT / "benchmarks" / "mesh_convergence.py")
+def _benchmark(name: str = "mesh_convergence"):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+def test_wall_profile_names_a_missing_run_and_how_to_make_it(tmp_path, capsys):
+    rc = _benchmark("wall_profile").main(
+        ["--case", str(ROOT / "cases" / "studies" / "case4_7mm.toml"), "--runs",
+         str(tmp_path), "--levels", "coarse", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert str(tmp_path / "coarse") in err and "no checkpoint.json" in err
+    assert "mesh_convergence.py run-one" in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_wall_profile_of_case4_at_7mm_balances_the_volume(tmp_path):
+    """benchmarks/wall_profile.py on case 4 at 7 mm, coarse (docs/convergence.md, "Where
+    case 4's volume goes"). The cavity is closed with a liquid of bulk modulus 2083 MPa,
+    so the volume pushed in under the band is taken up in front of it and behind it to
+    V dP / K (0.006 mm^3 here); the apex's and the pole's axial displacements make up the
+    run's axial length change (its 3-D distance, 1e-4 mm apart through the globe's
+    tilt); the band's centre moves inward. Pinned: the coarse run's volumes (recorded
+    2026-11-28), 1e-4 relative: every step converged to ~1e-10 N, while a change of the
+    model or of the profile's bins moves them by per cents."""
+    from eyefem.cli.main import main
+
+    case = ROOT / "cases" / "studies" / "case4_7mm.toml"
+    run = tmp_path / "runs" / "coarse"
+    assert main(["-q", "run", str(case), "--mesh", "coarse", "--out", str(run),
+                 "--no-vtu"]) == 0
+    assert _benchmark("wall_profile").main(
+        ["--case", str(case), "--runs", str(tmp_path / "runs"), "--levels", "coarse",
+         "--out", str(tmp_path / "out")]) == 0
+    row, = json.loads((tmp_path / "out" / "wall_profile_case4_7mm.json").read_text())
+    summary = json.loads((run / "summary.json").read_text())
+    taken = row["anterior_gain_mm3"] + row["posterior_gain_mm3"]
+    assert abs(row["band_loss_mm3"] - taken) < 0.02
+    assert abs(row["cumulative_volume_change_mm3"][-1]) < 0.02
+    assert row["axial_length_change_mm"] == pytest.approx(
+        summary["axial_length_change_mm"], abs=1e-3)
+    assert row["iop_rise_mmhg"] == pytest.approx(summary["iop_mmhg"] - 15.0, rel=1e-12)
+    centre = np.asarray(row["edges_deg"][:-1]) + 1.25
+    ur = np.asarray(row["radial_displacement_mm"], float)
+    band = np.abs(centre - 90.0) < 5.0
+    assert np.nanmin(ur[band]) < -1.0 < 1.0 < np.nanmax(ur[centre < 10.0])
+    assert row["band_loss_mm3"] == pytest.approx(343.546, rel=1e-4)
+    assert row["anterior_gain_mm3"] == pytest.approx(229.327, rel=1e-4)
 
 
 def test_study_of_synthetic_runs():
