@@ -108,17 +108,22 @@ def test_every_design_variable_has_a_gradient(base):
 def test_every_outcome_at_once_equals_one_outcome_at_a_time(base):
     """SurgerySimulator.gradients solves each stage's adjoints of all outcomes together
     (one right-hand side per outcome); asked for one outcome, or for a weighted sum
-    (weighted_gradient, the planner's backward pass), it gives the same numbers to the
-    adjoints' refinement tolerance (1e-10 relative)."""
+    (weighted_gradient, the planner's backward pass), it gives the same numbers to within
+    what the adjoints' refinement tolerance (1e-10 relative residual) leaves: each column
+    stops somewhere below it (stage 1's at 3e-11..7e-11), and a material entry through
+    stage 1 (c10_retina of the IOP, c10_sclera of the refraction change) is a small sum of
+    large element contributions, so the two agree there to 1.0e-8 and 1.5e-8 (measured;
+    the other entries to 1e-9 or better). 1e-7 is 7x that; a wrong pairing of columns or
+    stages is off by O(1)."""
     sim, res, grads = base
     for name in ("iop_mmhg", "refraction_change_D"):  # one without, one with a stage-1 route
         one = sim.gradients(res, [name])[name]
         for var in DESIGN_VARIABLES:
-            assert one[var] == pytest.approx(grads[name][var], rel=1e-8, abs=1e-12), (name, var)
+            assert one[var] == pytest.approx(grads[name][var], rel=1e-7, abs=1e-12), (name, var)
     w = sim.weighted_gradient(res, {"iop_mmhg": 2.0, "axial_length_change_mm": -1.0})
     for var in DESIGN_VARIABLES:
         want = 2.0 * grads["iop_mmhg"][var] - grads["axial_length_change_mm"][var]
-        assert w[var] == pytest.approx(want, rel=1e-8, abs=1e-10), var
+        assert w[var] == pytest.approx(want, rel=1e-7, abs=1e-10), var
 
 
 def test_band_pull_term_is_the_work_of_the_tension():
