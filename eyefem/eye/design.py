@@ -58,7 +58,7 @@ from eyefem.eye.outcomes import changes, eye_optics, indentation, outcome_nodes
 from eyefem.eye.parts import snug_node, snug_scale
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.rigid_buckle import suture_term
-from eyefem.eye.sensitivity import DesignGradients
+from eyefem.eye.sensitivity import DesignGradients, term_kind
 from eyefem.eye.surgery import surgery
 from eyefem.eye.variables import (  # noqa: F401 - the design's names, re-exported
     DESIGN_VARIABLES,
@@ -137,6 +137,7 @@ class SurgerySimulator(DesignGradients):
         mesh = self.parts.eye.mesh
         self._mat_row = {m: mesh.materials.index(m) for m in SEED_MATERIALS if m in mesh.materials}
         self._nodes = outcome_nodes(self.parts)
+        self._compiled: dict = {}  # outcome functions, one per outcome list (outcome_vector)
         sol1 = _kept(solve(self.model1, [self.stage1], options=options))
         self.stage1_iterations = sum(r.iterations for r in sol1.history)
         # the buckle and sutures are fitted once, at this eye's snug scale; other designs
@@ -336,53 +337,71 @@ class SurgerySimulator(DesignGradients):
         sol3 = _kept(sol3)
         its = sum(r.iterations for r in sol2.history + sol3.history)
         res = Result(design, {}, sol2, sol3, sut, its, pre)
-        res.outcomes = {k: float(f(sol3.q, sol3.theta)) for k, f in self.outcome_fns(res).items()}
+        f, data = self.outcome_vector(res, OUTCOMES)
+        res.outcomes = dict(zip(OUTCOMES, map(float, f(sol3.q, sol3.theta, data))))
         self.last = res
         return res
 
     # --- outcomes as JAX functions ---------------------------------------------------
-    def outcome_vector_fn(self, res: Result, names) -> Callable:
-        """(q, theta) -> (k,) the named outcomes (:meth:`outcome_fns`), the eye's optics
-        evaluated once for all of them."""
-        fns = self.outcome_fns(res)
+    def outcome_vector(self, res: Result, names, weights=None) -> tuple[Callable, dict]:
+        """(f, data): f(q, theta, data) -> (k,) the named outcomes at the converged design
+        ``res`` (the changes measured from ``res``'s own pre-operative eye;
+        eyefem.eye.outcomes), the eye's optics evaluated once for all of them; with
+        ``weights`` (k,), (1,) their weighted sum. f is a function of its arguments alone,
+        one object per outcome list and kind of suture term, so that its derivatives are
+        compiled once for every design (eyefem.solve.adjoint.values_and_grads); ``data``
+        holds what belongs to ``res``: the pre-operative optics, the cavity's and the
+        sutures' data, the bar of the largest suture force."""
+        names, sut = tuple(names), res.sutures
+        key = ("outcomes", names, weights is None, term_kind(sut))
+        if key not in self._compiled:
+            self._compiled[key] = self._outcome_vector_fn(names, sut)
+        cav = res.sol3.model.term("cavity")
+        force = np.asarray(sut.forces(res.sol3.q, res.sol3.theta["sutures"]))
+        data = {"preop": {k: jnp.asarray(v, jnp.float64)
+                          for k, v in (res.preop or self.preop).optics.items()},
+                "cavity": (cav.data, cav.dofs), "sutures": (sut.data, sut.dofs),
+                "largest": jnp.asarray(int(np.argmax(force))),
+                "weights": None if weights is None else jnp.asarray(weights, jnp.float64)}
+        return self._compiled[key], data
+
+    def _outcome_vector_fn(self, names: tuple, sut) -> Callable:
+        """f(q, theta, data) of :meth:`outcome_vector` (``sut``: a suture term of the kind
+        whose data f receives; only its methods are used)."""
         X, nodes = self.parts.eye.mesh.nodes, self._nodes
-        preop = (res.preop or self.preop).optics
         optical = set(OPTICAL_CHANGES) | {"corneal_astigmatism_D"}
 
-        def outcomes(q, theta):
+        def outcome(name, q, theta, data, opt, ch):
+            if name in OPTICAL_CHANGES:
+                return ch[name]
+            if name in optical:
+                return opt[name]
+            if name == "iop_mmhg":
+                return cavity_state(q, theta["cavity"], *data["cavity"])[0][0] / MMHG
+            if name == "indentation_mm":
+                return indentation(X, q, nodes)
+            if name == "max_suture_force_N":
+                sut_data, sut_dofs = data["sutures"]
+                return sut.axial_forces(q[sut_dofs], theta["sutures"], sut_data)[data["largest"]]
+            raise KeyError(f"unknown outcome '{name}'; known: {list(OUTCOMES)}")
+
+        def outcomes(q, theta, data):
             opt = eye_optics(X, q, nodes) if optical & set(names) else None
-            ch = changes(opt, preop) if opt is not None else {}
-            return jnp.stack([ch[n] if n in OPTICAL_CHANGES else opt[n] if n in optical
-                              else fns[n](q, theta) for n in names])
+            ch = changes(opt, data["preop"]) if opt is not None else {}
+            values = jnp.stack([outcome(n, q, theta, data, opt, ch) for n in names])
+            w = data["weights"]
+            return values if w is None else jnp.reshape(jnp.dot(w, values), (1,))
 
         return outcomes
 
     def outcome_fns(self, res: Result) -> dict[str, Callable]:
-        """Outcome name -> J(q, theta), JAX-traceable, at the converged design ``res``
-        (the changes measured from ``res``'s own pre-operative eye; eyefem.eye.outcomes)."""
-        X, nodes = self.parts.eye.mesh.nodes, self._nodes
-        cav = res.sol3.model.term("cavity")
-        sut = res.sutures
-        f = np.asarray(sut.forces(res.sol3.q, res.sol3.theta["sutures"]))
-        i_max = int(np.argmax(f))
-        preop = (res.preop or self.preop).optics
+        """Outcome name -> J(q, theta), JAX-traceable, at the converged design ``res`` (one
+        outcome of :meth:`outcome_vector` each)."""
+        def one(name):
+            f, data = self.outcome_vector(res, (name,))
+            return lambda q, theta: f(q, theta, data)[0]
 
-        def iop(q, theta):
-            P, _, _, _ = cavity_state(q, theta["cavity"], cav.data, cav.dofs)
-            return P[0] / MMHG
-
-        def suture_force(q, theta):
-            return sut.axial_forces(q[sut.dofs], theta["sutures"], sut.data)[i_max]
-
-        def change(name):
-            return lambda q, theta: changes(eye_optics(X, q, nodes), preop)[name]
-
-        return {"iop_mmhg": iop,
-                "indentation_mm": lambda q, theta: indentation(X, q, nodes),
-                "max_suture_force_N": suture_force,
-                "corneal_astigmatism_D":
-                    lambda q, theta: eye_optics(X, q, nodes)["corneal_astigmatism_D"],
-                **{name: change(name) for name in OPTICAL_CHANGES}}
+        return {name: one(name) for name in OUTCOMES}
 
 
 def _kept(sol: Solution) -> Solution:

@@ -28,32 +28,53 @@ from eyefem.fem.cavity import cavity_pressures
 from eyefem.solve.adjoint import values_and_grads
 
 
+def term_kind(term) -> tuple:
+    """What a suture term's methods read besides their data arguments: the key of the
+    compiled functions of its state (one per kind, whatever the design)."""
+    return (type(term), term.extra_dof, term.tension_only, term.smoothing)
+
+
 class DesignGradients:
     """d outcome / d design variable of a converged design (mixed into SurgerySimulator,
-    whose attributes it reads: parts, params, model, preop, pulled and the outcome nodes)."""
+    whose attributes it reads: parts, params, model, preop, pulled, the outcome nodes and
+    the cache of compiled outcome functions). The objectives of the three stages are
+    functions of (state, params, data) kept one per outcome list and kind, so that their
+    derivatives are compiled once (eyefem.solve.adjoint.values_and_grads)."""
 
-    def _preop_routes(self, res, names) -> Callable | None:
-        """q1 -> (k,) the named outcomes with the state held at ``res`` and the
-        pre-operative eye at q1 (their gradients are the outcomes' dependence on the
-        pre-operative state; 0 for the outcomes that do not depend on it); None if none
-        does."""
+    def _kept_fn(self, key, build: Callable) -> Callable:
+        """The function cached under ``key`` (built by ``build()`` the first time)."""
+        if key not in self._compiled:
+            self._compiled[key] = build()
+        return self._compiled[key]
+
+    def _preop_routes(self, res, names, weights=None) -> tuple[Callable, dict] | None:
+        """(f, data): f(q1, data) -> (k,) the named outcomes with the state held at ``res``
+        and the pre-operative eye at q1 ((1,) their weighted sum with ``weights``); their
+        gradients are the outcomes' dependence on the pre-operative state (0 for the
+        outcomes that do not depend on it). None if none does."""
         if not set(names) & set(OPTICAL_CHANGES):
             return None
+        names = tuple(names)
         X, nodes = self.parts.eye.mesh.nodes, self._nodes
-        now = {k: float(v) for k, v in eye_optics(X, res.sol3.q, nodes).items()}
 
-        def routes(q1):
-            ch = changes(now, eye_optics(X, q1, nodes))
-            return jnp.stack([ch[n] if n in OPTICAL_CHANGES else jnp.zeros(()) for n in names])
+        def build():
+            def routes(q1, data):
+                ch = changes(data["now"], eye_optics(X, q1, nodes))
+                v = jnp.stack([ch[n] if n in OPTICAL_CHANGES else jnp.zeros(()) for n in names])
+                w = data["weights"]
+                return v if w is None else jnp.reshape(jnp.dot(w, v), (1,))
+            return routes
 
-        return routes
+        fn = self._kept_fn(("routes", names, weights is None), build)
+        now = {k: jnp.asarray(float(v)) for k, v in eye_optics(X, res.sol3.q, nodes).items()}
+        return fn, {"now": now, "weights": None if weights is None else jnp.asarray(weights)}
 
     # --- adjoint ------------------------------------------------------------------
     def gradients(self, res, outcomes=None) -> dict[str, dict[str, float]]:
         """d outcome / d design variable for the named outcomes (default: all OUTCOMES):
         three block adjoint solves (stages 3, 2, 1), one right-hand side per outcome."""
         names = list(OUTCOMES) if outcomes is None else list(outcomes)
-        totals = self._gradients(res, self.outcome_vector_fn(res, names),
+        totals = self._gradients(res, self.outcome_vector(res, names),
                                  self._preop_routes(res, names))
         return dict(zip(names, totals))
 
@@ -65,33 +86,30 @@ class DesignGradients:
         if not items:
             return {k: 0.0 for k in DESIGN_VARIABLES}
         names = [k for k, _ in items]
-        w = jnp.asarray([w for _, w in items])
-        outcomes = self.outcome_vector_fn(res, names)
-        routes = self._preop_routes(res, names)
-
-        def objective(q, theta):
-            return jnp.reshape(jnp.dot(w, outcomes(q, theta)), (1,))
-
-        def route(q1):
-            return jnp.reshape(jnp.dot(w, routes(q1)), (1,))
-
-        return self._gradients(res, objective, None if routes is None else route)[0]
+        w = np.array([w for _, w in items])
+        return self._gradients(res, self.outcome_vector(res, names, w),
+                               self._preop_routes(res, names, w))[0]
 
     def _gradients(self, res, objectives, routes) -> list[dict[str, float]]:
-        """d objective / d design for k objectives, ``objectives(q, theta)`` (k,), with
-        their stage-1 routes ``routes(q1)`` (k,) (or None): the adjoints of stages 3, 2
-        and 1, each stage's k adjoints solved together
+        """d objective / d design for k objectives, ``objectives`` = (f, data) with
+        f(q, theta, data) (k,), and their stage-1 routes (f(q1, data) (k,), data) or None:
+        the adjoints of stages 3, 2 and 1, each stage's k adjoints solved together
         (eyefem.solve.adjoint.values_and_grads), chained through the design map
         (SurgerySimulator.design_map, by jax.vjp) and the bites' derivatives."""
         sut, pre = res.sutures, res.preop or self.preop
         rs = self.parts.eye.geometry.scleral_radius
-        _, g3s = values_and_grads(objectives, res.sol3)
+        fn, data = objectives
+        _, g3s = values_and_grads(fn, res.sol3, data=data)
         gL0 = jnp.stack([jnp.asarray(g3["sutures"]["L0"]) for g3 in g3s])  # (k, n_bars)
 
-        def tied_lengths(q, theta):
-            return gL0 @ sut.lengths(q[sut.dofs], theta["sutures"], sut.data)
+        def build():
+            def tied_lengths(q, theta, data):
+                weights, sut_data, sut_dofs = data
+                return weights @ sut.lengths(q[sut_dofs], theta["sutures"], sut_data)
+            return tied_lengths
 
-        _, g2s = values_and_grads(tied_lengths, res.sol2)
+        tied = self._kept_fn(("tied", term_kind(sut)), build)
+        _, g2s = values_and_grads(tied, res.sol2, data=(gL0, sut.data, sut.dofs))
         g_volume = [sum(float(np.sum(g["cavity"]["v_ini"])) for g in gg) for gg in zip(g2s, g3s)]
         g_scale = [rs * sum(float(np.sum(g[t]["dr"])) for g in gg for t in ("buckle", "sutures"))
                    for gg in zip(g2s, g3s)]
@@ -141,13 +159,20 @@ class DesignGradients:
         enters the later stages and the outcomes (``routes``: :meth:`_preop_routes`, or
         None)."""
         cav = self.model.term("cavity")
+        route_fn, route_data = (None, None) if routes is None else routes
+        node = pre.node
 
-        def preop(q, theta):
-            V = cavity_pressures(q, theta["cavity"], cav.data, cav.dofs)[1][0]
-            out = g_volume * V + g_scale * snug_scale(self.parts, q, pre.node)
-            return out if routes is None else out + routes(q)
+        def build():
+            def preop(q, theta, data):
+                V = cavity_pressures(q, theta["cavity"], *data["cavity"])[1][0]
+                out = data["g_volume"] * V + data["g_scale"] * snug_scale(self.parts, q, node)
+                return out if route_fn is None else out + route_fn(q, data["routes"])
+            return preop
 
-        return values_and_grads(preop, pre.sol1)[1]
+        fn = self._kept_fn(("preop", node, route_fn), build)
+        data = {"cavity": (cav.data, cav.dofs), "g_volume": g_volume, "g_scale": g_scale,
+                "routes": route_data}
+        return values_and_grads(fn, pre.sol1, data=data)[1]
 
     def _dxi(self, res, var: str):
         """d xi / d var (n_bars, 2) of the bites (var: suture_width or buckle_meridian_deg,

@@ -14,6 +14,7 @@ the gradient is exact for the realised contact state (see docs/adjoint.md).
 
 from __future__ import annotations
 
+import functools
 import logging
 from typing import Any, Callable
 
@@ -152,7 +153,16 @@ def value_and_grad(objective: Callable[[Any, Any], Any], solution, *, active=Non
     return float(vals[0]), grads[0]
 
 
-def values_and_grads(objectives: Callable[[Any, Any], Any], solution, *, active=None):
+@functools.partial(jax.jit, static_argnums=0)
+def _values_and_jacobians(objectives, q, theta, data):
+    """objectives(q, theta, data) (k,) and its Jacobians with respect to q (k, n_dof) and
+    theta (theta-like, each leaf with a leading k): compiled once per function and shapes."""
+    vals, pullback = jax.vjp(lambda q, theta: objectives(q, theta, data), q, theta)
+    gq, gth = jax.vmap(pullback)(jnp.eye(vals.shape[0], dtype=vals.dtype))
+    return vals, gq, gth
+
+
+def values_and_grads(objectives: Callable[..., Any], solution, *, active=None, data=None):
     """Values and theta-gradients of k objectives at one converged solution.
 
     ``objectives(q, theta)`` returns the k values (k,) (JAX-traceable): their q- and
@@ -160,6 +170,12 @@ def values_and_grads(objectives: Callable[[Any, Any], Any], solution, *, active=
     together (:func:`adjoint_solve`) and the residual's design derivative is contracted
     with all of them at once (compiled per term class): the cost of one objective's
     gradient and a little per further objective. Warns as :func:`value_and_grad`.
+
+    With ``data`` (a pytree of arrays), ``objectives(q, theta, data)`` is called instead:
+    a function of its arguments alone (what it closes over the same at every call), whose
+    Jacobian is then compiled once per function object and argument shapes and reused by
+    later calls with new data (pass the same function object each time), where a closure
+    over the data is traced anew at every call.
 
     Returns (values (k,), gradients: list of k pytrees like theta).
     """
@@ -173,9 +189,11 @@ def values_and_grads(objectives: Callable[[Any, Any], Any], solution, *, active=
     active = solution.active if active is None else active
     theta_j = jax.tree_util.tree_map(jnp.asarray, theta)
     q_j = jnp.asarray(q)
-    vals, pullback = jax.vjp(objectives, q_j, theta_j)
-    k = vals.shape[0]
-    gq, gth = jax.vmap(pullback)(jnp.eye(k))  # (k, n_dof), theta-like with a leading k
+    if data is None:
+        vals, pullback = jax.vjp(objectives, q_j, theta_j)
+        gq, gth = jax.vmap(pullback)(jnp.eye(vals.shape[0]))  # (k, n_dof), theta-like, leading k
+    else:
+        vals, gq, gth = _values_and_jacobians(objectives, q_j, theta_j, data)
     lam = adjoint_solve(model, solution.solver, solution.assembler, q, theta,
                         np.asarray(gq).T, active=active)
     gRs = model.params_vjp_many(q_j, jnp.asarray(lam), theta_j, active)
