@@ -126,6 +126,26 @@ def test_every_outcome_at_once_equals_one_outcome_at_a_time(base):
         assert w[var] == pytest.approx(want, rel=1e-7, abs=1e-10), var
 
 
+def test_a_new_design_reuses_the_compiled_outcome_jacobians(base):
+    """The outcome functions take a design's data as arguments (SurgerySimulator.
+    outcome_vector), so the gradients of a second design compile nothing new: the jitted
+    Jacobian's cache holds as many entries after as before (it grew by one per outcome
+    list on the first design)."""
+    from eyefem.solve.adjoint import _values_and_jacobians
+
+    sim, res, _ = base
+    sim.gradients(res)
+    sim.weighted_gradient(res, {"iop_mmhg": 1.0})
+    before = _values_and_jacobians._cache_size()
+    sim.last = res
+    other = sim.run({**res.design, "tightening": res.design["tightening"] + 0.05})
+    sim.last = res
+    assert other.outcomes["iop_mmhg"] != res.outcomes["iop_mmhg"]
+    sim.gradients(other)
+    sim.weighted_gradient(other, {"iop_mmhg": 1.0})
+    assert _values_and_jacobians._cache_size() == before
+
+
 def test_band_pull_term_is_the_work_of_the_tension():
     """DofForce: energy -f gain q, gradient -f gain, zero tangent (hand-coded values)."""
     import jax.numpy as jnp
