@@ -86,6 +86,47 @@ def test_block_adjoints_equal_one_at_a_time(loaded_cube):
     assert not np.allclose(grads[0]["solid"]["coeffs"], grads[2]["solid"]["coeffs"])
 
 
+def test_objectives_of_data_are_compiled_once_and_released_with_the_function(loaded_cube):
+    """values_and_grads(f, sol, data=...) calls f(q, theta, data): the same values and
+    gradients as a closure over the data, its Jacobian compiled once for new data of the
+    same shapes, and kept on f alone (once f is dropped, nothing keeps it, nor what it
+    closes over)."""
+    import gc
+    import weakref
+
+    from eyefem.solve.adjoint import jacobians_of, values_and_grads
+
+    model, x1, run = loaded_cube
+    sol = run(model.theta0())
+
+    class Held:  # something an objective closes over (a simulator's mesh, say)
+        pass
+
+    def make():
+        held = Held()
+
+        def f(q, theta, data):
+            held.touched = True
+            return data["w"] * jnp.stack([jnp.mean(q[x1]), jnp.sum(q[x1] ** 2)])
+
+        return f, weakref.ref(held)
+
+    f, held = make()
+    for w in (1.0, 3.0):
+        vals, grads = values_and_grads(f, sol, data={"w": jnp.asarray(w)})
+        ref_vals, ref_grads = values_and_grads(
+            lambda q, th, w=w: w * jnp.stack([jnp.mean(q[x1]), jnp.sum(q[x1] ** 2)]), sol)
+        np.testing.assert_allclose(vals, ref_vals, rtol=1e-14)
+        for g, r in zip(grads, ref_grads):
+            np.testing.assert_allclose(g["solid"]["coeffs"], r["solid"]["coeffs"],
+                                       rtol=1e-9, atol=1e-12 * np.abs(r["solid"]["coeffs"]).max())
+    assert jacobians_of(f)._cache_size() == 1  # the second weight reused the first compile
+    assert abs(vals[0]) > 0 and not np.allclose(grads[0]["solid"]["coeffs"], 0)
+    del f
+    gc.collect()
+    assert held() is None
+
+
 def test_params_vjp_many_is_the_residual_vjp(loaded_cube):
     """Model.params_vjp_many (compiled, k columns at once) against jax.vjp of the residual
     with respect to the design, column by column."""

@@ -14,7 +14,6 @@ the gradient is exact for the realised contact state (see docs/adjoint.md).
 
 from __future__ import annotations
 
-import functools
 import logging
 from typing import Any, Callable
 
@@ -153,13 +152,22 @@ def value_and_grad(objective: Callable[[Any, Any], Any], solution, *, active=Non
     return float(vals[0]), grads[0]
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _values_and_jacobians(objectives, q, theta, data):
-    """objectives(q, theta, data) (k,) and its Jacobians with respect to q (k, n_dof) and
-    theta (theta-like, each leaf with a leading k): compiled once per function and shapes."""
-    vals, pullback = jax.vjp(lambda q, theta: objectives(q, theta, data), q, theta)
-    gq, gth = jax.vmap(pullback)(jnp.eye(vals.shape[0], dtype=vals.dtype))
-    return vals, gq, gth
+def jacobians_of(objectives: Callable) -> Callable:
+    """(q, theta, data) -> (values (k,), d/dq (k, n_dof), d/dtheta (theta-like, each leaf
+    with a leading k)) of objectives(q, theta, data), compiled (jax.jit, once per argument
+    shapes) and kept on the function object itself, so that it lives as long as the
+    function does (a cache keyed by the function would keep every function, and what it
+    closes over, for the life of the process)."""
+    jac = getattr(objectives, "_eyefem_jacobians", None)
+    if jac is None:
+        def jacobians(q, theta, data):
+            vals, pullback = jax.vjp(lambda q, theta: objectives(q, theta, data), q, theta)
+            gq, gth = jax.vmap(pullback)(jnp.eye(vals.shape[0], dtype=vals.dtype))
+            return vals, gq, gth
+
+        jac = jax.jit(jacobians)
+        objectives._eyefem_jacobians = jac
+    return jac
 
 
 def values_and_grads(objectives: Callable[..., Any], solution, *, active=None, data=None):
@@ -173,9 +181,9 @@ def values_and_grads(objectives: Callable[..., Any], solution, *, active=None, d
 
     With ``data`` (a pytree of arrays), ``objectives(q, theta, data)`` is called instead:
     a function of its arguments alone (what it closes over the same at every call), whose
-    Jacobian is then compiled once per function object and argument shapes and reused by
-    later calls with new data (pass the same function object each time), where a closure
-    over the data is traced anew at every call.
+    Jacobian is then compiled once per function object and argument shapes
+    (:func:`jacobians_of`) and reused by later calls with new data (pass the same function
+    object each time), where a closure over the data is traced anew at every call.
 
     Returns (values (k,), gradients: list of k pytrees like theta).
     """
@@ -193,7 +201,7 @@ def values_and_grads(objectives: Callable[..., Any], solution, *, active=None, d
         vals, pullback = jax.vjp(objectives, q_j, theta_j)
         gq, gth = jax.vmap(pullback)(jnp.eye(vals.shape[0]))  # (k, n_dof), theta-like, leading k
     else:
-        vals, gq, gth = _values_and_jacobians(objectives, q_j, theta_j, data)
+        vals, gq, gth = jacobians_of(objectives)(q_j, theta_j, data)
     lam = adjoint_solve(model, solution.solver, solution.assembler, q, theta,
                         np.asarray(gq).T, active=active)
     gRs = model.params_vjp_many(q_j, jnp.asarray(lam), theta_j, active)
