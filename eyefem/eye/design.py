@@ -353,9 +353,8 @@ class SurgerySimulator(DesignGradients):
         holds what belongs to ``res``: the pre-operative optics, the cavity's and the
         sutures' data, the bar of the largest suture force."""
         names, sut = tuple(names), res.sutures
-        key = ("outcomes", names, weights is None, term_kind(sut))
-        if key not in self._compiled:
-            self._compiled[key] = self._outcome_vector_fn(names, sut)
+        f = self._kept_fn(("outcomes", names, weights is None, term_kind(sut)),
+                          lambda: self._outcome_vector_fn(names, sut))
         cav = res.sol3.model.term("cavity")
         force = np.asarray(sut.forces(res.sol3.q, res.sol3.theta["sutures"]))
         data = {"preop": {k: jnp.asarray(v, jnp.float64)
@@ -363,7 +362,7 @@ class SurgerySimulator(DesignGradients):
                 "cavity": (cav.data, cav.dofs), "sutures": (sut.data, sut.dofs),
                 "largest": jnp.asarray(int(np.argmax(force))),
                 "weights": None if weights is None else jnp.asarray(weights, jnp.float64)}
-        return self._compiled[key], data
+        return f, data
 
     def _outcome_vector_fn(self, names: tuple, sut) -> Callable:
         """f(q, theta, data) of :meth:`outcome_vector` (``sut``: a suture term of the kind

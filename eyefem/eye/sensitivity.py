@@ -29,9 +29,10 @@ from eyefem.solve.adjoint import values_and_grads
 
 
 def term_kind(term) -> tuple:
-    """What a suture term's methods read besides their data arguments: the key of the
-    compiled functions of its state (one per kind, whatever the design)."""
-    return (type(term), term.extra_dof, term.tension_only, term.smoothing)
+    """The key of the compiled functions of a term's state, one per kind whatever the
+    design: its class and static configuration, as the model's kernels are keyed
+    (eyefem.solve.model.Model._kernel: its methods read arrays only from their arguments)."""
+    return (type(term), term.static_key())
 
 
 class DesignGradients:
