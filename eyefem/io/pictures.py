@@ -440,8 +440,10 @@ def plot_outside(path: Path, x, hexes, values, *, elev=10.0, azim=-60.0,
     ax = fig.add_axes([0.0, 0.0, 0.82, 0.86], projection="3d")
     ax.computed_zorder = False  # the sutures over the surface (only the visible side's)
     edges = [(0.0, 0.0, 0.0, 1.0)] * len(faces) + face_colours[len(faces):]
+    # autolim=False: the limits are set below from x; autoscaling from the collections
+    # (from matplotlib's infinite initial limits) is what overflowed now and then
     ax.add_collection3d(Poly3DCollection(polys, facecolors=face_colours, edgecolors=edges,
-                                         linewidths=0.05))
+                                         linewidths=0.05), autolim=False)
     view = np.array([np.cos(np.radians(elev)) * np.cos(np.radians(azim)),
                      np.cos(np.radians(elev)) * np.sin(np.radians(azim)),
                      np.sin(np.radians(elev))])
@@ -452,7 +454,7 @@ def plot_outside(path: Path, x, hexes, values, *, elev=10.0, azim=-60.0,
         seg = seg * (1 + 0.3 / np.linalg.norm(seg, axis=2))[..., None]  # off the sclera
         if len(seg):  # an empty collection autoscales the axes from infinite limits
             ax.add_collection3d(Line3DCollection(seg, colors=SUTURE_COLOUR, linewidths=1.8,
-                                                 zorder=10))
+                                                 zorder=10), autolim=False)
         n_sut = len(seg)
     lo, hi = x.min(0), x.max(0)
     c, r = (lo + hi) / 2, (hi - lo).max() / 2
