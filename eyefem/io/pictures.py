@@ -440,8 +440,8 @@ def plot_outside(path: Path, x, hexes, values, *, elev=10.0, azim=-60.0,
     ax = fig.add_axes([0.0, 0.0, 0.82, 0.86], projection="3d")
     ax.computed_zorder = False  # the sutures over the surface (only the visible side's)
     edges = [(0.0, 0.0, 0.0, 1.0)] * len(faces) + face_colours[len(faces):]
-    # autolim=False: the limits are set below from x; autoscaling from the collections
-    # (from matplotlib's infinite initial limits) is what overflowed now and then
+    # autolim=False: the limits are set below from x (autoscaling from the collections
+    # starts at matplotlib's infinite initial limits and can overflow)
     ax.add_collection3d(Poly3DCollection(polys, facecolors=face_colours, edgecolors=edges,
                                          linewidths=0.05), autolim=False)
     view = np.array([np.cos(np.radians(elev)) * np.cos(np.radians(azim)),
