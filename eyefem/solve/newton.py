@@ -125,6 +125,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                              f"residual {nm:.2e}) after {it} iterations")
         if it == opts.max_iter:
             break
+        s.solver = None  # its K, B and Pardiso copy: not kept alive through the next assembly
         s.q, s.solver, s.evaluated = globalised_update(s.model, asm, s.q, theta, active, opts,
                                                        rf, rm, nf, nm, s.fref, vref, s.frozen)
     raise StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
