@@ -173,10 +173,10 @@ def main():
     args = ap.parse_args()
     from eyefem.solve.device import select_device
 
-    from eyefem.solve.heap import return_freed_memory
+    from eyefem.solve.heap import configure_heap
 
     where = select_device(args.device)
-    return_freed_memory()
+    configure_heap()
     rows = []
     for s in args.sizes.split(","):
         a, b = (int(x) for x in s.split(":"))

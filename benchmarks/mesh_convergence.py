@@ -127,9 +127,9 @@ def run_one(case_path: str, level: str, out_dir: Path) -> dict:
     from eyefem.io import manifest
     from eyefem.io.casefile import load_case
     from eyefem.io.runner import run_setup
-    from eyefem.solve.heap import return_freed_memory
+    from eyefem.solve.heap import configure_heap
 
-    return_freed_memory()  # the finer levels' runs are limited by memory
+    configure_heap()  # EYEFEM_HEAP=lean: the finer levels are limited by memory
 
     case = load_case(case_path, schemas())
     case.parameters["mesh"] = level

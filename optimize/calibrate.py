@@ -158,9 +158,9 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     from scipy.optimize import least_squares
 
-    from eyefem.solve.heap import return_freed_memory
+    from eyefem.solve.heap import configure_heap
 
-    return_freed_memory()
+    configure_heap()
 
     from eyefem.eye.presets import SEED_MATERIALS, WALL_RATIOS
     from eyefem.eye.validation import PALLIKARIS_K

@@ -283,10 +283,10 @@ def main(argv=None) -> int:
     from eyefem.eye.design import SurgerySimulator
     from eyefem.io.casefile import CaseError, load_case
     from eyefem.io.output import write_csv, write_text
-    from eyefem.solve.heap import return_freed_memory
+    from eyefem.solve.heap import configure_heap
     from eyefem.solve.solver import ConvergenceError
 
-    return_freed_memory()
+    configure_heap()
     ap = argparse.ArgumentParser(prog="python -m optimize.plan", description=__doc__.split("\n")[0])
     ap.add_argument("case", help="surgery case file (TOML)")
     ap.add_argument("--mesh", help="override the case's eye mesh level (coarse, medium, default, fine, finer)")

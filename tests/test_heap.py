@@ -55,6 +55,17 @@ def test_thresholds_the_user_set_are_left_alone(monkeypatch):
     assert heap.return_freed_memory() is False
 
 
-def test_eyefem_heap_glibc_keeps_the_dynamic_thresholds(monkeypatch):
+def test_the_environment_chooses_the_heap(monkeypatch, caplog):
+    calls = []
+    monkeypatch.setattr(heap, "return_freed_memory", lambda: calls.append(1) or True)
+    monkeypatch.delenv("EYEFEM_HEAP", raising=False)
+    assert heap.configure_heap() is False and calls == []  # glibc's own by default
     monkeypatch.setenv("EYEFEM_HEAP", "glibc")
-    assert heap.return_freed_memory() is False
+    assert heap.configure_heap() is False and calls == []
+    monkeypatch.setenv("EYEFEM_HEAP", "lean")
+    assert heap.configure_heap() is True and calls == [1]
+    monkeypatch.setenv("EYEFEM_HEAP", "small")
+    with caplog.at_level("WARNING", logger="eyefem.solve.heap"):
+        assert heap.configure_heap() is False
+    assert calls == [1]
+    assert "EYEFEM_HEAP='small' is not one of glibc, lean" in caplog.text

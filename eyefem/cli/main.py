@@ -23,10 +23,10 @@ def _setup(verbose: int, device: str = "cpu"):
 
     from eyefem.solve.device import select_device
 
-    from eyefem.solve.heap import return_freed_memory
+    from eyefem.solve.heap import configure_heap
 
     jax.config.update("jax_enable_x64", True)
-    return_freed_memory()
+    configure_heap()
     _compilation_cache(jax)
     level = logging.WARNING if verbose < 0 else logging.DEBUG if verbose > 1 else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(message)s",

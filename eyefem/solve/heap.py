@@ -1,30 +1,33 @@
-"""The process's heap: give freed memory back to the system between Newton iterations.
+"""The process's heap: optionally give freed memory back to the system (``EYEFEM_HEAP=lean``).
 
 Every Newton iteration allocates and frees the same large host arrays (the element
 blocks, the tangent's values, the factorisation's work space; tens of MB each). glibc's
 malloc raises its mmap threshold each time such a block is freed (up to 32 MB), so later
 blocks of that size come from the heap, whose freed middle is never returned: the
-resident memory creeps up by 10-20 MB per iteration on FEBio's mesh of
-``benchmarks/bench_core.py --sizes 20:5`` and peaks at 1.22 GB. Fixed thresholds (blocks
-of 4 MB and more mapped on their own and unmapped when freed; the heap's top trimmed
-above 32 MB free) bring that peak to 0.98 GB, and default case 1's from 2.86 to 2.62 GB,
-for 2-6 % of the run time: the page faults of blocks mapped afresh
-(docs/performance.md, "Where the memory goes").
+resident memory creeps up by 10-20 MB per iteration. Fixed thresholds (blocks of 4 MB and
+more mapped on their own and unmapped when freed; the heap's top trimmed above 32 MB free)
+stop the creep, at the price of the page faults of blocks mapped afresh. Measured
+(docs/performance.md, "Where the memory goes"): FEBio's mesh of ``benchmarks/bench_core.py
+--sizes 20:5`` peaks at 0.98 GB instead of 1.15 GB (+5 % time); the eye saves a fixed
+0.2-0.25 GB (default case 1 2.62 against 2.86 GB, the fine level 3.76 against 3.95 GB) for
+about 6 % of the run time. So glibc's own thresholds stay the default, and
+``EYEFEM_HEAP=lean`` in the environment asks for the fixed ones.
 
-Entry points call :func:`return_freed_memory` once, before the work; a library user may
-too. It changes nothing but the allocator's thresholds, leaves thresholds the user set
-through glibc's environment variables (``MALLOC_MMAP_THRESHOLD_``,
-``MALLOC_TRIM_THRESHOLD_``) alone, does nothing where the C library is not glibc, and
-nothing when ``EYEFEM_HEAP=glibc`` is set (glibc's own dynamic thresholds: on the default
-eye about 6 % faster and 8 % larger).
+Entry points call :func:`configure_heap` once, before the work (a sweep's workers inherit
+the environment). Thresholds the user set through glibc's own variables
+(``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``) are left alone, and nothing
+changes where the C library is not glibc.
 """
 
 from __future__ import annotations
 
 import ctypes
+import logging
 import os
 import platform
 import sys
+
+log = logging.getLogger(__name__)
 
 M_TRIM_THRESHOLD = -1  # mallopt parameters (glibc's malloc.h)
 M_MMAP_THRESHOLD = -3
@@ -34,21 +37,34 @@ TRIM_THRESHOLD_BYTES = 32 << 20
 """The heap's top is given back once this much (32 MiB) of it is free."""
 USER_VARIABLES = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
 """glibc's variables: a threshold set through one of them is the user's choice."""
-KEEP_GLIBC = ("EYEFEM_HEAP", "glibc")
-"""The environment variable and value that keep glibc's dynamic thresholds."""
+HEAP_VARIABLE = "EYEFEM_HEAP"
+"""The environment variable of :func:`configure_heap`: ``lean`` or ``glibc`` (the default)."""
+HEAP_CHOICES = ("glibc", "lean")
+
+
+def configure_heap() -> bool:
+    """Apply ``EYEFEM_HEAP`` (unset or ``glibc``: nothing; ``lean``:
+    :func:`return_freed_memory`); True when the fixed thresholds were set. An unknown
+    value is reported in the log and changes nothing."""
+    choice = os.environ.get(HEAP_VARIABLE, "glibc").strip().lower() or "glibc"
+    if choice not in HEAP_CHOICES:
+        log.warning("%s=%r is not one of %s: glibc's own heap thresholds are kept "
+                    "(set %s=lean for the leaner heap, docs/performance.md)", HEAP_VARIABLE,
+                    os.environ[HEAP_VARIABLE], ", ".join(HEAP_CHOICES), HEAP_VARIABLE)
+        return False
+    return choice == "lean" and return_freed_memory()
 
 
 def return_freed_memory(mmap_threshold: int = MMAP_THRESHOLD_BYTES,
                         trim_threshold: int = TRIM_THRESHOLD_BYTES) -> bool:
     """Fix glibc malloc's mmap and trim thresholds (bytes); True when they were set.
 
-    False (and nothing changed) off glibc, when the user set either threshold in the
-    environment, or with ``EYEFEM_HEAP=glibc``.
+    False (and nothing changed) off glibc, or when the user set either threshold in the
+    environment.
     """
     if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
         return False
-    if (any(v in os.environ for v in USER_VARIABLES)
-            or os.environ.get(KEEP_GLIBC[0]) == KEEP_GLIBC[1]):
+    if any(v in os.environ for v in USER_VARIABLES):
         return False
     try:
         libc = ctypes.CDLL("libc.so.6")

@@ -158,10 +158,10 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
 
     import jax
 
-    from eyefem.solve.heap import return_freed_memory
+    from eyefem.solve.heap import configure_heap
 
     jax.config.update("jax_enable_x64", True)
-    return_freed_memory()
+    configure_heap()
     if jax_cache and not jax.config.jax_compilation_cache_dir:
         jax.config.update("jax_compilation_cache_dir", jax_cache)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
