@@ -172,7 +172,6 @@ def main():
                     help="with --no-path: leave the linear solve out (kernels and assembly only)")
     args = ap.parse_args()
     from eyefem.solve.device import select_device
-
     from eyefem.solve.heap import configure_heap
 
     where = select_device(args.device)

@@ -69,3 +69,8 @@ def test_the_environment_chooses_the_heap(monkeypatch, caplog):
         assert heap.configure_heap() is False
     assert calls == [1]
     assert "EYEFEM_HEAP='small' is not one of glibc, lean" in caplog.text
+    monkeypatch.setattr(heap, "return_freed_memory", lambda: False)  # e.g. not glibc
+    monkeypatch.setenv("EYEFEM_HEAP", "lean")
+    with caplog.at_level("WARNING", logger="eyefem.solve.heap"):
+        assert heap.configure_heap() is False
+    assert "EYEFEM_HEAP=lean: the heap's thresholds were not set" in caplog.text

@@ -22,16 +22,15 @@ def _setup(verbose: int, device: str = "cpu"):
     import jax
 
     from eyefem.solve.device import select_device
-
     from eyefem.solve.heap import configure_heap
 
     jax.config.update("jax_enable_x64", True)
-    configure_heap()
     _compilation_cache(jax)
     level = logging.WARNING if verbose < 0 else logging.DEBUG if verbose > 1 else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(message)s",
                         datefmt="%H:%M:%S", stream=sys.stderr)
     logging.getLogger("jax").setLevel(logging.WARNING)
+    configure_heap()  # after the logging: it may warn
     where = select_device(device)
     if device != "cpu":
         from eyefem.solve.linsolve import default_backend

@@ -45,14 +45,22 @@ HEAP_CHOICES = ("glibc", "lean")
 def configure_heap() -> bool:
     """Apply ``EYEFEM_HEAP`` (unset or ``glibc``: nothing; ``lean``:
     :func:`return_freed_memory`); True when the fixed thresholds were set. An unknown
-    value is reported in the log and changes nothing."""
+    value, or ``lean`` where the thresholds cannot be set, is reported in the log and
+    changes nothing."""
     choice = os.environ.get(HEAP_VARIABLE, "glibc").strip().lower() or "glibc"
     if choice not in HEAP_CHOICES:
         log.warning("%s=%r is not one of %s: glibc's own heap thresholds are kept "
                     "(set %s=lean for the leaner heap, docs/performance.md)", HEAP_VARIABLE,
                     os.environ[HEAP_VARIABLE], ", ".join(HEAP_CHOICES), HEAP_VARIABLE)
         return False
-    return choice == "lean" and return_freed_memory()
+    if choice == "glibc":
+        return False
+    if not return_freed_memory():
+        log.warning("%s=lean: the heap's thresholds were not set (the C library is not "
+                    "glibc, or %s is set in the environment, which takes precedence)",
+                    HEAP_VARIABLE, " or ".join(USER_VARIABLES))
+        return False
+    return True
 
 
 def return_freed_memory(mmap_threshold: int = MMAP_THRESHOLD_BYTES,
