@@ -494,6 +494,13 @@ def main(argv=None) -> int:
                Path(a.case_dir), Path(a.out), update=a.update)
         return 0
     if argv and argv[0] in ("run-one", "fill"):
+        if len(argv) != 4 or any(a.startswith("-") for a in argv[1:]):
+            print(f"usage: python benchmarks/mesh_convergence.py {argv[0]} CASE.toml LEVEL "
+                  "RUN_DIR\n  e.g. run-one cases/surgery/case1.toml fine /tmp/conv/case1/fine"
+                  + ("" if argv[0] == "run-one" else
+                     "\n  (fill: the outcomes of a finished run from its final checkpoint)"),
+                  file=sys.stderr)
+            return 0 if argv[1:] in (["-h"], ["--help"]) else 2
         case_path, level, out = argv[1:4]
         if argv[0] == "run-one":
             run_one(case_path, level, Path(out))

@@ -152,6 +152,17 @@ def test_wall_profile_names_a_missing_run_and_how_to_make_it(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("argv, rc", [(["run-one", "--help"], 0),
+                                      (["run-one", "cases/surgery/case1.toml"], 2),
+                                      (["fill", "a.toml", "fine"], 2)])
+def test_mesh_study_run_one_without_its_three_arguments_prints_its_usage(argv, rc, capsys):
+    """`run-one` / `fill` take CASE LEVEL RUN_DIR: a missing one is a usage line, not a
+    traceback, and nothing runs."""
+    assert _benchmark().main(argv) == rc
+    err = capsys.readouterr().err
+    assert f"usage: python benchmarks/mesh_convergence.py {argv[0]} CASE.toml LEVEL RUN_DIR" in err
+
+
 @pytest.mark.slow
 def test_wall_profile_of_case4_at_7mm_balances_the_volume(tmp_path):
     """benchmarks/wall_profile.py on case 4 at 7 mm, coarse (docs/convergence.md, "Where

@@ -57,6 +57,12 @@ BIOMETRY_FIELDS = [
           "recorded results' model, which changes with the mesh; docs/convergence.md, "
           "'The zonule')",
           lambda v: v == 0 or 0.5 <= v <= 3, "0 (point insertions) or 0.5 to 3 mm"),
+    Field("tissue_mixing", bool, False,
+          "true: a wall element that a tissue boundary cuts (cornea, limbus ring, ciliary "
+          "body, optic disc) stores the mixture of the tissues' energies in the proportions "
+          "of its volume, so the tissues keep their size and place on every mesh level; "
+          "false: each element is wholly the tissue of its centroid (staircase boundaries; "
+          "the recorded results' model; docs/convergence.md, 'Tissue boundaries')"),
 ]
 """Case-file fields of a patient's biometry (the surgery and pressure_volume problems)."""
 
@@ -81,7 +87,8 @@ def eye_geometry(p: dict) -> EyeGeometry:
         sclera_pole=b["sclera_thickness_pole"],
         lens_centre_depth=b["anterior_chamber_depth"] + REFERENCE.lens_thickness / 2,
         limbus_width=b["limbus_width"] or None,
-        zonule_insertion_radius=b["zonule_insertion_radius"] or None)
+        zonule_insertion_radius=b["zonule_insertion_radius"] or None,
+        tissue_mixing=bool(b["tissue_mixing"]))
     try:
         g.limbus_angle  # noqa: B018 - raises if the corneal and scleral spheres do not meet
     except ValueError as exc:

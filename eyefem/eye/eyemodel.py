@@ -33,7 +33,7 @@ import numpy as np
 from eyefem.eye.sutures import ray_face_intersection
 from eyefem.fem.bars import Bars, end_patches
 from eyefem.fem.generators import spherical_shell
-from eyefem.fem.mesh import Mesh, boundary_faces, merge
+from eyefem.fem.mesh import Mesh, boundary_faces, hex_shape, merge
 
 log = logging.getLogger(__name__)
 
@@ -221,6 +221,14 @@ class EyeGeometry:
         1.5 mm wide, Hogan et al. 1971, "Histology of the Human Eye"); None: the elements
         the junction passes through (one element wide, so the ring narrows as the mesh is
         refined and the model changes with the mesh).
+      tissue_mixing: False: each wall element is wholly one tissue, by its centroid (the
+        tissues' boundaries are staircases of the mesh, which move by up to an element as
+        it is refined); True: an element that a boundary of the limbus ring, the cornea,
+        the ciliary body or the optic disc cuts stores the mixture of the tissues'
+        energies in the proportions of its volume (TISSUE_SAMPLES^3 points per element;
+        eyefem.fem.solid.element_coeffs), so the tissues have their own size and place on
+        every mesh level; needs limbus_width. The outputs still label every element with
+        its centroid's tissue.
     """
 
     axial_length: float = 24.0
@@ -246,11 +254,20 @@ class EyeGeometry:
     zonule_insertion_radius: float | None = None
     zonule_total_area: float = 0.24
     limbus_width: float | None = 1.5
+    tissue_mixing: bool = False
 
     def __post_init__(self):
+        if not isinstance(self.tissue_mixing, (bool, np.bool_)):
+            raise ValueError(f"eye geometry: tissue_mixing = {self.tissue_mixing!r}; must be "
+                             "true or false")
+        if self.tissue_mixing and self.limbus_width is None:
+            raise ValueError("eye geometry: tissue_mixing needs a limbus ring of fixed width "
+                             "(limbus_width, e.g. 1.5 mm); the one-element ring has no "
+                             "boundary to mix across")
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if v is None and f.name in ("limbus_width", "zonule_insertion_radius"):
+            if f.name == "tissue_mixing" or (
+                    v is None and f.name in ("limbus_width", "zonule_insertion_radius")):
                 continue
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"eye geometry: {f.name} = {v} mm; must be a positive number")
@@ -300,6 +317,50 @@ class EyeGeometry:
             (np.pi, self.sclera_pole + 1.25 * ret_c, 1.25 * ret_c / (self.sclera_pole + 1.25 * ret_c)),
         ])
         return np.interp(theta, pts[:, 0], pts[:, 1]), np.interp(theta, pts[:, 0], pts[:, 2])
+
+
+TISSUE_SAMPLES = 4
+"""Points per element edge (a TISSUE_SAMPLES^3 midpoint grid in reference coordinates,
+weighted by the volume each carries) at which EyeGeometry.tissue_mixing finds the
+tissues' volume fractions."""
+
+
+def _tissue_at(theta, off_axis, layer, g: "EyeGeometry"):
+    """Tissue index (TISSUES) at points of polar angle theta (rad), arc distance off_axis
+    from the optic nerve's axis (mm) and wall layer (0 retina .. 3 outer sclera), by the
+    rules of :func:`build_eye` (arrays broadcast; limbus_width set)."""
+    tl = g.limbus_angle
+    ora = tl + g.ora_serrata / g.scleral_radius
+    half = 0.5 * g.limbus_width / g.scleral_radius
+    mat = np.where(layer >= 2, TISSUES.index("sclera"),
+                   np.where(layer == 1, TISSUES.index("choroid"), TISSUES.index("retina")))
+    mat = np.where((theta < ora) & (layer < 2), TISSUES.index("ciliary_body"), mat)
+    mat = np.where((off_axis < g.disc_diameter / 2) & (layer < 2), TISSUES.index("optic_nerve"),
+                   mat)
+    mat = np.where(theta < tl - half, TISSUES.index("cornea"), mat)
+    return np.where(np.abs(theta - tl) <= half, TISSUES.index("limbus"), mat)
+
+
+def tissue_fractions(nodes, hexes, layer, nerve_dir, g: "EyeGeometry", chunk: int = 8192):
+    """Volume fractions (n_elem, len(TISSUES)) of the tissues in wall elements hexes
+    (n_elem, 8) of layers layer (n_elem,), from TISSUE_SAMPLES^3 points per element each
+    weighted by the volume it carries (det dX/dxi)."""
+    s = TISSUE_SAMPLES
+    t = -1.0 + (2.0 * np.arange(s) + 1.0) / s
+    xi = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3)
+    n_sh, dn_sh = hex_shape(xi)  # (p, 8), (p, 8, 3)
+    out = np.zeros((len(hexes), len(TISSUES)))
+    for lo in range(0, len(hexes), chunk):
+        xe = nodes[hexes[lo:lo + chunk]]
+        x = np.einsum("pa,eai->epi", n_sh, xe)
+        w = np.linalg.det(np.einsum("eai,paj->epij", xe, dn_sh))
+        r = np.linalg.norm(x, axis=-1)
+        theta = np.arccos(np.clip(x[..., 2] / r, -1.0, 1.0))
+        off = g.scleral_radius * np.arccos(np.clip(x @ nerve_dir / r, -1.0, 1.0))
+        mat = _tissue_at(theta, off, layer[lo:lo + chunk, None], g)
+        rows = np.repeat(np.arange(len(xe)), mat.shape[1])
+        np.add.at(out[lo:lo + chunk], (rows, mat.ravel()), w.ravel())
+    return out / out.sum(axis=1, keepdims=True)
 
 
 def _ball(n):
@@ -434,6 +495,7 @@ def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> 
             stub_hexes.append(lo + hi)
         prev = cur
         end_nodes = list(cur.values())
+    n_wall_elem = len(hexes)
     nodes = np.concatenate([nodes, np.array(new_nodes)])
     hexes = np.concatenate([hexes, np.array(stub_hexes, np.int64)])
     mat = np.concatenate([mat, np.full(len(stub_hexes), TISSUES.index("optic_nerve"))])
@@ -443,10 +505,15 @@ def build_eye(geometry: EyeGeometry = EyeGeometry(), level: str = "default") -> 
     apex = int(np.argmax(nodes[:, 2]))
     n_wall = len(level_k)
     pole = int(np.argmin(np.where(level_k == 4 * split, nodes[:n_wall, 2], np.inf)))
+    fractions = None
+    if g.tissue_mixing:  # the wall's elements by their volume; the nerve stub is nerve
+        fractions = np.eye(len(TISSUES))[mat]
+        fractions[:n_wall_elem] = tissue_fractions(nodes, hexes[:n_wall_elem], layer, nerve_dir, g)
     eye = Mesh(nodes, hexes, mat, TISSUES,
                {"apex": np.array([apex]), "pole": np.array([pole]),
                 "nerve_end": np.array(end_nodes), "outer": np.unique(outer_all)},
-               {"inner": inner, "outer": outer_all, "sclera_outer": sclera_outer})
+               {"inner": inner, "outer": outer_all, "sclera_outer": sclera_outer},
+               material_fractions=fractions)
     # lens
     ln, lh = _ball(n_lens)
     a, c = g.lens_diameter / 2, g.lens_thickness / 2

@@ -495,7 +495,7 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=Non
 ADVANCED_FIELDS = frozenset({
     "globe_torsion", "globe_rotation", "globe_translation", "globe_axial", "steps_pressurise",
     "steps_tighten", "steps_suture", "contact_smoothing", "contact_normals", "n_segments",
-    "ridge_flank", "bite_length", "limbus_width", "zonule_insertion_radius",
+    "ridge_flank", "bite_length", "limbus_width", "zonule_insertion_radius", "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
     "sclera_thickness_equator", "sclera_thickness_pole"})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all

@@ -140,6 +140,11 @@ class Mesh:
       node_sets: name -> (n,) node ids.
       face_sets: name -> (n_faces, 4) node ids, outward (right-hand) ordered.
       element_sets: name -> (n,) element ids.
+      material_fractions: None (every element wholly its material), or (n_elem,
+        n_materials) the volume fraction of each material in each element (rows sum to
+        1): an element cut by a material boundary stores the mixture of their energies
+        (eyefem.fem.solid.element_coeffs); ``material_ids`` still names the one that
+        labels it in the outputs.
     """
 
     nodes: np.ndarray
@@ -149,6 +154,7 @@ class Mesh:
     node_sets: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     face_sets: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     element_sets: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    material_fractions: np.ndarray | None = None
 
     def __post_init__(self):
         nodes = np.ascontiguousarray(self.nodes, dtype=np.float64)
@@ -177,6 +183,9 @@ class Mesh:
         object.__setattr__(self, "hexes", hexes)
         object.__setattr__(self, "material_ids", mids)
         object.__setattr__(self, "materials", mats)
+        if self.material_fractions is not None:
+            object.__setattr__(self, "material_fractions",
+                               _checked_fractions(self.material_fractions, len(hexes), mats))
         ns = {}
         for k, v in dict(self.node_sets).items():
             v = np.asarray(v, dtype=np.int64).ravel()
@@ -246,12 +255,26 @@ class Mesh:
         return det.min(axis=1) / det.max(axis=1)
 
 
+def _checked_fractions(fractions, n_elem: int, materials: tuple) -> np.ndarray:
+    """Material volume fractions (n_elem, n_materials), validated (Mesh)."""
+    f = np.ascontiguousarray(fractions, dtype=np.float64)
+    if f.shape != (n_elem, len(materials)):
+        raise ValueError(f"material_fractions: shape {f.shape}; expected ({n_elem}, "
+                         f"{len(materials)}) (elements, materials {materials})")
+    bad = np.nonzero(~np.all(np.isfinite(f) & (f >= 0), axis=1)
+                     | (np.abs(f.sum(axis=1) - 1.0) > 1e-9))[0]
+    if bad.size:
+        raise ValueError(f"element {bad[0]}: material fractions {f[bad[0]].tolist()}; they must "
+                         f"be >= 0 and sum to 1 ({bad.size} such elements)")
+    return f
+
+
 def merge(*parts: tuple[str, Mesh]) -> Mesh:
     """Join meshes into one (disjoint bodies); set names get the prefix ``'<part>/'``.
 
     Materials with the same name are shared. Args: pairs (part name, mesh).
     """
-    nodes, hexes, mids, ns, fs, es = [], [], [], {}, {}, {}
+    nodes, hexes, mids, ns, fs, es, fracs = [], [], [], {}, {}, {}, []
     mats: list[str] = []
     offn = offe = 0
     for pname, m in parts:
@@ -260,6 +283,8 @@ def merge(*parts: tuple[str, Mesh]) -> Mesh:
         nodes.append(m.nodes)
         hexes.append(m.hexes + offn)
         mids.append(remap[m.material_ids])
+        fracs.append((remap, m.material_fractions if m.material_fractions is not None
+                      else np.eye(len(m.materials))[m.material_ids]))
         for k, v in m.node_sets.items():
             ns[f"{pname}/{k}"] = v + offn
         for k, v in m.face_sets.items():
@@ -270,5 +295,12 @@ def merge(*parts: tuple[str, Mesh]) -> Mesh:
         es[f"{pname}"] = np.arange(offe, offe + m.n_elem)
         offn += m.n_nodes
         offe += m.n_elem
+    mixed = None
+    if any(m.material_fractions is not None for _, m in parts):
+        mixed = np.zeros((offe, len(mats)))
+        row = 0
+        for remap, f in fracs:
+            mixed[row:row + len(f), remap] = f
+            row += len(f)
     return Mesh(np.concatenate(nodes), np.concatenate(hexes), np.concatenate(mids),
-                tuple(mats), ns, fs, es)
+                tuple(mats), ns, fs, es, mixed)

@@ -59,6 +59,17 @@ def invariant_energy(inv, lam, coeffs):
     return strain_energy(J ** (-2.0 / 3.0) * i1, J ** (-4.0 / 3.0) * i2, coeffs) + 2.0 * lam * (J - 1.0)
 
 
+def element_coeffs(coeffs, data):
+    """The c_rs tables (n, 4, 4), MPa, of the elements of ``data``: their material's
+    (coeffs[data["mat"]]) or, with data["mix"] (n, n_materials) volume fractions, the
+    fractions' weighted sum of the materials' tables. W is linear in c_rs, so an element cut
+    by a tissue boundary stores f_a W_a + f_b W_b: the Voigt mixture of the tissues'
+    energies in the proportions of its volume (coeffs: (n_materials, 4, 4))."""
+    if "mix" in data:
+        return jnp.einsum("et,trs->ers", data["mix"], coeffs)
+    return coeffs[data["mat"]]
+
+
 KERNEL_CHUNK = {"cpu": 1000}
 """Elements per chunk of the Q1P0 tangent kernel, per JAX backend (absent: one chunk). On
 the CPU the kernel's intermediates (per Gauss point: 8 x 24 x 24 and the like) of 12,000
@@ -96,7 +107,9 @@ class SolidQ1P0(Term):
 
     Args:
       name: term name.
-      mesh: the mesh; element e uses material ``mesh.material_ids[e]``.
+      mesh: the mesh; element e uses material ``mesh.material_ids[e]``, or, where the mesh
+        has ``material_fractions``, the tissues' coefficient tables weighted by the
+        element's volume fractions (:func:`element_coeffs`).
       coeffs: (n_materials, 4, 4) c_rs tables in MPa, indexed like ``mesh.materials``.
       multiplier_offset: global dof index of lambda_0 (lambda_e = offset + e).
       elements: optional subset of element ids (default all).
@@ -120,14 +133,16 @@ class SolidQ1P0(Term):
         object.__setattr__(self, "elements", el)
         object.__setattr__(self, "dofs", dofs)
         object.__setattr__(self, "params", {"coeffs": np.asarray(self.coeffs, dtype=np.float64)})
-        object.__setattr__(self, "data", {"grad_n": grad_n, "dv": dv,
-                                          "mat": m.material_ids[el]})
+        data = {"grad_n": grad_n, "dv": dv, "mat": m.material_ids[el]}
+        if m.material_fractions is not None:
+            data["mix"] = m.material_fractions[el]
+        object.__setattr__(self, "data", data)
 
     def local_energy(self, q_loc, params, data):
         u = q_loc[:, :24].reshape(-1, 8, 3)
         lam = q_loc[:, 24]
         F = deformation_gradient(u, data["grad_n"])
-        c = params["coeffs"][data["mat"]]
+        c = element_coeffs(params["coeffs"], data)
         e = jax.vmap(jax.vmap(point_energy, (0, None, None)), (0, 0, 0))(F, lam, c)
         return jnp.sum(e * data["dv"], axis=1)
 
@@ -165,7 +180,7 @@ class SolidQ1P0(Term):
         lam = q_loc[:, 24]
         G, dv = data["grad_n"], data["dv"]  # (n, 8 gauss, 8 nodes, 3), (n, 8)
         F = deformation_gradient(u, G)
-        c = params["coeffs"][data["mat"]]
+        c = element_coeffs(params["coeffs"], data)
         C = jnp.swapaxes(F, -1, -2) @ F
         I1 = jnp.trace(C, axis1=-2, axis2=-1)
         I2 = 0.5 * (I1 * I1 - jnp.sum(C * C, axis=(-2, -1)))
@@ -215,11 +230,11 @@ class SolidQ1P0(Term):
 
 
 @jax.jit
-def _fields_jit(q_loc, coeffs, mat, grad_n):
+def _fields_jit(q_loc, c, grad_n):
     u = q_loc[:, :24].reshape(-1, 8, 3)
     lam = q_loc[:, 24]
     F = deformation_gradient(u, grad_n)
-    P = _point_grad(F, lam, coeffs[mat])
+    P = _point_grad(F, lam, c)
     J = jnp.linalg.det(F)
     sig = jnp.einsum("egij,egkj->egik", P, F) / J[..., None, None]
     E = 0.5 * (jnp.einsum("egki,egkj->egij", F, F) - jnp.eye(3))
@@ -228,7 +243,7 @@ def _fields_jit(q_loc, coeffs, mat, grad_n):
 
 def _fields(q_loc, params, data):
     sig, J, lam, E = (np.asarray(a) for a in _fields_jit(
-        q_loc, params["coeffs"], data["mat"], data["grad_n"]))
+        q_loc, element_coeffs(params["coeffs"], data), data["grad_n"]))
     w = data["dv"] / data["dv"].sum(axis=1, keepdims=True)
     s = np.einsum("eg,egij->eij", w, sig)
     p = -np.trace(s, axis1=1, axis2=2) / 3.0
