@@ -274,7 +274,7 @@ def merge(*parts: tuple[str, Mesh]) -> Mesh:
 
     Materials with the same name are shared. Args: pairs (part name, mesh).
     """
-    nodes, hexes, mids, ns, fs, es, fracs = [], [], [], {}, {}, {}, []
+    nodes, hexes, mids, ns, fs, es, remaps = [], [], [], {}, {}, {}, []
     mats: list[str] = []
     offn = offe = 0
     for pname, m in parts:
@@ -283,8 +283,7 @@ def merge(*parts: tuple[str, Mesh]) -> Mesh:
         nodes.append(m.nodes)
         hexes.append(m.hexes + offn)
         mids.append(remap[m.material_ids])
-        fracs.append((remap, m.material_fractions if m.material_fractions is not None
-                      else np.eye(len(m.materials))[m.material_ids]))
+        remaps.append((remap, m))
         for k, v in m.node_sets.items():
             ns[f"{pname}/{k}"] = v + offn
         for k, v in m.face_sets.items():
@@ -299,7 +298,9 @@ def merge(*parts: tuple[str, Mesh]) -> Mesh:
     if any(m.material_fractions is not None for _, m in parts):
         mixed = np.zeros((offe, len(mats)))
         row = 0
-        for remap, f in fracs:
+        for remap, m in remaps:  # a part without fractions is wholly its materials
+            f = (m.material_fractions if m.material_fractions is not None
+                 else np.eye(len(m.materials))[m.material_ids])
             mixed[row:row + len(f), remap] = f
             row += len(f)
     return Mesh(np.concatenate(nodes), np.concatenate(hexes), np.concatenate(mids),
