@@ -19,6 +19,7 @@ from eyefem.fem.loop_solid import ShortenedLoopSolid
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.mesh import HEX_CORNERS, HEX_FACES, Mesh
 from eyefem.fem.solid import SolidQ1P0
+from eyefem.fem.solid_im import SolidQ1P0IM
 from eyefem.fem.surface import face_cone_volume
 from eyefem.fem.terms import OrbitSpring
 from eyefem.verify.cavity_handcoded import cavity_check
@@ -40,6 +41,23 @@ from eyefem.verify.handcoded import (
 )
 
 
+def _element_state(rng, X, term, params):
+    """A random deformed state of one solid element with reference nodes X (8, 3): F, u
+    (8, 3), lambda, the local dofs x (25,), the kernel's gradient g (1, 25) and Hessian H
+    (1, 25, 25) there, and the kernel's residual as a function of x (for differences)."""
+    F = random_deformation(rng)
+    u = X @ F.T - X + 0.03 * rng.standard_normal((8, 3))
+    lam = float(rng.uniform(-1, 1))
+    x = np.concatenate([u.ravel(), [lam]])
+    kern = jax.jit(term.local_grad_hess)
+
+    def r_fun(y):
+        return np.asarray(kern(jnp.asarray(y)[None], params, term.data)[0][0])
+
+    g, H = kern(jnp.asarray(x)[None], params, term.data)
+    return F, u, lam, x, g, H, r_fun
+
+
 def _solid_check(terms, loop=False):
     """One Q1P0 element; ``loop``: off the z axis, in a loop shortened by a random length
     (:class:`eyefem.fem.loop_solid.ShortenedLoopSolid`), the hand-coded element evaluated at
@@ -56,16 +74,7 @@ def _solid_check(terms, loop=False):
         else:
             term, s = SolidQ1P0("solid", mesh, c[None], 24), 0.0
             params = term.params
-        F = random_deformation(rng)
-        u = X @ F.T - X + 0.03 * rng.standard_normal((8, 3))
-        lam = float(rng.uniform(-1, 1))
-        x = np.concatenate([u.ravel(), [lam]])
-        kern = jax.jit(term.local_grad_hess)
-
-        def r_fun(y):
-            return np.asarray(kern(jnp.asarray(y)[None], params, term.data)[0][0])
-
-        g, H = kern(jnp.asarray(x)[None], params, term.data)
+        F, u, lam, x, g, H, r_fun = _element_state(rng, X, term, params)
         shift = s / (2 * np.pi) * np.column_stack([X[:, :2], np.zeros(8)]) \
             / np.hypot(X[:, 0], X[:, 1])[:, None]
         r, K = q1p0_residual_tangent(X - shift, u + shift, lam, c)
@@ -73,6 +82,27 @@ def _solid_check(terms, loop=False):
                          f"det F = {np.linalg.det(F):.3f}, lambda = {lam:.3f} MPa"
                          + (f", shortening {s:.2f} mm" if loop else ""))
     return check
+
+
+def _incompatible_modes_check(rng):
+    """One Q1P0 element with incompatible modes (:class:`eyefem.fem.solid_im.SolidQ1P0IM`).
+    It has no hand-coded form: its kernel's explicit condensation (g_u - K_ua K_aa^-1 g_a,
+    K_uu - K_ua K_aa^-1 K_au at alpha*) is checked against the straight autodiff gradient
+    and Hessian of the condensed energy (through the inner Newton iterations on alpha) in
+    the 'hand' columns, and against central differences of its residual."""
+    X = HEX_CORNERS * np.array([1.0, 0.6, 0.25]) + 0.03 * rng.standard_normal((8, 3))
+    c = MooneyRivlin.from_terms("m", {"c10": 0.5, "c01": 0.2, "c20": 0.1}).coeffs
+    term = SolidQ1P0IM("solid", Mesh(X, np.arange(8)[None], [0]), c[None], 24)
+    F, _, lam, x, g, H, r_fun = _element_state(rng, X, term, term.params)
+
+    def energy(y):
+        return term.local_energy(y[None], term.params, term.data)[0]
+
+    r = np.asarray(jax.grad(energy)(jnp.asarray(x)))
+    K = np.array(jax.hessian(energy)(jnp.asarray(x)))
+    return CheckData(np.asarray(g[0]), r, np.asarray(H[0]), K, r_fun, x,
+                     f"det F = {np.linalg.det(F):.3f}, lambda = {lam:.3f} MPa, a 2 x 1.2 x 0.5 "
+                     "mm brick")
 
 
 def _pressure_check(rng):
@@ -214,6 +244,7 @@ def term_checks() -> dict[str, Callable[[np.random.Generator], CheckData]]:
         "solid_q1p0_generalised": _solid_check(
             {"c10": 0.5, "c01": 0.2, "c20": 0.1, "c11": 0.05, "c02": 0.02, "c30": 0.01, "c03": 0.005}),
         "solid_q1p0_shortened_loop": _solid_check({"c10": 1.0, "c01": 0.1}, loop=True),
+        "solid_q1p0_incompatible_modes": _incompatible_modes_check,
         "follower_pressure": _pressure_check,
         "orbit_spring": _orbit_check,
         "orbit_spring_tilted_shift": lambda rng: _orbit_check(rng, tilted=True),

@@ -1,0 +1,231 @@
+"""The Q1P0 element with incompatible modes (eyefem.fem.solid_im): patch test, a bent
+cantilever against beam theory, no spurious modes at rest, objectivity, the inner solve,
+the materials it enriches, and the finite-strain instability in tension that keeps it out
+of the eye model. Its tangent against autodiff and finite differences is in
+tests/test_handcoded.py (verify_tangents' 'solid_q1p0_incompatible_modes')."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from eyefem.fem import generators
+from eyefem.fem.materials import MooneyRivlin
+from eyefem.fem.mesh import HEX_CORNERS, Mesh
+from eyefem.fem.solid import SolidQ1P0, deformation_gradient
+from eyefem.fem.solid_im import (
+    INNER_ITERATIONS, SolidQ1P0IM, _stress_tangent, condensed_modes, mode_operators,
+    pushed_operators)
+from eyefem.solve.model import node_dofs
+
+jax.config.update("jax_enable_x64", True)
+
+C10 = 1.0  # neo-Hookean: shear modulus 2 C10, Young's modulus (incompressible) 6 C10, MPa
+COEFFS = MooneyRivlin.from_terms("m", {"c10": C10}).coeffs[None]
+
+
+def _cantilever_tip(cls, nx, nz, length=10.0, height=1.0, width=1.0, load=1e-3):
+    """Tip deflection, mm, of a clamped incompressible box beam under a small end load
+    (N): the linear problem K u = f with the Q1P0 constraint, assembled densely."""
+    mesh = generators.box(length, width, height, nx, 1, nz, material="m")
+    n_u = 3 * mesh.n_nodes
+    term = cls("s", mesh, COEFFS, n_u)
+    n = n_u + mesh.n_elem
+    _, H = jax.jit(term.local_grad_hess)(np.zeros((mesh.n_elem, 25)), term.params, term.data)
+    K = np.zeros((n, n))
+    for d, h in zip(term.dofs, np.asarray(H)):
+        K[np.ix_(d, d)] += h
+    tip = node_dofs(mesh.node_set("x1"), "z")
+    f = np.zeros(n)
+    f[tip] = load / len(tip)
+    free = np.setdiff1d(np.arange(n), node_dofs(mesh.node_set("x0")))
+    u = np.zeros(n)
+    u[free] = np.linalg.solve(K[np.ix_(free, free)], f[free])
+    return u[tip].mean()
+
+
+def _timoshenko_tip(length=10.0, height=1.0, width=1.0, load=1e-3):
+    """P L^3 / (3 E I) + P L / (kappa G A), kappa = 5/6, E = 6 C10, G = 2 C10."""
+    E, G = 6.0 * C10, 2.0 * C10
+    return (load * length**3 / (3 * E * width * height**3 / 12)
+            + load * length / (5 / 6 * G * width * height))
+
+
+@pytest.mark.parametrize("nx, q1p0_low, im_band", [(5, 0.45, (0.92, 0.96)),
+                                                   (10, 0.75, (0.96, 0.99))])
+def test_a_bent_cantilever_does_not_lock(nx, q1p0_low, im_band):
+    """A 10 x 1 x 1 mm beam, four layers, elements 2 and 1 mm long (8 and 4 times their
+    0.25 mm thickness): the plain brick locks (0.40 and 0.70 of beam theory, measured),
+    the enriched one reaches 0.935 and 0.975; it converges to the theory with length
+    (0.994 at 20 elements)."""
+    ref = _timoshenko_tip()
+    assert _cantilever_tip(SolidQ1P0, nx, 4) / ref < q1p0_low
+    ratio = _cantilever_tip(SolidQ1P0IM, nx, 4) / ref
+    assert im_band[0] < ratio < im_band[1]
+
+
+def _distorted_box():
+    mesh = generators.box(2.0, 1.5, 1.0, 3, 2, 2, material="m")
+    rng = np.random.default_rng(3)
+    interior = np.all((mesh.nodes > 1e-9) & (mesh.nodes < np.array([2.0, 1.5, 1.0]) - 1e-9), 1)
+    nodes = mesh.nodes + 0.12 * interior[:, None] * rng.uniform(-1, 1, mesh.nodes.shape)
+    return Mesh(nodes, mesh.hexes, np.zeros(mesh.n_elem, int), materials=("m",))
+
+
+def test_patch_test_a_homogeneous_deformation_leaves_the_modes_at_rest():
+    """Any homogeneous F on distorted elements: alpha* = 0, and energy, residual and
+    tangent equal the plain Q1P0 element's (the modes' gradients integrate to zero)."""
+    mesh = _distorted_box()
+    coeffs = MooneyRivlin.from_terms("m", {"c10": 0.3, "c01": 0.1, "c20": 0.05}).coeffs[None]
+    plain, enriched = (cls("s", mesh, coeffs, 3 * mesh.n_nodes) for cls in (SolidQ1P0, SolidQ1P0IM))
+    F = np.array([[1.1, 0.05, 0.0], [0.02, 0.95, 0.03], [0.0, -0.04, 0.97]])
+    u = mesh.nodes @ F.T - mesh.nodes
+    q_loc = np.concatenate([u[mesh.hexes].reshape(-1, 24), np.full((mesh.n_elem, 1), 0.02)], 1)
+    F_c = deformation_gradient(u[mesh.hexes], enriched.data["grad_n"])
+    D = pushed_operators(F_c, mode_operators(enriched.data["grad_m"], enriched.data["frame_m"]))
+    alpha = condensed_modes(F_c, D, enriched.data["dv"], coeffs[[0] * mesh.n_elem])
+    assert np.abs(np.asarray(alpha)).max() < 1e-13
+    g0, H0 = plain.local_grad_hess(q_loc, plain.params, plain.data)
+    g1, H1 = enriched.local_grad_hess(q_loc, enriched.params, enriched.data)
+    np.testing.assert_allclose(g1, g0, atol=1e-12 * np.abs(g0).max())
+    np.testing.assert_allclose(
+        enriched.local_energy(q_loc, enriched.params, enriched.data),
+        plain.local_energy(q_loc, plain.params, plain.data), rtol=1e-12)
+    # the tangent differs (the modes soften bending), but not along a homogeneous change
+    dF = np.array([[0.0, 0.1, 0.0], [0.0, 0.0, 0.0], [0.05, 0.0, -0.02]])
+    du = np.concatenate([(mesh.nodes @ dF.T)[mesh.hexes].reshape(-1, 24), np.zeros((mesh.n_elem, 1))], 1)
+    np.testing.assert_allclose(np.einsum("eij,ej->ei", H1, du), np.einsum("eij,ej->ei", H0, du),
+                               atol=1e-10 * np.abs(np.einsum("eij,ej->ei", H0, du)).max())
+
+
+def test_no_spurious_zero_energy_modes():
+    """One brick, incompressible (the tangent projected off the pressure's constraint):
+    seven zero eigenvalues, the six rigid motions and the constraint's own direction, as
+    the plain brick. (Modes along their own direction, u_k ~ 1 - xi_k^2, would add three
+    more: pointwise volume changes that neither the deviatoric energy nor the element's
+    one pressure resists.)"""
+    mesh = Mesh(HEX_CORNERS * [1.0, 0.7, 0.3], np.arange(8)[None], [0], materials=("m",))
+    for cls in (SolidQ1P0, SolidQ1P0IM):
+        term = cls("s", mesh, COEFFS, 24)
+        _, H = term.local_grad_hess(np.zeros((1, 25)), term.params, term.data)
+        K, b = np.asarray(H[0, :24, :24]), np.asarray(H[0, :24, 24])
+        P = np.eye(24) - np.outer(b, b) / (b @ b)
+        ev = np.linalg.eigvalsh(P @ K @ P)
+        assert np.sum(ev < 1e-9 * ev.max()) == 7, (cls.__name__, ev[:9])
+
+
+def test_objective_and_rigid_motions_store_nothing():
+    """Rotating the deformed mesh leaves every element's energy unchanged; a finite rigid
+    rotation stores none."""
+    mesh = _distorted_box()
+    term = SolidQ1P0IM("s", mesh, COEFFS, 3 * mesh.n_nodes)
+    rng = np.random.default_rng(1)
+    x = mesh.nodes + 0.08 * rng.standard_normal(mesh.nodes.shape)
+    Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    Q *= np.sign(np.linalg.det(Q))
+    lam = np.full((mesh.n_elem, 1), 0.01)
+
+    def energy(xx):
+        q = np.concatenate([(xx - mesh.nodes)[mesh.hexes].reshape(-1, 24), lam], 1)
+        return np.asarray(term.local_energy(q, term.params, term.data))
+
+    e = energy(x)
+    np.testing.assert_allclose(energy(x @ Q.T), e, rtol=1e-11)
+    assert np.abs(energy(mesh.nodes @ Q.T)).max() < 1e-13  # lambda (J - 1) = 0 too
+
+
+def test_the_inner_newton_solve_converges_to_round_off():
+    """At strains of 20 % (random nodal motions), INNER_ITERATIONS Newton steps leave the
+    modes' residual dPi/dalpha at round-off relative to its start (measured: 1e-2, 1e-5,
+    4e-12 after one to three steps)."""
+    mesh = _distorted_box()
+    term = SolidQ1P0IM("s", mesh, COEFFS, 3 * mesh.n_nodes)
+    u = 0.06 * np.random.default_rng(2).standard_normal(mesh.nodes.shape)
+    F_c = deformation_gradient(u[mesh.hexes], term.data["grad_n"])
+    E = pushed_operators(F_c, mode_operators(term.data["grad_m"], term.data["frame_m"]))
+    dv, c = term.data["dv"], COEFFS[[0] * mesh.n_elem]
+
+    def residual(a):
+        P, _ = _stress_tangent(F_c + jnp.einsum("em,egmij->egij", a, E), c)
+        return np.abs(np.asarray(jnp.einsum("eg,egij,egmij->em", dv, P, E))).max()
+
+    start = residual(jnp.zeros((mesh.n_elem, 6)))
+    assert np.abs(np.asarray(F_c) - np.eye(3)).max() > 0.1
+    assert residual(condensed_modes(F_c, E, dv, c, 1)) > 1e-4 * start  # it has work to do
+    assert residual(condensed_modes(F_c, E, dv, c, INNER_ITERATIONS)) < 1e-12 * start
+
+
+def test_elements_of_materials_not_enriched_are_plain_q1p0_elements():
+    """enriched_materials: the other materials' elements give the Q1P0 kernel exactly; an
+    unknown name is refused with the mesh's materials."""
+    mesh = _distorted_box()
+    mesh = Mesh(mesh.nodes, mesh.hexes, np.arange(mesh.n_elem) % 2, materials=("a", "b"))
+    coeffs = np.stack([COEFFS[0], 2.0 * COEFFS[0]])
+    plain = SolidQ1P0("s", mesh, coeffs, 3 * mesh.n_nodes)
+    part = SolidQ1P0IM("s", mesh, coeffs, 3 * mesh.n_nodes, enriched_materials=("b",))
+    whole = SolidQ1P0IM("s", mesh, coeffs, 3 * mesh.n_nodes)
+    rng = np.random.default_rng(4)
+    q_loc = np.concatenate([0.05 * rng.standard_normal((mesh.n_elem, 24)),
+                            0.01 * rng.standard_normal((mesh.n_elem, 1))], 1)
+    g0, H0 = plain.local_grad_hess(q_loc, plain.params, plain.data)
+    g1, H1 = part.local_grad_hess(q_loc, part.params, part.data)
+    g2, H2 = whole.local_grad_hess(q_loc, whole.params, whole.data)
+    a, b = mesh.material_ids == 0, mesh.material_ids == 1
+    np.testing.assert_allclose(H1[a], H0[a], rtol=1e-12, atol=1e-12 * np.abs(H0).max())
+    np.testing.assert_allclose(g1[a], g0[a], rtol=1e-12, atol=1e-12 * np.abs(g0).max())
+    np.testing.assert_allclose(H1[b], H2[b], rtol=1e-12, atol=1e-12 * np.abs(H2).max())
+    assert np.abs(np.asarray(H2[b]) - np.asarray(H0[b])).max() > 1e-3 * np.abs(H0).max()
+    with pytest.raises(ValueError, match=r"enriched_materials \['sclera'\] are not materials"):
+        SolidQ1P0IM("s", mesh, coeffs, 3 * mesh.n_nodes, enriched_materials=("sclera",))
+
+
+def _stretched_plate_lowest_eigenvalue(cls, stretch, biaxial):
+    """The lowest eigenvalue, N/mm, of the tangent of a 4 x 4 x 0.25 mm plate (8 x 8 x 2
+    elements, c10 = 1 MPa) stretched homogeneously by ``stretch`` along x (and y, if
+    ``biaxial``), its faces across x (and y) held normally, the faces of its thickness free
+    (an exact equilibrium: residual at round-off), on the incompressible subspace; rigid
+    motions held by two or three more dofs."""
+    import scipy.linalg
+
+    mesh = generators.box(4.0, 4.0, 0.25, 8, 8, 2, material="m")
+    n_u, n = 3 * mesh.n_nodes, 3 * mesh.n_nodes + mesh.n_elem
+    term = cls("s", mesh, COEFFS, n_u)
+    F = np.diag([stretch, stretch, stretch**-2] if biaxial else
+                [stretch, stretch**-0.5, stretch**-0.5])
+    b = F @ F.T
+    lam = -C10 * (b[2, 2] - np.trace(b) / 3)  # sigma_zz = 2 c10 dev(b)_zz + 2 lambda = 0
+    u = mesh.nodes @ F.T - mesh.nodes
+    q = np.concatenate([u[mesh.hexes].reshape(-1, 24), np.full((mesh.n_elem, 1), lam)], 1)
+    g, H = jax.jit(term.local_grad_hess)(q, term.params, term.data)
+    K, r = np.zeros((n, n)), np.zeros(n)
+    for d, h, gg in zip(term.dofs, np.asarray(H), np.asarray(g)):
+        K[np.ix_(d, d)] += h
+        r[d] += gg
+    corner = np.flatnonzero(np.all(mesh.nodes == 0.0, axis=1))[0]
+    side = np.flatnonzero(np.all(np.isclose(mesh.nodes, [0.0, 4.0, 0.0]), axis=1))[0]
+    held = [node_dofs(mesh.node_set("x0"), "x"), node_dofs(mesh.node_set("x1"), "x"),
+            [3 * corner + 2, 3 * side + 2]]
+    held += ([node_dofs(mesh.node_set("y0"), "y"), node_dofs(mesh.node_set("y1"), "y")]
+             if biaxial else [[3 * corner + 1]])
+    free_u = np.setdiff1d(np.arange(n_u), np.concatenate(held))
+    assert np.abs(r[free_u]).max() < 1e-11  # in equilibrium
+    mult = np.arange(n_u, n)
+    basis = scipy.linalg.null_space(K[np.ix_(mult, free_u)])
+    return np.linalg.eigvalsh(basis.T @ K[np.ix_(free_u, free_u)] @ basis)[0]
+
+
+def test_the_modes_are_spuriously_unstable_in_tension():
+    """Why the element is not in the eye model: a thin plate stretched in tension is
+    stable (the plain brick's lowest eigenvalues are positive, 6e-4 to 1e-3 N/mm
+    measured), but with the modes it has a negative eigenvalue once stretched
+    equibiaxially by 3 % (-0.019 measured; -0.50 at 5 %), the eye wall's state under
+    pressure, or uniaxially by 7 % (-0.14; at 5 % it is stable). The seed's constants
+    stretch the eye's wall by up to 5-6 % at 15 mmHg. The finite-strain instability of
+    incompatible-mode and enhanced-strain bricks is known (Wriggers and Korelc 1996;
+    Wriggers and Reese 1996); the element needs a stabilisation before it can serve the
+    eye."""
+    for stretch in (1.03, 1.07):
+        assert _stretched_plate_lowest_eigenvalue(SolidQ1P0, stretch, biaxial=True) > 0
+    assert _stretched_plate_lowest_eigenvalue(SolidQ1P0IM, 1.03, biaxial=True) < -0.01
+    assert _stretched_plate_lowest_eigenvalue(SolidQ1P0IM, 1.07, biaxial=False) < -0.1
+    assert _stretched_plate_lowest_eigenvalue(SolidQ1P0IM, 1.05, biaxial=False) > 0
