@@ -98,8 +98,8 @@ def _incompatible_modes_check(rng):
     def energy(y):
         return term.local_energy(y[None], term.params, term.data)[0]
 
-    r = np.asarray(jax.grad(energy)(jnp.asarray(x)))
-    K = np.array(jax.hessian(energy)(jnp.asarray(x)))
+    r = np.asarray(jax.jit(jax.grad(energy))(jnp.asarray(x)))
+    K = np.array(jax.jit(jax.hessian(energy))(jnp.asarray(x)))
     return CheckData(np.asarray(g[0]), r, np.asarray(H[0]), K, r_fun, x,
                      f"det F = {np.linalg.det(F):.3f}, lambda = {lam:.3f} MPa, a 2 x 1.2 x 0.5 "
                      "mm brick")
