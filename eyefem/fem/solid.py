@@ -229,11 +229,10 @@ class SolidQ1P0(Term):
         return _fields(q[self.dofs], params, self.data)
 
 
-@jax.jit
-def _fields_jit(q_loc, c, grad_n):
-    u = q_loc[:, :24].reshape(-1, 8, 3)
-    lam = q_loc[:, 24]
-    F = deformation_gradient(u, grad_n)
+def point_fields(F, lam, c):
+    """Cauchy stress sigma (n, 8, 3, 3) MPa, J (n, 8), lambda (n,) and Green-Lagrange
+    strain (n, 8, 3, 3) at the Gauss points from their deformation gradients F (n, 8, 3, 3),
+    the elements' multipliers lam (n,) and coefficient tables c (n, 4, 4)."""
     P = _point_grad(F, lam, c)
     J = jnp.linalg.det(F)
     sig = jnp.einsum("egij,egkj->egik", P, F) / J[..., None, None]
@@ -241,10 +240,16 @@ def _fields_jit(q_loc, c, grad_n):
     return sig, J, lam, E
 
 
-def _fields(q_loc, params, data):
-    sig, J, lam, E = (np.asarray(a) for a in _fields_jit(
-        q_loc, element_coeffs(params["coeffs"], data), data["grad_n"]))
-    w = data["dv"] / data["dv"].sum(axis=1, keepdims=True)
+@jax.jit
+def _fields_jit(q_loc, c, grad_n):
+    return point_fields(deformation_gradient(q_loc[:, :24].reshape(-1, 8, 3), grad_n),
+                        q_loc[:, 24], c)
+
+
+def element_fields(sig, J, lam, E, dv) -> dict:
+    """The fields of :meth:`SolidQ1P0.fields` from :func:`point_fields`' Gauss-point values
+    (numpy), averaged with the points' volumes dv (n, 8)."""
+    w = dv / dv.sum(axis=1, keepdims=True)
     s = np.einsum("eg,egij->eij", w, sig)
     p = -np.trace(s, axis1=1, axis2=2) / 3.0
     dev = s + p[:, None, None] * np.eye(3)
@@ -253,3 +258,8 @@ def _fields(q_loc, params, data):
     return {"cauchy": s, "von_mises": vm, "pressure": p, "lambda": lam,
             "J": np.einsum("eg,eg->e", w, J), "green_lagrange": E,
             "max_principal_strain": np.linalg.eigvalsh(E)[:, -1]}
+
+
+def _fields(q_loc, params, data):
+    return element_fields(*(np.asarray(a) for a in _fields_jit(
+        q_loc, element_coeffs(params["coeffs"], data), data["grad_n"])), data["dv"])

@@ -116,6 +116,8 @@ class SolidQ1P0ANS(SolidQ1P0):
     Args:
       ans_materials: names of the materials whose elements use the assumed strains (None:
         all); the others are plain Q1P0 elements.
+
+    ``fields`` are SolidQ1P0's, from the compatible deformation gradient.
     """
 
     ans_materials: tuple | None = None

@@ -53,7 +53,8 @@ import numpy as np
 from eyefem.fem.materials import strain_energy
 from eyefem.fem.mesh import hex_gauss_points, hex_shape
 from eyefem.fem.solid import (
-    SolidQ1P0, _inv_grad_hess, deformation_gradient, element_coeffs)
+    SolidQ1P0, _inv_grad_hess, deformation_gradient, element_coeffs, element_fields,
+    point_fields)
 
 INNER_ITERATIONS = 4
 """Newton iterations on the modes' amplitudes alpha per evaluation, from alpha = 0. At 20 %
@@ -312,22 +313,9 @@ class SolidQ1P0IM(SolidQ1P0):
 
 
 def _im_fields(q_loc, params, data):
-    from eyefem.fem.solid import _point_grad
-
     c = element_coeffs(params["coeffs"], data)
     F_c = deformation_gradient(q_loc[:, :24].reshape(-1, 8, 3), data["grad_n"])
     D = pushed_operators(F_c, mode_operators(data["grad_m"], data["frame_m"]))
     F = F_c + jnp.einsum("em,egmij->egij", condensed_modes(F_c, D, data["dv"], c), D)
-    lam = q_loc[:, 24]
-    P = _point_grad(F, lam, c)
-    J = jnp.linalg.det(F)
-    sig = np.asarray(jnp.einsum("egij,egkj->egik", P, F) / J[..., None, None])
-    E = np.asarray(0.5 * (jnp.einsum("egki,egkj->egij", F, F) - jnp.eye(3)))
-    w = data["dv"] / data["dv"].sum(axis=1, keepdims=True)
-    s = np.einsum("eg,egij->eij", w, sig)
-    p = -np.trace(s, axis1=1, axis2=2) / 3.0
-    dev = s + p[:, None, None] * np.eye(3)
-    E = np.einsum("eg,egij->eij", w, E)
-    return {"cauchy": s, "von_mises": np.sqrt(1.5 * np.sum(dev * dev, axis=(1, 2))),
-            "pressure": p, "lambda": np.asarray(lam), "J": np.einsum("eg,eg->e", w, np.asarray(J)),
-            "green_lagrange": E, "max_principal_strain": np.linalg.eigvalsh(E)[:, -1]}
+    return element_fields(*(np.asarray(a) for a in point_fields(F, q_loc[:, 24], c)),
+                          data["dv"])
