@@ -86,8 +86,7 @@ plane). The three along their own direction would be zero-energy modes of an
 incompressible brick (module docstring; tests/test_solid_im.py)."""
 N_MODES = len(MODES)
 _SELECT = np.zeros((N_MODES, 3, 3))
-for _m, (_k, _i) in enumerate(MODES):
-    _SELECT[_m, _k, _i] = 1.0
+_SELECT[np.arange(N_MODES), [k for k, _ in MODES], [i for _, i in MODES]] = 1.0
 
 
 def mode_operators(gm, frame):
