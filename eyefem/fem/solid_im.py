@@ -50,11 +50,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.fem.materials import strain_energy
 from eyefem.fem.mesh import hex_gauss_points, hex_shape
 from eyefem.fem.solid import (
     SolidQ1P0, _inv_grad_hess, deformation_gradient, element_coeffs, element_fields,
-    point_fields)
+    point_energy, point_fields)
 
 INNER_ITERATIONS = 4
 """Newton iterations on the modes' amplitudes alpha per evaluation, from alpha = 0. At 20 %
@@ -102,35 +101,10 @@ def pushed_operators(F_c, E):
     return jnp.einsum("egip,egmpj->egmij", F_c, E)
 
 
-def _det3(F):
-    """det F (...) of F (..., 3, 3) by cofactors: cheaper to differentiate twice than an LU."""
-    return (F[..., 0, 0] * (F[..., 1, 1] * F[..., 2, 2] - F[..., 1, 2] * F[..., 2, 1])
-            - F[..., 0, 1] * (F[..., 1, 0] * F[..., 2, 2] - F[..., 1, 2] * F[..., 2, 0])
-            + F[..., 0, 2] * (F[..., 1, 0] * F[..., 2, 1] - F[..., 1, 1] * F[..., 2, 0]))
-
-
-def _cofactor3(F):
-    """cof F^T = det F F^-1 (..., 3, 3) of F (..., 3, 3): the adjugate, by cofactors."""
-    a = F
-    return jnp.stack([
-        jnp.stack([a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1],
-                   a[..., 0, 2] * a[..., 2, 1] - a[..., 0, 1] * a[..., 2, 2],
-                   a[..., 0, 1] * a[..., 1, 2] - a[..., 0, 2] * a[..., 1, 1]], -1),
-        jnp.stack([a[..., 1, 2] * a[..., 2, 0] - a[..., 1, 0] * a[..., 2, 2],
-                   a[..., 0, 0] * a[..., 2, 2] - a[..., 0, 2] * a[..., 2, 0],
-                   a[..., 0, 2] * a[..., 1, 0] - a[..., 0, 0] * a[..., 1, 2]], -1),
-        jnp.stack([a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0],
-                   a[..., 0, 1] * a[..., 2, 0] - a[..., 0, 0] * a[..., 2, 1],
-                   a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]], -1)], -2)
-
-
 def _deviatoric_density(F, c):
-    """W(I1bar, I2bar), MPa, at one point: F (3, 3), c (4, 4) MPa."""
-    C = F.T @ F
-    i1 = jnp.trace(C)
-    i2 = 0.5 * (i1 * i1 - jnp.sum(C * C))
-    J = _det3(F)
-    return strain_energy(J ** (-2.0 / 3.0) * i1, J ** (-4.0 / 3.0) * i2, c)
+    """W(I1bar, I2bar), MPa, at one point (F (3, 3), c (4, 4) MPa): the plain element's
+    point energy without its pressure term."""
+    return point_energy(F, 0.0, c)
 
 
 _stress_tangent = jax.vmap(jax.vmap(
@@ -154,8 +128,8 @@ def mode_residual_tangent(F, D, dv, c):
     C = jnp.swapaxes(F, -1, -2) @ F
     I1 = jnp.trace(C, axis1=-2, axis2=-1)
     I2 = 0.5 * (I1 * I1 - jnp.sum(C * C, axis=(-2, -1)))
-    J = _det3(F)
-    Finv = _cofactor3(F) / J[..., None, None]
+    J = jnp.linalg.det(F)
+    Finv = jnp.linalg.inv(F)
     dW, ddW = _inv_grad_hess(jnp.stack([I1, I2, J], -1), jnp.zeros(F.shape[0], F.dtype), c)
     Fg, Cg, Fig = F[:, :, None], C[:, :, None], Finv[:, :, None]  # broadcast over the modes
 
