@@ -124,7 +124,8 @@ def mode_residual_tangent(F, D, dv, c):
         d2 I2 [X, Y] = 4 (F:X)(F:Y) + 2 I1 X:Y - 2 X:(Y C + F Y^T F + F F^T Y)
         d2 J  [X, Y] = J (tr(F^-1 X) tr(F^-1 Y) - tr(F^-1 X F^-1 Y))
 
-    (about ten times cheaper than d2W/dF2 by autodiff; dv (n, 8) mm^3, c (n, 4, 4) MPa)."""
+    (0.044 s against 0.12 s with autodiff's d2W/dF2 contracted, 2,470 elements; dv (n, 8) mm^3,
+    c (n, 4, 4) MPa)."""
     C = jnp.swapaxes(F, -1, -2) @ F
     I1 = jnp.trace(C, axis1=-2, axis2=-1)
     I2 = 0.5 * (I1 * I1 - jnp.sum(C * C, axis=(-2, -1)))
