@@ -38,13 +38,14 @@ from eyefem.fem.buckle_contact import RIDGE_FLANK
 from eyefem.fem.cavity import WATER_BULK, FluidCavity
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.mesh import face_edges
+from eyefem.fem.solid_ans import SolidQ1P0ANS
 from eyefem.fem.surface import PressureLoad
 from eyefem.fem.terms import NodeSprings, OrbitSpring
 from eyefem.fem.units import MMHG
 from eyefem.io.casefile import Field, positive
 from eyefem.io.output import write_csv
 from eyefem.io.runner import Setup
-from eyefem.solve.model import node_dofs, solid_model
+from eyefem.solve.model import Model, node_dofs, solid_model
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +58,13 @@ its band) or radial sponge."""
 
 TIGHTENINGS = ("pulled_ends", "shortened_loop")
 """How a deformable band or tire is tightened (eyefem.eye.band)."""
+
+WALL_ELEMENTS = ("q1p0", "ans")
+"""The eye wall's elements (case field ``wall_element``)."""
+
+ANS_TISSUES = ("cornea", "limbus", "sclera")
+"""The tissues whose elements take the assumed shear strains with ``wall_element = 'ans'``:
+the load-bearing wall (the retina and choroid, single soft layers, stay plain bricks)."""
 
 SURGERY_FIELDS = [
     Field("mesh", str, SURGICAL_LEVEL, LEVEL_HELP, is_level, LEVEL_EXPECTED),
@@ -145,6 +153,12 @@ SURGERY_FIELDS = [
           lambda v: 0.05 <= v <= 1.5, "0.05 to 1.5 mm"),
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
+    Field("wall_element", str, "q1p0", "the eye wall's element: 'q1p0' (the trilinear brick "
+          "with a constant pressure; the recorded results' model) or 'ans' (the same with "
+          "assumed transverse shear strains in the cornea, limbus and sclera: free of the "
+          "bricks' shear locking in bending, about four times the cost; a rigid buckle only; "
+          "docs/convergence.md, 'Shear locking')", lambda v: v in WALL_ELEMENTS,
+          f"one of {list(WALL_ELEMENTS)}"),
 ] + BIOMETRY_FIELDS
 
 
@@ -177,6 +191,8 @@ def surgery(p, materials):
     wall = _eye_terms(parts)
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
                         wall[:3] + (contact, sutures) + wall[3:] + holds, n_extra_dofs=1)
+    if p["wall_element"] == "ans":
+        model = assumed_strain_wall(model)
     model = body.model(model, parts)
     path = LoadPath(node_dofs(mesh.node_set("eye/nerve_end")), parts.extra_dof,
                     p["iop_mmhg"] * MMHG)
@@ -307,6 +323,15 @@ def _eye_terms(parts: SurgeryParts) -> tuple:
             orbit_spring(mesh, p))
 
 
+def assumed_strain_wall(model: Model) -> Model:
+    """The model with its solid's ANS_TISSUES elements as
+    :class:`eyefem.fem.solid_ans.SolidQ1P0ANS` (assumed transverse shears)."""
+    s = model.term("solid")
+    ans = SolidQ1P0ANS(s.name, s.mesh, s.coeffs, s.multiplier_offset,
+                       ans_materials=tuple(t for t in ANS_TISSUES if t in s.mesh.materials))
+    return model.with_terms([ans if t is s else t for t in model.terms])
+
+
 def check_parameters(p):
     """Checks across fields (each field alone is checked by its schema): ValueError
     naming the values and the fix. ``eyefem new-case`` runs it before writing a case."""
@@ -329,6 +354,10 @@ def check_parameters(p):
                              "half-width across it; lengthen bite_length or narrow bite_radius")
     if p.get("buckle_body", "rigid") == "deformable":
         _check_deformable(p)
+        if p.get("wall_element", "q1p0") != "q1p0":
+            raise ValueError(f"wall_element = '{p['wall_element']}' is implemented with the "
+                             "rigid buckle only (a deformable band's model replaces the solid); "
+                             "set buckle_body = 'rigid' or wall_element = 'q1p0'")
 
 
 def _check_deformable(p):
@@ -497,7 +526,7 @@ ADVANCED_FIELDS = frozenset({
     "steps_tighten", "steps_suture", "contact_smoothing", "contact_normals", "n_segments",
     "ridge_flank", "bite_length", "limbus_width", "zonule_insertion_radius", "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
-    "sclera_thickness_equator", "sclera_thickness_pole"})
+    "sclera_thickness_equator", "sclera_thickness_pole", "wall_element"})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all
 (``--all``): the orbit's hold, load steps, contact and material details."""
 

@@ -2,16 +2,15 @@
 
 A trilinear brick bends by shearing: across a thin wall its transverse shear strains
 E_xi-zeta and E_eta-zeta vary linearly along the element where bending leaves none, and
-its thickness strain E_zeta-zeta picks up the wall's curvature: both stiffen the wall
-(shear and curvature-thickness locking). With assumed natural strains (Dvorkin and
-Bathe 1984; Betsch and Stein 1995; Hauptmann and Schweizerhof 1998) the covariant
-components of the Green-Lagrange strain, E_ij = (x_,i . x_,j - X_,i . X_,j) / 2 with
-x_,i = dx/dxi_i, are sampled where they carry no parasitic part and interpolated to the
-Gauss points:
+stiffen the wall (shear locking). With assumed natural strains (Dvorkin and Bathe 1984)
+the covariant components of the Green-Lagrange strain, E_ij = (x_,i . x_,j - X_,i . X_,j)
+/ 2 with x_,i = dx/dxi_i, are sampled where they carry no parasitic part and interpolated
+to the Gauss points:
 
     E_13 (xi-zeta)   from (0, -1) and (0, +1), linear in eta
     E_23 (eta-zeta)  from (-1, 0) and (+1, 0), linear in xi
-    E_33 (thickness) from the four corners (+-1, +-1), bilinear in xi, eta
+    E_33 (thickness) compatible; with ``ans_thickness`` from the four corners (+-1, +-1),
+                     bilinear in xi, eta (Betsch and Stein 1995)
 
 each at the Gauss point's own zeta. zeta must be the element's thickness direction (the
 eye's wall elements: their nodes 0-3 inner, 4-7 outer). The energy density is the
@@ -24,19 +23,20 @@ holds the mean dilatation of the same strains:
 (with det F of the compatible field in the constraint instead, the pressure's geometric
 stiffness and W's disagree, and a thin plate stretched by 3 % loses its stability). No
 internal unknowns: residual and tangent are autodiff's of one energy (forward over
-reverse, about ten times the plain kernel's cost). The assumed strains reproduce a
-homogeneous deformation exactly on parallelepiped elements.
+reverse, over chunks of ANS_CHUNK elements). The assumed strains reproduce a homogeneous
+deformation exactly on parallelepiped elements.
+
+The thickness strain stays compatible by default: sampled at the corners it reads
+oppositely tilted thickness edges as stretched, so the pressure lets an element lose
+volume that way, and the eye's sclera did under the band in case 1 (the tightening
+stalled; docs/formulation.md, "Assumed natural strains").
 
 Verified (tests/test_solid_im.py): a clamped beam of bricks 8, 4 and 2 times as long as
 thick at 0.945, 0.974 and 0.986 of Timoshenko's deflection (Q1P0: 0.40, 0.70, 0.87);
 stable in tension to 40 % where the incompatible-mode brick (eyefem.fem.solid_im) fails at
-3 %; the patch test; objectivity; residual and tangent against central differences. In
-one-off runs, the seed's equibiaxial sheet to a stretch of 5.8 (edge force within 2e-15
-of the closed form) and the inflated sphere (outer radius 12.1274 mm, Q1P0 12.1273 mm).
-**Not yet for the eye**: case 1 on the coarse eye pressurises in 6 Newton iterations but
-its tightening fails, single corneal nodes taking Newton steps of 0.7 mm, a local
-mechanism not yet understood (docs/convergence.md, "Shear locking"). No case file selects
-it.
+3 %; the patch test; objectivity; residual and tangent against central differences; case
+1 on the coarse eye with the wall of this element (slow). Case field ``wall_element =
+"ans"`` (eyefem.eye.surgery) puts it in the eye's cornea, limbus and sclera.
 
 Local dof order as SolidQ1P0: u[a, i] (24), then lambda (1).
 """
@@ -51,7 +51,7 @@ import numpy as np
 
 from eyefem.fem.materials import strain_energy
 from eyefem.fem.mesh import hex_gauss_points, hex_shape
-from eyefem.fem.solid import SolidQ1P0, deformation_gradient, element_coeffs
+from eyefem.fem.solid import SolidQ1P0, chunked, deformation_gradient, element_coeffs
 from eyefem.fem.terms import Term
 
 
@@ -79,10 +79,11 @@ def _covariant_strain(xe, Xe, dn):
     return 0.5 * (jnp.swapaxes(g, -1, -2) @ g - jnp.swapaxes(G, -1, -2) @ G)
 
 
-def assumed_strain(u_e, X_e, jinv):
+def assumed_strain(u_e, X_e, jinv, thickness=True):
     """Cartesian Green-Lagrange strains (8 Gauss points, 3, 3) of one element with the
     assumed natural strains: u_e, X_e (8, 3) mm; jinv (8, 3, 3) the inverse of dX/dxi at the
-    Gauss points."""
+    Gauss points; ``thickness`` False: E_33 stays the compatible one (transverse shears
+    assumed only)."""
     dn_s, w = _SAMPLES
     _, dn_g = hex_shape(hex_gauss_points()[0])
     x_e = X_e + u_e
@@ -92,11 +93,16 @@ def assumed_strain(u_e, X_e, jinv):
     e23 = w[:, 2] * Es[:, 2, 1, 2] + w[:, 3] * Es[:, 3, 1, 2]
     e33 = jnp.einsum("gc,gc->g", w[:, 4:], Es[:, 4:, 2, 2])
     E = E.at[:, 0, 2].set(e13).at[:, 2, 0].set(e13)
-    E = E.at[:, 1, 2].set(e23).at[:, 2, 1].set(e23).at[:, 2, 2].set(e33)
+    E = E.at[:, 1, 2].set(e23).at[:, 2, 1].set(e23)
+    if thickness:
+        E = E.at[:, 2, 2].set(e33)
     return jnp.swapaxes(jinv, -1, -2) @ E @ jinv
 
 
 _SAMPLES = _sampling_derivatives()
+
+ANS_CHUNK = 250
+"""Elements per chunk of the autodiff tangent kernel (:func:`eyefem.fem.solid.chunked`)."""
 
 
 def _density(E, c):
@@ -121,6 +127,7 @@ class SolidQ1P0ANS(SolidQ1P0):
     """
 
     ans_materials: tuple | None = None
+    ans_thickness: bool = False
 
     def __post_init__(self):
         super().__post_init__()
@@ -143,7 +150,8 @@ class SolidQ1P0ANS(SolidQ1P0):
         c = element_coeffs(params["coeffs"], data)
         F = deformation_gradient(u, data["grad_n"])
         E_plain = 0.5 * (jnp.swapaxes(F, -1, -2) @ F - jnp.eye(3))
-        E_ans = jax.vmap(assumed_strain)(u, data["X"], data["jinv"])
+        E_ans = jax.vmap(assumed_strain, (0, 0, 0, None))(u, data["X"], data["jinv"],
+                                                        self.ans_thickness)
         on = data["ans"][:, None, None, None]
         E = on * E_ans + (1.0 - on) * E_plain
         w = jax.vmap(jax.vmap(_density, (0, None)), (0, 0))(E, c)
@@ -151,4 +159,11 @@ class SolidQ1P0ANS(SolidQ1P0):
         return jnp.sum(data["dv"] * (w + 2.0 * q_loc[:, 24:25] * vol), axis=1)
 
     local_grad_hess = Term.local_grad_hess
-    grad_hess_condensed = Term.grad_hess_condensed
+
+    def grad_hess_condensed(self, q, params, data, dofs, beta):
+        """:meth:`Term.grad_hess_condensed` (autodiff) over chunks of ANS_CHUNK elements in
+        turn: at once, the forward-over-reverse intermediates of the default eye's 11,862
+        elements held 10.7 GB."""
+        def one(data, dofs):
+            return Term.grad_hess_condensed(self, q, params, data, dofs, beta)
+        return chunked(one, data, dofs, ANS_CHUNK)
