@@ -427,3 +427,24 @@ def test_case1_on_the_coarse_eye_with_the_assumed_strain_wall(tmp_path):
     assert summary["unbalanced_steps"]["count"] == 0
     for key, value in RECORDED_ANS_CASE1.items():
         assert summary[key] == pytest.approx(value, rel=1e-6), key
+
+
+def test_wall_element_ans_in_the_pressure_volume_problem():
+    """The validation problem takes the same field: its eye's wall gets the element, and
+    an unknown element is refused by the schema with the choices."""
+    from eyefem.eye.validation import PV_FIELDS, pv_parts
+
+    p = {**{f.name: f.default for f in PV_FIELDS}, "mesh": "coarse", "wall_element": "ans"}
+    solid = pv_parts(p)[0].term("solid")
+    assert isinstance(solid, SolidQ1P0ANS)
+    assert type(pv_parts({**p, "wall_element": "q1p0"})[0].term("solid")) is SolidQ1P0
+
+
+def test_an_unknown_wall_element_is_refused_with_the_choices(tmp_path):
+    from eyefem.catalog import schemas
+    from eyefem.io.casefile import CaseError, load_case
+
+    path = tmp_path / "c.toml"
+    path.write_text('[case]\nproblem = "pressure_volume"\n[parameters]\nwall_element = "shell"\n')
+    with pytest.raises(CaseError, match=r"wall_element.*'shell'.*one of \['q1p0', 'ans'\]"):
+        load_case(path, schemas())

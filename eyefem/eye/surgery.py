@@ -34,18 +34,18 @@ from eyefem.eye.mesh_error import mesh_error
 from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import PRESETS, SEED_MATERIALS, with_overrides
+from eyefem.eye.wall import WALL_ELEMENT_FIELD, with_wall_element
 from eyefem.fem.buckle_contact import RIDGE_FLANK
 from eyefem.fem.cavity import WATER_BULK, FluidCavity
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.mesh import face_edges
-from eyefem.fem.solid_ans import SolidQ1P0ANS
 from eyefem.fem.surface import PressureLoad
 from eyefem.fem.terms import NodeSprings, OrbitSpring
 from eyefem.fem.units import MMHG
 from eyefem.io.casefile import Field, positive
 from eyefem.io.output import write_csv
 from eyefem.io.runner import Setup
-from eyefem.solve.model import Model, node_dofs, solid_model
+from eyefem.solve.model import node_dofs, solid_model
 
 log = logging.getLogger(__name__)
 
@@ -58,13 +58,6 @@ its band) or radial sponge."""
 
 TIGHTENINGS = ("pulled_ends", "shortened_loop")
 """How a deformable band or tire is tightened (eyefem.eye.band)."""
-
-WALL_ELEMENTS = ("q1p0", "ans")
-"""The eye wall's elements (case field ``wall_element``)."""
-
-ANS_TISSUES = ("cornea", "limbus", "sclera")
-"""The tissues whose elements take the assumed shear strains with ``wall_element = 'ans'``:
-the load-bearing wall (the retina and choroid, single soft layers, stay plain bricks)."""
 
 SURGERY_FIELDS = [
     Field("mesh", str, SURGICAL_LEVEL, LEVEL_HELP, is_level, LEVEL_EXPECTED),
@@ -153,12 +146,7 @@ SURGERY_FIELDS = [
           lambda v: 0.05 <= v <= 1.5, "0.05 to 1.5 mm"),
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
-    Field("wall_element", str, "q1p0", "the eye wall's element: 'q1p0' (the trilinear brick "
-          "with a constant pressure; the recorded results' model) or 'ans' (the same with "
-          "assumed transverse shear strains in the cornea, limbus and sclera: free of the "
-          "bricks' shear locking in bending, about four times the cost; a rigid buckle only; "
-          "docs/convergence.md, 'Shear locking')", lambda v: v in WALL_ELEMENTS,
-          f"one of {list(WALL_ELEMENTS)}"),
+    WALL_ELEMENT_FIELD,
 ] + BIOMETRY_FIELDS
 
 
@@ -191,9 +179,7 @@ def surgery(p, materials):
     wall = _eye_terms(parts)
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
                         wall[:3] + (contact, sutures) + wall[3:] + holds, n_extra_dofs=1)
-    if p["wall_element"] == "ans":
-        model = assumed_strain_wall(model)
-    model = body.model(model, parts)
+    model = body.model(with_wall_element(model, p["wall_element"]), parts)
     path = LoadPath(node_dofs(mesh.node_set("eye/nerve_end")), parts.extra_dof,
                     p["iop_mmhg"] * MMHG)
     last, patches = {}, {}  # the stress patches per model mesh (a deformable body's merges)
@@ -321,15 +307,6 @@ def _eye_terms(parts: SurgeryParts) -> tuple:
             FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"]),
             NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3),
             orbit_spring(mesh, p))
-
-
-def assumed_strain_wall(model: Model) -> Model:
-    """The model with its solid's ANS_TISSUES elements as
-    :class:`eyefem.fem.solid_ans.SolidQ1P0ANS` (assumed transverse shears)."""
-    s = model.term("solid")
-    ans = SolidQ1P0ANS(s.name, s.mesh, s.coeffs, s.multiplier_offset,
-                       ans_materials=tuple(t for t in ANS_TISSUES if t in s.mesh.materials))
-    return model.with_terms([ans if t is s else t for t in model.terms])
 
 
 def check_parameters(p):

@@ -24,6 +24,7 @@ import numpy as np
 from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
 from eyefem.eye.eyemodel import LEVEL_EXPECTED, LEVEL_HELP, build_eye, is_level
 from eyefem.eye.presets import PRESETS, with_overrides
+from eyefem.eye.wall import WALL_ELEMENT_FIELD, with_wall_element
 from eyefem.fem.cavity import WATER_BULK, FluidCavity, closing_hook
 from eyefem.fem.surface import PressureLoad
 from eyefem.fem.terms import NodeSprings
@@ -51,6 +52,7 @@ PV_FIELDS = [
     Field("steps_pressurise", int, 2, "load steps to the IOP", positive, ">= 1"),
     Field("liquid_bulk", float, WATER_BULK, "liquid bulk modulus, MPa", positive, "> 0"),
     Field("zonule_E", float, 100.0, "zonule Young's modulus, MPa", positive, "> 0"),
+    WALL_ELEMENT_FIELD,
 ] + BIOMETRY_FIELDS
 
 
@@ -80,8 +82,9 @@ def pv_parts(p, materials=None):
     iop = PressureLoad("iop", mesh, "wetted", 0.0)
     cavity = FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"])
     lens_hold = NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3)
-    model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
-                        (zonule, iop, cavity, lens_hold))
+    model = with_wall_element(solid_model(mesh, {m: mats[m] for m in mesh.materials},
+                                          (zonule, iop, cavity, lens_hold)),
+                              p.get("wall_element", "q1p0"))
     fix = node_dofs(mesh.node_set("eye/nerve_end"))
     held = (fix, np.zeros(len(fix)))
     base = ("solid", "zonule", "lens_springs")
