@@ -36,7 +36,7 @@ thick at 0.945, 0.974 and 0.986 of Timoshenko's deflection (Q1P0: 0.40, 0.70, 0.
 stable in tension to 40 % where the incompatible-mode brick (eyefem.fem.solid_im) fails at
 3 %; the patch test; objectivity; residual and tangent against central differences; case
 1 on the coarse eye with the wall of this element (slow). Case field ``wall_element =
-"ans"`` (eyefem.eye.surgery) puts it in the eye's cornea, limbus and sclera.
+"ans"`` (eyefem.eye.wall) puts it in the eye's cornea, limbus and sclera.
 
 Local dof order as SolidQ1P0: u[a, i] (24), then lambda (1).
 """
@@ -79,7 +79,7 @@ def _covariant_strain(xe, Xe, dn):
     return 0.5 * (jnp.swapaxes(g, -1, -2) @ g - jnp.swapaxes(G, -1, -2) @ G)
 
 
-def assumed_strain(u_e, X_e, jinv, thickness=True):
+def assumed_strain(u_e, X_e, jinv, thickness=False):
     """Cartesian Green-Lagrange strains (8 Gauss points, 3, 3) of one element with the
     assumed natural strains: u_e, X_e (8, 3) mm; jinv (8, 3, 3) the inverse of dX/dxi at the
     Gauss points; ``thickness`` False: E_33 stays the compatible one (transverse shears
@@ -88,14 +88,14 @@ def assumed_strain(u_e, X_e, jinv, thickness=True):
     _, dn_g = hex_shape(hex_gauss_points()[0])
     x_e = X_e + u_e
     E = _covariant_strain(x_e, X_e, jnp.asarray(dn_g))  # (8, 3, 3)
-    Es = _covariant_strain(x_e, X_e, jnp.asarray(dn_s))  # (8, 8, 3, 3)
+    ns = 8 if thickness else 4  # the corners' samples only for E_33
+    Es = _covariant_strain(x_e, X_e, jnp.asarray(dn_s[:, :ns]))  # (8, ns, 3, 3)
     e13 = w[:, 0] * Es[:, 0, 0, 2] + w[:, 1] * Es[:, 1, 0, 2]
     e23 = w[:, 2] * Es[:, 2, 1, 2] + w[:, 3] * Es[:, 3, 1, 2]
-    e33 = jnp.einsum("gc,gc->g", w[:, 4:], Es[:, 4:, 2, 2])
     E = E.at[:, 0, 2].set(e13).at[:, 2, 0].set(e13)
     E = E.at[:, 1, 2].set(e23).at[:, 2, 1].set(e23)
     if thickness:
-        E = E.at[:, 2, 2].set(e33)
+        E = E.at[:, 2, 2].set(jnp.einsum("gc,gc->g", w[:, 4:], Es[:, 4:, 2, 2]))
     return jnp.swapaxes(jinv, -1, -2) @ E @ jinv
 
 
