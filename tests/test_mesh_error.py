@@ -6,8 +6,8 @@ import pytest
 
 from eyefem.eye.convergence import SAFETY_FACTOR
 from eyefem.eye.eyemodel import is_level
-from eyefem.eye.mesh_error import (FROM_FINEST, GCI, NOT_ESTIMATED, QUOTED, load_study,
-                                   mesh_error, quote_lines)
+from eyefem.eye.mesh_error import (FROM_EXTRAPOLATION, FROM_FINEST, GCI, NOT_ESTIMATED, QUOTED,
+                                   load_study, mesh_error, quote_lines)
 from eyefem.eye.surgery import run_mesh_error
 
 FAMILY = ["finer", "default", "half"]
@@ -53,6 +53,37 @@ def test_oscillating_family_gives_the_difference_from_the_finest_level_only():
         "caseX"]["kind"] == NOT_ESTIMATED
 
 
+def test_a_level_quotes_another_familys_extrapolation_when_its_own_does_not_converge():
+    # two families of one case: "a" (finer, mid, coarse) converges to f0 at order p; the
+    # level "odd" sits in family "b" (finer, odd, other) whose values oscillate
+    f0, c, p = 12.0, -40.0, 1.5
+    n = {"finer": 44, "mid": 22, "coarse": 11, "odd": 30, "other": 15}
+    vals = {lv: f0 + c * (1.0 / n[lv]) ** p for lv in ("finer", "mid", "coarse")}
+    vals.update(odd=11.5, other=12.5)  # finer 11.86 > odd < other: oscillatory
+    study = {"materials": "seed", "families": [["finer", "mid", "coarse"],
+                                               ["finer", "odd", "other"]],
+             "cases": {"caseX": {"encircling": True, "levels": {
+                 lv: {"n_per_edge": n[lv], "values": {"iop_rise_mmhg": v}}
+                 for lv, v in vals.items()}}}}
+    err = mesh_error("odd", True, {"iop_rise_mmhg": 10.0}, study)
+    e = err["outcomes"]["iop_rise_mmhg"]["caseX"]
+    assert err["family"] == ["finer", "odd", "other"]
+    assert (e["kind"], e["behaviour"]) == (FROM_EXTRAPOLATION, "oscillatory")
+    assert e["family"] == ["finer", "mid", "coarse"]
+    assert e["extrapolated"] == pytest.approx(f0, rel=1e-9)
+    assert e["relative"] == pytest.approx(SAFETY_FACTOR * 0.5 / 11.5, rel=1e-9)
+    assert e["absolute"] == pytest.approx(10.0 * e["relative"])
+    assert "against finer/mid/coarse's extrapolation, p = 1.5" in quote_lines(err)[1]
+    # without the converging family it is the difference from its own finest level
+    alone = {**study, "families": [["finer", "odd", "other"]]}
+    e = mesh_error("odd", True, None, alone)["outcomes"]["iop_rise_mmhg"]["caseX"]
+    assert e["kind"] == FROM_FINEST
+    assert e["relative"] == pytest.approx(abs(11.5 - vals["finer"]) / vals["finer"], rel=1e-9)
+    # a level in the converging family keeps its own GCI
+    e = mesh_error("mid", True, None, study)["outcomes"]["iop_rise_mmhg"]["caseX"]
+    assert e["kind"] == GCI and e["family"] == ["finer", "mid", "coarse"]
+
+
 def test_levels_and_buckles_outside_the_study_are_not_estimated():
     study = _study({lv: {"iop_rise_mmhg": 1.0 + N[lv]} for lv in FAMILY}, encircling=True)
     for level, encircling in (("coarse", True), ("default", False)):
@@ -74,9 +105,15 @@ def test_shipped_record_matches_the_convergence_page():
     assert enc["iop_rise_mmhg"]["case4"]["relative"] == pytest.approx(0.080, abs=5e-4)
     assert enc["axial_length_change_mm"]["case4"]["relative"] == pytest.approx(0.165, abs=5e-4)
     assert enc["indentation_mm"]["case4"]["relative"] == pytest.approx(0.031, abs=5e-4)
-    assert enc["iop_rise_mmhg"]["case1"]["kind"] == FROM_FINEST
-    assert enc["iop_rise_mmhg"]["case1"]["relative"] == pytest.approx(0.050, abs=5e-4)
-    assert enc["axial_length_change_mm"]["case1"]["relative"] == pytest.approx(0.088, abs=5e-4)
+    # "The uniform triple": case 1's IOP rise and axial length change diverge over finer /
+    # default / half but converge over finer / fine / default (p 3.8 and 1.2, extrapolated
+    # 12.61 mmHg and 1.339 mm), which holds the default level too: its GCI there
+    for k, rel, p in (("iop_rise_mmhg", 0.070, 3.84), ("axial_length_change_mm", 0.213, 1.20)):
+        e = enc[k]["case1"]
+        assert e["kind"] == GCI and e["family"] == ["finer", "fine", "default"], k
+        assert e["relative"] == pytest.approx(rel, abs=5e-4), k
+        assert e["p"] == pytest.approx(p, abs=0.01), k
+    assert enc["indentation_mm"]["case1"]["kind"] == FROM_FINEST  # oscillatory in both
     seg = mesh_error("default", False)["outcomes"]
     assert seg["iop_rise_mmhg"]["case5"]["relative"] == pytest.approx(0.124, abs=5e-4)
     assert seg["indentation_mm"]["case5"]["relative"] == pytest.approx(0.041, abs=5e-4)
@@ -90,15 +127,24 @@ def test_shipped_record_matches_the_convergence_page():
     assert mesh_error("graded24", True)["outcomes"] == {}
     # cases 1 and 4 on the whole gradedc triple: gradedc36's IOP rise and axial length
     # change lie further above gradedc26's than gradedc26's above gradedc18's (divergent),
-    # so the surgical cases' level quotes its difference from gradedc36
+    # so the surgical cases' level quotes against the uniform triples' extrapolations
+    # ("The uniform triple": gradedc26 0.3 % from case 1's extrapolated IOP rise, 10 %
+    # below its axial length change; times Fs)
     c26 = mesh_error("gradedc26", True)["outcomes"]
-    for k, case, rel in (("iop_rise_mmhg", "case1", 0.041), ("iop_rise_mmhg", "case4", 0.052),
-                         ("axial_length_change_mm", "case1", 0.065),
-                         ("axial_length_change_mm", "case4", 0.090)):
+    for k, case, rel, fam in (
+            ("iop_rise_mmhg", "case1", 0.003, ["finer", "fine", "default"]),
+            ("iop_rise_mmhg", "case4", 0.041, ["finer", "default", "half"]),
+            ("axial_length_change_mm", "case1", 0.143, ["finer", "fine", "default"]),
+            ("axial_length_change_mm", "case4", 0.184, ["finer", "default", "half"])):
         e = c26[k][case]
-        assert e["kind"] == FROM_FINEST and e["behaviour"] == "divergent", (k, case)
+        assert e["kind"] == FROM_EXTRAPOLATION and e["behaviour"] == "divergent", (k, case)
+        assert e["family"] == fam, (k, case)
         assert e["relative"] == pytest.approx(rel, abs=5e-4), (k, case)
-    assert c26["indentation_mm"]["case4"]["relative"] == pytest.approx(0.0006, abs=5e-5)
+    assert c26["iop_rise_mmhg"]["case1"]["extrapolated"] == pytest.approx(12.614, abs=5e-4)
+    # the refraction change converges in no family: its difference from gradedc36
+    assert c26["refraction_change_D"]["case1"]["kind"] == FROM_FINEST
+    assert c26["refraction_change_D"]["case1"]["family"] == ["gradedc36", "gradedc26",
+                                                            "gradedc18"]
 
 def test_run_record_says_when_the_run_is_not_like_the_study():
     out = {"iop_mmhg": 27.0, "indentation_mm": 0.95, "axial_length_change_mm": 1.1,

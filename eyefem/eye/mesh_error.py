@@ -6,13 +6,20 @@ graded levels; its outcome values are in ``mesh_study.json`` beside this module 
 outcome's error is estimated from the studied cases of the same kind of buckle (encircling:
 cases 1 and 4; segmental: case 5), case by case:
 
-- ``gci``: the three levels converge monotonically with an observed order in 0.5..4; the
-  level's GCI against the Richardson extrapolation (Fs = 1.25, relative);
-- ``from_finest``: they do not (oscillatory, divergent or an order outside 0.5..4); the
-  relative difference from the family's finest level, which the error is not known to be
-  below (a lower estimate, not a bound);
-- ``not_estimated``: the level is the finest of a family that does not converge
-  monotonically, or is in no family (coarse, medium, fine, graded<N> not studied).
+- ``gci``: the three levels of a family that holds the level converge monotonically with
+  an observed order in 0.5..4; the level's GCI against their Richardson extrapolation
+  (Fs = 1.25, relative);
+- ``from_extrapolation``: no family that holds the level converges, but another family of
+  the same case does (the levels are meshes of one problem, so its extrapolation estimates
+  the same exact value): Fs |phi_ext - phi| / |phi| against that family's extrapolation,
+  from the converging family with the smallest GCI of its finest level;
+- ``from_finest``: no family of the case converges (oscillatory, divergent or an order
+  outside 0.5..4); the relative difference from the finest level of the level's own
+  family, which the error is not known to be below (a lower estimate, not a bound);
+- ``not_estimated``: the level is the finest of its family and nothing converges, or the
+  studied case did not run the level (coarse, medium, graded<N> not studied).
+
+Each estimate names the family it comes from (``family``).
 
 The study used the seed's tissue constants and the case files' other parameters: for other
 materials, tightenings or positions the figures say what the mesh did on the studied cases,
@@ -41,7 +48,8 @@ QUOTED = {  # summary key -> (label, unit)
 }
 """The outcomes a run quotes a mesh error for (the bounded ones of issue 29 and the stress)."""
 
-GCI, FROM_FINEST, NOT_ESTIMATED = "gci", "from_finest", "not_estimated"
+GCI, FROM_EXTRAPOLATION, FROM_FINEST, NOT_ESTIMATED = (
+    "gci", "from_extrapolation", "from_finest", "not_estimated")
 
 
 @lru_cache(maxsize=4)
@@ -63,25 +71,71 @@ def load_study(path: str | None = None) -> dict:
     return study
 
 
-def case_estimate(levels: dict, family: list[str], level: str, outcome: str) -> dict:
-    """The error estimate of one outcome at ``level`` from one case's runs of one family.
-
-    Args: levels: level -> {"n_per_edge", "values"}; family: three level names, fine first.
-    Returns: {"kind", "relative" (or None), "behaviour", "p" (or None)}."""
+def _triple(levels: dict, family: list[str], outcome: str):
+    """The three-grid study of one outcome over one family of one case's runs, or None
+    when a level of the family was not run or did not record the outcome."""
+    if not all(lv in levels for lv in family):
+        return None
     vals = [levels[lv]["values"].get(outcome) for lv in family]
     if any(v is None or not math.isfinite(v) for v in vals):
-        return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": "not run", "p": None}
-    h = [1.0 / levels[lv]["n_per_edge"] for lv in family]
-    s = three_grid_study(h, vals)
-    phi = vals[family.index(level)]
+        return None
+    return three_grid_study([1.0 / levels[lv]["n_per_edge"] for lv in family], vals)
+
+
+def _converges(s) -> bool:
+    return s is not None and s.behaviour == MONOTONE and not s.note
+
+
+def case_estimate(levels: dict, family: list[str], level: str, outcome: str) -> dict:
+    """The error estimate of one outcome at ``level`` from one case's runs of one family
+    that holds the level.
+
+    Args: levels: level -> {"n_per_edge", "values"}; family: three level names, fine first.
+    Returns: {"kind", "relative" (or None), "behaviour", "p" (or None), "family"}."""
+    s = _triple(levels, family, outcome)
+    if s is None:
+        return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": "not run", "p": None,
+                "family": family}
+    phi = levels[level]["values"][outcome]
     p = s.p if math.isfinite(s.p) else None
-    if s.behaviour == MONOTONE and not s.note:
+    if _converges(s):
         return {"kind": GCI, "relative": relative_gci(phi, s.extrapolated),
-                "behaviour": s.behaviour, "p": p}
-    if level != family[0] and vals[0] != 0:
-        return {"kind": FROM_FINEST, "relative": abs(phi - vals[0]) / abs(vals[0]),
-                "behaviour": s.behaviour, "p": p}
-    return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": s.behaviour, "p": p}
+                "behaviour": s.behaviour, "p": p, "family": family}
+    finest = levels[family[0]]["values"][outcome]
+    if level != family[0] and finest != 0:
+        return {"kind": FROM_FINEST, "relative": abs(phi - finest) / abs(finest),
+                "behaviour": s.behaviour, "p": p, "family": family}
+    return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": s.behaviour, "p": p,
+            "family": family}
+
+
+def best_estimate(levels: dict, families: list[list[str]], level: str, outcome: str) -> dict:
+    """The error estimate of one outcome at ``level`` from all of one case's families, in
+    the module's order of preference: the GCI in a family that holds the level; else the
+    GCI-like figure against the extrapolation of another, converging family (the one
+    whose finest level's GCI is smallest); else the first holding family's
+    ``from_finest`` or ``not_estimated``.
+
+    Returns: case_estimate's dict; ``from_extrapolation`` adds "extrapolated" (the
+    family's Richardson value)."""
+    own = [f for f in families if level in f]
+    estimates = [case_estimate(levels, f, level, outcome) for f in own]
+    for e in estimates:
+        if e["kind"] == GCI:
+            return e
+    phi = levels.get(level, {}).get("values", {}).get(outcome)
+    if phi is not None and math.isfinite(phi) and phi != 0:
+        studies = [(s, f) for f in families if f not in own
+                   for s in (_triple(levels, f, outcome),) if _converges(s)]
+        if studies:
+            s, f = min(studies, key=lambda sf: sf[0].gci_fine)
+            return {"kind": FROM_EXTRAPOLATION, "relative": relative_gci(phi, s.extrapolated),
+                    "behaviour": estimates[0]["behaviour"] if estimates else "not in a family",
+                    "p": s.p, "family": f, "extrapolated": s.extrapolated}
+    if estimates:
+        return estimates[0]
+    return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": "not in a family", "p": None,
+            "family": None}
 
 
 def mesh_error(level: str, encircling: bool, values: dict | None = None,
@@ -90,9 +144,10 @@ def mesh_error(level: str, encircling: bool, values: dict | None = None,
 
     Args: level: the run's eye mesh level; encircling: its buckle encircles the globe;
       values: the run's outcomes (keys of QUOTED), for the errors in their units.
-    Returns: {"level", "materials", "cases": [studied cases used], "family": [levels] or
-    None, "outcomes": {outcome: {case: case_estimate + "absolute" (the run's value times
-    the relative error, in the outcome's unit; None without it)}}, "note"}."""
+    Returns: {"level", "materials", "cases": [studied cases used], "family": [levels] (the
+    first family that holds the level) or None, "outcomes": {outcome: {case:
+    best_estimate + "absolute" (the run's value times the relative error, in the
+    outcome's unit; None without it)}}, "note"}."""
     study = study or load_study()
     kind = "encircling" if encircling else "segmental"
     cases = {c: rec for c, rec in sorted(study["cases"].items())
@@ -106,14 +161,13 @@ def mesh_error(level: str, encircling: bool, values: dict | None = None,
         out["note"] = (f"no studied {kind} case ran level '{level}' in a family of three; "
                        "its mesh error is not estimated (docs/convergence.md)")
         return out
-    family = families[0]
-    out["family"] = family
+    out["family"] = families[0]
     out["cases"] = list(usable)
     values = values or {}
     for k in QUOTED:
         out["outcomes"][k] = {}
         for c, rec in usable.items():
-            e = case_estimate(rec["levels"], family, level, k)
+            e = best_estimate(rec["levels"], study["families"], level, k)
             v = values.get(k)
             e["absolute"] = (abs(v) * e["relative"] if e["relative"] is not None
                              and isinstance(v, (int, float)) else None)
@@ -141,7 +195,13 @@ def quote_lines(err: dict) -> list[str]:
                 continue
             pct = 100 * e["relative"]
             absolute = f", {e['absolute']:.2g} {unit}" if e["absolute"] is not None else ""
-            what = "GCI" if e["kind"] == GCI else f"from {err['family'][0]}, {how}"
+            fam = e.get("family") or err["family"]
+            if e["kind"] == GCI:
+                what = "GCI" if fam == err["family"] else f"GCI on {'/'.join(fam)}"
+            elif e["kind"] == FROM_EXTRAPOLATION:
+                what = f"against {'/'.join(fam)}'s extrapolation, p = {e['p']:.1f}"
+            else:
+                what = f"from {fam[0]}, {how}"
             parts.append(f"{case} {pct:.1f} %{absolute} ({what})")
         lines.append(f"  {label:<22} " + "; ".join(parts))
     if err.get("note"):
