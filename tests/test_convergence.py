@@ -539,3 +539,45 @@ def test_spread_zonule_has_the_same_cross_section_on_every_level():
             assert np.all(np.count_nonzero(w > 1e-6, axis=1) > 8)
     with pytest.raises(ValueError, match="zonule_insertion_radius = -1"):
         EyeGeometry(zonule_insertion_radius=-1.0)
+
+
+def test_lens_support_is_the_same_on_every_level():
+    """The lens's springs (EyeModel.lens_springs): 1e-3 N/mm on each lens node by default,
+    so their sum follows the lens mesh (0.125 N/mm on the coarse level, 0.343 on the
+    default); with ``lens_support`` the sum is that stiffness on every level, and on the
+    default level it is the per-node model exactly (the recorded results unchanged)."""
+    import dataclasses
+
+    from eyefem.eye.eyemodel import LENS_SPRING_PER_NODE, EyeGeometry, build_eye
+
+    per_node = {lv: build_eye(level=lv).lens_springs() for lv in ("coarse", "default")}
+    assert {lv: len(s.nodes) for lv, s in per_node.items()} == {"coarse": 125, "default": 343}
+    assert all(s.params["k"] == LENS_SPRING_PER_NODE for s in per_node.values())
+    shared = dataclasses.replace(EyeGeometry(), lens_support=0.343)
+    for lv in ("coarse", "default"):
+        s = build_eye(shared, lv).lens_springs()
+        assert s.params["k"] * len(s.nodes) == pytest.approx(0.343, rel=1e-14)
+        assert s.nodes.tolist() == per_node[lv].nodes.tolist()
+    assert build_eye(shared, "default").lens_springs().params["k"] == per_node["default"].params["k"]
+    with pytest.raises(ValueError, match="lens_support = -0.1 N/mm; must be a positive"):
+        EyeGeometry(lens_support=-0.1)
+
+
+def test_lens_support_field_reaches_both_eye_problems(tmp_path):
+    """The case field sets the springs of the surgery and pressure_volume problems' lens,
+    and a value outside its range is refused by the schema with the range."""
+    from eyefem.catalog import schemas
+    from eyefem.eye.surgery import SURGERY_FIELDS, surgery
+    from eyefem.eye.validation import PV_FIELDS, pv_parts
+    from eyefem.io.casefile import CaseError, load_case
+
+    p = {**{f.name: f.default for f in SURGERY_FIELDS}, "mesh": "coarse", "lens_support": 0.5}
+    springs = surgery(p, {}).model.term("lens_springs")
+    assert springs.params["k"] * len(springs.nodes) == pytest.approx(0.5, rel=1e-14)
+    p = {**{f.name: f.default for f in PV_FIELDS}, "mesh": "coarse", "lens_support": 0.5}
+    springs = pv_parts(p)[0].term("lens_springs")
+    assert springs.params["k"] * len(springs.nodes) == pytest.approx(0.5, rel=1e-14)
+    path = tmp_path / "c.toml"
+    path.write_text('[case]\nproblem = "surgery"\n[parameters]\nlens_support = -1.0\n')
+    with pytest.raises(CaseError, match=r"lens_support.*-1.*0 \(per node\) or 1e-4 to 100 N/mm"):
+        load_case(path, schemas())

@@ -57,6 +57,13 @@ BIOMETRY_FIELDS = [
           "recorded results' model, which changes with the mesh; docs/convergence.md, "
           "'The zonule')",
           lambda v: v == 0 or 0.5 <= v <= 3, "0 (point insertions) or 0.5 to 3 mm"),
+    Field("lens_support", float, 0.0,
+          "the springs that hold the floating lens in place, N/mm in all, shared by its "
+          "nodes, so the lens is held alike on every mesh level (0.343: the default level's "
+          "sum); 0: 1e-3 N/mm on every lens node (the recorded results' model, whose sum "
+          "follows the lens mesh: 0.125 N/mm on the coarse level, 2.2 on finer; "
+          "docs/convergence.md, 'The lens's support')",
+          lambda v: v == 0 or 1e-4 <= v <= 100, "0 (per node) or 1e-4 to 100 N/mm"),
     Field("tissue_mixing", bool, False,
           "true: a wall element that a tissue boundary cuts (cornea, limbus ring, ciliary "
           "body, optic disc) stores the mixture of the tissues' energies in the proportions "
@@ -88,7 +95,7 @@ def eye_geometry(p: dict) -> EyeGeometry:
         lens_centre_depth=b["anterior_chamber_depth"] + REFERENCE.lens_thickness / 2,
         limbus_width=b["limbus_width"] or None,
         zonule_insertion_radius=b["zonule_insertion_radius"] or None,
-        tissue_mixing=bool(b["tissue_mixing"]))
+        tissue_mixing=bool(b["tissue_mixing"]), lens_support=b["lens_support"] or None)
     try:
         g.limbus_angle  # noqa: B018 - raises if the corneal and scleral spheres do not meet
     except ValueError as exc:

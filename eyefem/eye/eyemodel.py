@@ -34,6 +34,7 @@ from eyefem.eye.sutures import ray_face_intersection
 from eyefem.fem.bars import Bars, end_patches
 from eyefem.fem.generators import spherical_shell
 from eyefem.fem.mesh import Mesh, boundary_faces, hex_shape, merge
+from eyefem.fem.terms import NodeSprings
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,10 @@ the band zone BAND_ZONE_DEG, where encircling buckles sit, longer elsewhere
 (docs/convergence.md, "A mesh graded toward the buckle")."""
 
 THROUGH_SPLIT = "x2"
+
+LENS_SPRING_PER_NODE = 1e-3
+"""Stiffness of the lens's springs per node, N/mm, without EyeGeometry.lens_support (the
+recorded results' model)."""
 
 GRADED_LEVELS = ("graded_half", "graded", "graded_fine")
 """Levels whose nodes are graded toward the band zone (:func:`graded_polar_angle`)."""
@@ -221,6 +226,14 @@ class EyeGeometry:
         1.5 mm wide, Hogan et al. 1971, "Histology of the Human Eye"); None: the elements
         the junction passes through (one element wide, so the ring narrows as the mesh is
         refined and the model changes with the mesh).
+      lens_support: None: springs of LENS_SPRING_PER_NODE (1e-3 N/mm) on every lens node
+        tie the floating lens to its place (the model of the recorded results): their sum,
+        0.125 N/mm on the coarse and half levels, 0.343 on the default and gradedc26, 0.729
+        on fine and 2.2 on finer, follows the lens mesh, and it carries a tenth of what
+        the zonule carries when a band pulls the anterior segment forward, so the lens's
+        motion and the anterior chamber depth change follow the mesh
+        (docs/convergence.md, "The lens's support"); a stiffness, N/mm: the springs' sum,
+        shared by the lens's nodes, the same on every level.
       tissue_mixing: False: each wall element is wholly one tissue, by its centroid (the
         tissues' boundaries are staircases of the mesh, which move by up to an element as
         it is refined); True: an element that a boundary of the limbus ring, the cornea,
@@ -255,6 +268,7 @@ class EyeGeometry:
     zonule_total_area: float = 0.24
     limbus_width: float | None = 1.5
     tissue_mixing: bool = False
+    lens_support: float | None = None
 
     def __post_init__(self):
         if not isinstance(self.tissue_mixing, (bool, np.bool_)):
@@ -267,10 +281,13 @@ class EyeGeometry:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if f.name == "tissue_mixing" or (
-                    v is None and f.name in ("limbus_width", "zonule_insertion_radius")):
+                    v is None and f.name in ("limbus_width", "zonule_insertion_radius",
+                                             "lens_support")):
                 continue
             if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"eye geometry: {f.name} = {v} mm; must be a positive number")
+                unit = "N/mm" if f.name == "lens_support" else "mm"
+                raise ValueError(f"eye geometry: {f.name} = {v} {unit}; must be a positive "
+                                 "number")
         if not self.scleral_radius < self.axial_length - self.scleral_radius:
             raise ValueError(f"eye geometry: axial_length {self.axial_length} must exceed twice "
                              f"the scleral radius {self.scleral_radius} (the cornea protrudes)")
@@ -416,6 +433,16 @@ class EyeModel:
             nodes, self.mesh.face_set("eye/inner"), faces, xi, True, radius)
         return Bars(name, np.repeat(lens_eq[:, None], 4, 1), faces, np.zeros((len(lens_eq), 2)),
                     xi, nodes, EA=self.zonule_bar_EA(E), patch_b=patch)
+
+    def lens_springs(self, name: str = "lens_springs") -> NodeSprings:
+        """Springs tying the lens's nodes to their reference places: LENS_SPRING_PER_NODE
+        each, or the geometry's ``lens_support`` (N/mm) shared by the nodes
+        (EyeGeometry.lens_support). The lens floats in the liquid, held otherwise by the
+        zonule alone, which is slack before the eye is pressurised."""
+        nodes = self.mesh.node_set("lens")
+        total = self.geometry.lens_support
+        k = LENS_SPRING_PER_NODE if total is None else total / len(nodes)
+        return NodeSprings(name, nodes, k=k)
 
     def quality(self) -> dict:
         """Element counts per tissue and the worst Jacobian ratio."""

@@ -40,7 +40,7 @@ from eyefem.fem.cavity import WATER_BULK, FluidCavity
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.mesh import face_edges
 from eyefem.fem.surface import PressureLoad
-from eyefem.fem.terms import NodeSprings, OrbitSpring
+from eyefem.fem.terms import OrbitSpring
 from eyefem.fem.units import MMHG
 from eyefem.io.casefile import Field, positive
 from eyefem.io.output import write_csv
@@ -305,7 +305,7 @@ def _eye_terms(parts: SurgeryParts) -> tuple:
     eye, p, mesh = parts.eye, parts.p, parts.eye.mesh
     return (eye.zonule_bars(p["zonule_E"]), PressureLoad("iop", mesh, "wetted", 0.0),
             FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"]),
-            NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3),
+            eye.lens_springs(),
             orbit_spring(mesh, p))
 
 
@@ -503,7 +503,7 @@ ADVANCED_FIELDS = frozenset({
     "steps_tighten", "steps_suture", "contact_smoothing", "contact_normals", "n_segments",
     "ridge_flank", "bite_length", "limbus_width", "zonule_insertion_radius", "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
-    "sclera_thickness_equator", "sclera_thickness_pole", "wall_element"})
+    "sclera_thickness_equator", "sclera_thickness_pole", "wall_element", "lens_support"})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all
 (``--all``): the orbit's hold, load steps, contact and material details."""
 

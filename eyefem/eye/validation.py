@@ -27,7 +27,6 @@ from eyefem.eye.presets import PRESETS, with_overrides
 from eyefem.eye.wall import WALL_ELEMENT_FIELD, with_wall_element
 from eyefem.fem.cavity import WATER_BULK, FluidCavity, closing_hook
 from eyefem.fem.surface import PressureLoad
-from eyefem.fem.terms import NodeSprings
 from eyefem.fem.units import MMHG
 from eyefem.io.casefile import Field, positive
 from eyefem.io.output import plot_curves, write_csv
@@ -81,7 +80,7 @@ def pv_parts(p, materials=None):
     zonule = eye.zonule_bars(p["zonule_E"])
     iop = PressureLoad("iop", mesh, "wetted", 0.0)
     cavity = FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"])
-    lens_hold = NodeSprings("lens_springs", mesh.node_set("lens"), k=1e-3)
+    lens_hold = eye.lens_springs()
     model = with_wall_element(solid_model(mesh, {m: mats[m] for m in mesh.materials},
                                           (zonule, iop, cavity, lens_hold)),
                               p.get("wall_element", "q1p0"))
