@@ -52,6 +52,36 @@ def test_ridge_flank_sets_the_shoulders_width_and_curvature(flank):
     assert curvature.max() == pytest.approx(10 / np.sqrt(3) * 0.75 / flank**2, rel=1e-4)
 
 
+@pytest.mark.parametrize("edge", [0.5, 1.0])
+def test_buckle_edge_sets_the_lifts_width_and_curvature(shell, edge):
+    """Each edge of a ring lifts 0.3 mm over its last ``edge`` mm, cubically: flat and
+    without a kink where the lift starts (value, slope and curvature 0), 0.3 mm at the
+    edge, where the curvature peaks at 1.8 / edge^2 per mm (7.2 per mm with the 0.5 mm of
+    the recorded results); the gap of a node over the lift follows it."""
+    prof = lambda a: float(ring_profile(a, 7.0, 0.0, 0.0, 1.0, edge))  # noqa: E731
+    assert prof(3.5 - edge - 1e-9) == 0.0
+    assert prof(3.5) == pytest.approx(0.3, rel=1e-12)
+    assert prof(3.5 - edge / 2) == pytest.approx(0.3 / 8, rel=1e-12)
+    a = np.linspace(3.5 - edge, 3.5, 20001)
+    h = a[1] - a[0]
+    p = np.asarray(ring_profile(a, 7.0, 0.0, 0.0, 1.0, edge))
+    curvature = np.diff(p, 2) / h**2
+    assert curvature.max() == pytest.approx(1.8 / edge**2, rel=1e-3)
+    assert abs(curvature[0]) < 1e-3 * curvature.max()
+    t = BuckleContact("b", shell, "outer", "ring", R, theta_b=np.pi / 2, width=7.0,
+                      modulus=0.5, edge_width=edge)
+    X = t.data["X"]
+    params = {**t.params, "d": np.array([0.2])}
+    g = np.asarray(t.gaps(np.zeros_like(X), params, t.data))
+    tau = np.arccos(X[:, 2] / np.linalg.norm(X, axis=1))
+    a = R * (tau - np.pi / 2)
+    expected = R + np.asarray(ring_profile(a, 7.0, 0.0, 0.0, 1.0, edge)) - 0.2 \
+        - np.linalg.norm(X, axis=1)
+    np.testing.assert_allclose(g, expected, atol=1e-12)
+    with pytest.raises(ValueError, match="edge_width = 3.5 mm"):
+        BuckleContact("b", shell, "outer", "ring", R, width=7.0, edge_width=3.5)
+
+
 def test_ring_gap_is_invariant_under_rotation_about_the_axis(shell):
     t = _ring(shell)
     rng = np.random.default_rng(0)

@@ -307,6 +307,28 @@ def test_buckle_contact_smoothing_automatic_by_buckle_kind_or_as_given(buckle, g
     assert setup.model.term("buckle").smoothing == expected
 
 
+@pytest.mark.parametrize("given", [None, 1.0])
+def test_ring_edge_default_or_as_given(given):
+    from eyefem.eye.surgery import surgery
+
+    kw = {} if given is None else {"buckle_edge": given}
+    setup = surgery(default_parameters(mesh="coarse", buckle="tire_flat", **kw), None)
+    term = setup.model.term("buckle")
+    assert term.edge_width == (0.5 if given is None else given) == term.data["geo"][8]
+
+
+def test_ring_edge_wider_than_half_the_ring_or_on_a_deformable_band_is_refused():
+    from eyefem.eye.surgery import check_parameters
+
+    with pytest.raises(ValueError, match=r"buckle_edge = 1.5 mm.*band \(2.5 mm wide\).*"
+                                         r"below 1.25 mm"):
+        check_parameters(default_parameters(buckle="band", buckle_edge=1.5))
+    with pytest.raises(ValueError, match="buckle_edge = 1.0 mm shapes the rigid ring"):
+        check_parameters(default_parameters(buckle="band", buckle_body="deformable",
+                                            buckle_edge=1.0))
+    check_parameters(default_parameters(buckle="band", buckle_edge=1.0))
+
+
 @pytest.mark.parametrize("given", [None, 0.5])
 def test_ridged_tire_flank_default_or_as_given(given):
     from eyefem.eye.surgery import surgery

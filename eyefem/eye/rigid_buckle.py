@@ -114,6 +114,7 @@ def buckle_term(parts: SurgeryParts, scale: float) -> BuckleContact:
         return BuckleContact("buckle", parts.eye.mesh, "eye/sclera_outer", "ring", R,
                              theta_b=b.centre_angle(g), width=w, ridge=ridge, ridge_width=rw,
                              ridge_flank=parts.p["ridge_flank"],
+                             edge_width=parts.p["buckle_edge"],
                              modulus=6 * SEED_MATERIALS["sclera"], extra_dof=parts.extra_dof,
                              smoothing=contact_smoothing(parts))
     n0, m0, ax = sponge_frame(parts)

@@ -35,7 +35,7 @@ from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import PRESETS, SEED_MATERIALS, with_overrides
 from eyefem.eye.wall import WALL_ELEMENT_FIELD, with_wall_element
-from eyefem.fem.buckle_contact import RIDGE_FLANK
+from eyefem.fem.buckle_contact import EDGE_WIDTH, RIDGE_FLANK
 from eyefem.fem.cavity import WATER_BULK, FluidCavity
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.mesh import face_edges
@@ -144,6 +144,11 @@ SURGERY_FIELDS = [
           "(a quintic shoulder inside the ridge's 3 mm base), mm: narrower flanks have "
           "shoulders sharper than the scleral elements can follow (docs/surgery.md)",
           lambda v: 0.05 <= v <= 1.5, "0.05 to 1.5 mm"),
+    Field("buckle_edge", float, EDGE_WIDTH, "width over which each edge of a rigid band or "
+          "tire lifts 0.3 mm off the sclera (a cubic rise whose curvature reaches 1.8 / "
+          "width^2 per mm), mm: narrower edges are sharper than the scleral elements can "
+          "follow, and the outcomes then grow with the mesh (docs/convergence.md, 'The flat "
+          "tire's edges')", lambda v: 0.2 <= v <= 2.0, "0.2 to 2 mm"),
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
     WALL_ELEMENT_FIELD,
@@ -329,6 +334,12 @@ def check_parameters(p):
                              f"width 2 x bite_radius = {2 * p['bite_radius']} mm: bite_length is "
                              "the full length along the buckle's edge and bite_radius the "
                              "half-width across it; lengthen bite_length or narrow bite_radius")
+    edge = p.get("buckle_edge", EDGE_WIDTH)
+    if p["buckle"] in KINDS and not p["buckle"].startswith("sponge") and edge != EDGE_WIDTH \
+            and not edge < KINDS[p["buckle"]][0] / 2:
+        raise ValueError(f"buckle_edge = {edge} mm: the edges of the {p['buckle']} "
+                         f"({KINDS[p['buckle']][0]} mm wide) lift over less than half its "
+                         f"width; set buckle_edge below {KINDS[p['buckle']][0] / 2} mm")
     if p.get("buckle_body", "rigid") == "deformable":
         _check_deformable(p)
         if p.get("wall_element", "q1p0") != "q1p0":
@@ -349,6 +360,10 @@ def _check_deformable(p):
         if p[name] != 0:
             raise ValueError(f"{name} = {p[name]} {unit} applies to the rigid buckle only; with "
                              f"buckle_body = 'deformable' set {name} = 0")
+    if p.get("buckle_edge", EDGE_WIDTH) != EDGE_WIDTH:
+        raise ValueError(f"buckle_edge = {p['buckle_edge']} mm shapes the rigid ring's edges; "
+                         f"a deformable buckle has its own mesh: with buckle_body = "
+                         f"'deformable' leave buckle_edge at {EDGE_WIDTH}")
     if p["buckle"] == "sponge_radial" and p["tightening"] != 0:
         raise ValueError(f"tightening = {p['tightening']} mm: a deformable sponge is pressed in "
                          "by its sutures alone (suture_tightening); set tightening = 0")
@@ -501,7 +516,8 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=Non
 ADVANCED_FIELDS = frozenset({
     "globe_torsion", "globe_rotation", "globe_translation", "globe_axial", "steps_pressurise",
     "steps_tighten", "steps_suture", "contact_smoothing", "contact_normals", "n_segments",
-    "ridge_flank", "bite_length", "limbus_width", "zonule_insertion_radius", "tissue_mixing",
+    "ridge_flank", "buckle_edge", "bite_length", "limbus_width", "zonule_insertion_radius",
+    "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
     "sclera_thickness_equator", "sclera_thickness_pole", "wall_element", "lens_support"})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all

@@ -17,8 +17,10 @@ smooth; the shoulders' curvature, about 5.8 k / flank^2, is a negative tangentia
 stiffness of a node pressed on them, so flanks much narrower than the scleral elements
 make the tangent near-singular) and k its
 current protrusion (param "ridge", ramped from 0 when the tire is seated on its flat
-base), lift the upturned edges (0.3 mm over the last 0.5 mm, growing cubically
-beyond, so contact fades out smoothly past the edge) and d the radial tightening (the
+base), lift the upturned edges (0.3 mm over the last ``edge_width`` mm of each side,
+0.5 by default, growing cubically beyond, so contact fades out smoothly past the edge;
+its curvature rises from 0 to 1.8 / edge_width^2 per mm, so narrow edges are sharper
+than the scleral elements follow) and d the radial tightening (the
 ring's circumference shortens by 2 pi d sin theta_b).
 
 Sponge: a cylinder (radius r_s, length L, axis t) whose axis passes through
@@ -64,6 +66,10 @@ from eyefem.fem.terms import Term
 BUCKLE_PENALTY_FACTOR = 10.0
 """Default buckle penalty alpha = factor * E * h per node (N/mm)."""
 
+EDGE_WIDTH = 0.5
+"""Default width over which a ring's edges lift 0.3 mm, mm (the recorded results' tire:
+curvature up to 7.2 per mm, a radius of 0.14 mm at the edge)."""
+
 RIDGE_FLANK = 1.0
 """Default width of a ridge's flanks, mm (shoulder radius about 0.23 mm for a 0.75 mm ridge;
 0.5 mm flanks left shoulders too sharp for the default eye mesh's scleral elements)."""
@@ -74,14 +80,15 @@ def smooth_penetration(g, eps):
     return eps * jnp.logaddexp(-g / eps, 0.0)
 
 
-def ring_profile(a, width, ridge, ridge_width, flank=RIDGE_FLANK):
+def ring_profile(a, width, ridge, ridge_width, flank=RIDGE_FLANK, edge=EDGE_WIDTH):
     """Inner-surface offset of a ring above R (mm) at across-coordinates a (jax or numpy):
-    -ridge on the ridge, 0 on the flat base, rising at the edges; the ridge's flanks span
-    ``flank`` mm inside its edges at +-ridge_width / 2."""
+    -ridge on the ridge, 0 on the flat base, rising at the edges by 0.3 (|a| - (width / 2 -
+    edge))^3 / edge^3 over their last ``edge`` mm; the ridge's flanks span ``flank`` mm
+    inside its edges at +-ridge_width / 2."""
     aa = jnp.abs(a)
     t = jnp.clip((aa - (ridge_width / 2 - flank)) / flank, 0.0, 1.0)
     bump = jnp.where(ridge_width > 0, 1.0 - t**3 * (10.0 - 15.0 * t + 6.0 * t**2), 0.0)
-    lift = 0.3 * (jnp.maximum(aa - (width / 2 - 0.5), 0.0) / 0.5) ** 3
+    lift = 0.3 * (jnp.maximum(aa - (width / 2 - edge), 0.0) / edge) ** 3
     return -ridge * bump + lift
 
 
@@ -98,7 +105,7 @@ class BuckleContact(Term):
       radius: R, the scleral radius the buckle was fitted to, mm.
       theta_b: polar angle of the buckle centre line, rad (ring) ; for a sponge its
         centre direction n0 (3,), meridian tangent m0 (3,) and axis (3,).
-      width, ridge, ridge_width, ridge_flank: ring profile, mm; sponge_radius,
+      width, ridge, ridge_width, ridge_flank, edge_width: ring profile, mm; sponge_radius,
         sponge_length: mm.
       modulus: Young's modulus of the sclera (default penalty), MPa; penalty: N/mm.
       smoothing: eps of the smoothed penetration, mm.
@@ -119,6 +126,7 @@ class BuckleContact(Term):
     ridge: float = 0.0
     ridge_width: float = 0.0
     ridge_flank: float = RIDGE_FLANK
+    edge_width: float = EDGE_WIDTH
     sponge_radius: float = 2.5
     sponge_length: float = 10.0
     modulus: float = 0.5
@@ -137,6 +145,10 @@ class BuckleContact(Term):
                  else BUCKLE_PENALTY_FACTOR * self.modulus * h)
         if not alpha > 0:
             raise ValueError(f"buckle contact '{self.name}': penalty {alpha} N/mm; must be > 0")
+        if self.shape == "ring" and not 0 < self.edge_width < self.width / 2:
+            raise ValueError(f"buckle contact '{self.name}': edge_width = {self.edge_width} mm; "
+                             f"the edges of a ring {self.width} mm wide lift over 0 to "
+                             f"{self.width / 2} mm (exclusive) of each side")
         if not self.smoothing > 0:
             raise ValueError(f"buckle contact '{self.name}': smoothing {self.smoothing} mm; "
                              "must be > 0")
@@ -150,7 +162,8 @@ class BuckleContact(Term):
                                             "ridge": np.zeros(1), "dr": np.zeros(1),
                                             "rot": np.zeros(1)})
         geo = np.array([self.radius, self.theta_b, self.width, self.ridge, self.ridge_width,
-                        self.sponge_radius, self.sponge_length, self.ridge_flank])
+                        self.sponge_radius, self.sponge_length, self.ridge_flank,
+                        self.edge_width])
         object.__setattr__(self, "data", {
             "X": self.mesh.nodes[nodes], "alpha": np.full(len(nodes), alpha),
             "area": np.maximum(area, 1e-12), "geo": geo,
@@ -162,7 +175,7 @@ class BuckleContact(Term):
     def gaps(self, q_loc, params, data):
         """Signed gaps (n,), mm (negative: penetration)."""
         x = rotate_z(data["X"] + q_loc[:, :3], -params["rot"][0])
-        R, th, w, _, rw, rs, L, fl = (data["geo"][i] for i in range(8))
+        R, th, w, _, rw, rs, L, fl, ew = (data["geo"][i] for i in range(9))
         R = R + params["dr"][0]
         d, s = params["d"][0], params["s"][0]
         if self.extra_dof >= 0:
@@ -172,7 +185,7 @@ class BuckleContact(Term):
             rho = jnp.sqrt(x[:, 0] ** 2 + x[:, 1] ** 2 + 1e-30)  # finite gradient on the axis
             tau = jnp.arctan2(rho, x[:, 2])
             a = R * (tau - th) - s
-            prof = ring_profile(a, w, params["ridge"][0], rw, fl)
+            prof = ring_profile(a, w, params["ridge"][0], rw, fl, ew)
             return R + prof - d - r
         n0, m0, t = data["frame"][0], data["frame"][1], data["frame"][2]
         if self.curved:
@@ -282,7 +295,8 @@ class BuckleContact(Term):
         if self.shape == "ring":
             a = np.linspace(-self.width / 2, self.width / 2, n_across + 1)
             r = R + np.asarray(ring_profile(a, self.width, float(params["ridge"][0]),
-                                            self.ridge_width, self.ridge_flank)) - d
+                                            self.ridge_width, self.ridge_flank,
+                                            self.edge_width)) - d
             tau = self.theta_b + (a + s) / R
             U, T = np.meshgrid(u, tau, indexing="ij")
             rr = np.broadcast_to(r, U.shape)
