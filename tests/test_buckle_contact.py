@@ -120,10 +120,11 @@ def _fd_check(term, q_loc, params):
         np.testing.assert_allclose(H[:, :, j], fd_H, rtol=1e-5, atol=1e-7 * max(1, np.abs(H).max()))
 
 
-@pytest.mark.parametrize("shape", ["ring", "sponge", "curved sponge"])
+@pytest.mark.parametrize("shape", ["ring", "ring with 1.5 mm edges", "sponge", "curved sponge"])
 def test_buckle_contact_gradient_and_tangent_match_finite_differences(shell, shape):
-    if shape == "ring":
-        t = _ring(shell, extra_dof=3 * shell.n_nodes)
+    if shape.startswith("ring"):
+        edge = {"edge_width": 1.5} if "edges" in shape else {}
+        t = _ring(shell, extra_dof=3 * shell.n_nodes, **edge)
     else:
         t = BuckleContact("b", shell, "outer", "sponge", R, n0=(1.0, 0, 0), m0=(0, 0, -1.0),
                           axis=(0, 0, -1.0), sponge_radius=2.5, sponge_length=10.0, modulus=0.5,
