@@ -163,6 +163,11 @@ def test_run_record_says_when_the_run_is_not_like_the_study():
                            True, out)
     assert "physiological" in other["note"] and "deformable" in other["note"]
     assert quote_lines(other)[-1] == f"  {other['note']}"
+    # the study's model fields at their recorded values say nothing; another value is named
+    same = run_mesh_error({**p, "buckle_edge": 0.5, "lens_support": 0.0}, True, out)
+    assert same["note"] == ""
+    edged = run_mesh_error({**p, "buckle_edge": 1.0, "lens_support": 0.343}, True, out)
+    assert "buckle_edge = 1.0, lens_support = 0.343" in edged["note"]
 
 
 def test_unreadable_record_names_the_file(tmp_path):

@@ -235,7 +235,18 @@ def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
     if p.get("buckle_body", "rigid") != "rigid":
         err["note"] = (err["note"] + " " if err["note"] else "") + (
             "The study used rigid buckles; this run's buckle is deformable.")
+    changed = [f"{k} = {p[k]!r}" for k, v in STUDY_MODEL.items() if k in p and p[k] != v]
+    if changed:
+        err["note"] = (err["note"] + " " if err["note"] else "") + (
+            f"The study used the recorded model; this run sets {', '.join(changed)}, which "
+            "changes how its outcomes move with the mesh (docs/convergence.md).")
     return err
+
+
+STUDY_MODEL = {"buckle_edge": EDGE_WIDTH, "ridge_flank": RIDGE_FLANK, "lens_support": 0.0,
+               "zonule_insertion_radius": 0.0, "tissue_mixing": False, "wall_element": "q1p0"}
+"""The mesh study's model fields (eyefem/eye/mesh_study.json): a run that sets another
+value gets the study's mesh error with a note saying so."""
 
 
 def warn_high_iop(iop_mmhg: float) -> bool:
