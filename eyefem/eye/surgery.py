@@ -243,10 +243,12 @@ def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
     return err
 
 
-STUDY_MODEL = {"buckle_edge": EDGE_WIDTH, "ridge_flank": RIDGE_FLANK, "lens_support": 0.0,
-               "zonule_insertion_radius": 0.0, "tissue_mixing": False, "wall_element": "q1p0"}
-"""The mesh study's model fields (eyefem/eye/mesh_study.json): a run that sets another
-value gets the study's mesh error with a note saying so."""
+STUDY_MODEL = {f.name: f.default for f in SURGERY_FIELDS
+               if f.name in ("buckle_edge", "ridge_flank", "lens_support",
+                             "zonule_insertion_radius", "tissue_mixing", "wall_element")}
+"""The mesh study's model fields at their defaults, the values it was run with
+(eyefem/eye/mesh_study.json): a run that sets another value gets the study's mesh error
+with a note saying so."""
 
 
 def warn_high_iop(iop_mmhg: float) -> bool:
@@ -346,7 +348,7 @@ def check_parameters(p):
                              "the full length along the buckle's edge and bite_radius the "
                              "half-width across it; lengthen bite_length or narrow bite_radius")
     edge = p.get("buckle_edge", EDGE_WIDTH)
-    if p["buckle"] in KINDS and not p["buckle"].startswith("sponge") and edge != EDGE_WIDTH \
+    if p["buckle"] in KINDS and not p["buckle"].startswith("sponge") \
             and not edge < KINDS[p["buckle"]][0] / 2:
         raise ValueError(f"buckle_edge = {edge} mm: the edges of the {p['buckle']} "
                          f"({KINDS[p['buckle']][0]} mm wide) lift over less than half its "
