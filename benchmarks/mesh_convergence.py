@@ -16,8 +16,8 @@ at every level, so the refinement is in-plane only (a level with the suffix "x2"
     python benchmarks/mesh_convergence.py ... --no-run --fill   # runs made before the
               # peak scleral stress was recorded or the indentation weighted by area
     python benchmarks/mesh_convergence.py --record eyefem/eye/mesh_study.json \
-        --cases case1,case4,case5 --levels gradedc36,gradedc26,gradedc18 \
-        --candidate gradedc26 --out /tmp/conv/report   # from the shipped record
+        --cases case1,case4,case5 --levels half,default,fine,finer \
+        --candidate fine --out /tmp/conv/report   # from the shipped record
     python benchmarks/mesh_convergence.py export --runs RUNS [--update]   # the record
 
 Each run goes to RUNS/CASE/LEVEL (summary.json, stages.csv, surgery_history.csv, run.log),
@@ -425,14 +425,16 @@ RUN_FIGURES = ("newton_iterations", "wall_s", "max_rss_GB")
 
 
 def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Path,
-           out: Path, update: bool = False) -> dict:
+           out: Path, update: bool = False, extra_levels: list[str] = ()) -> dict:
     """Write the study record that runs quote their mesh error from
     (eyefem.eye.mesh_error.STUDY_FILE): the outcome values of RUNS/CASE/LEVEL/summary.json
-    for the levels of ``families`` (each three levels, fine first). ``update``: keep the
-    levels of the record already at ``out`` that RUNS does not hold (the runs found there
-    replace theirs)."""
+    for the levels of ``families`` (each three levels, fine first) and the ``extra_levels``
+    that were run (quoted against the families' extrapolations), and the model fields each
+    case ran with. ``update``: keep the levels of the record already at ``out`` that RUNS
+    does not hold (the runs found there replace theirs)."""
     from eyefem.catalog import schemas
     from eyefem.eye.buckles import Buckle
+    from eyefem.eye.surgery import STUDY_MODEL
     from eyefem.io.casefile import load_case
 
     old = json.loads(out.read_text()) if update and out.exists() else {"cases": {}}
@@ -444,8 +446,10 @@ def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Pa
         params = load_case(case_dir / f"{case}.toml", schemas()).parameters
         levels = {}
         kept = old["cases"].get(case, {}).get("levels", {})
-        for lv in sorted({lv for f in families for lv in f}):
+        for lv in sorted({lv for f in families for lv in f} | set(extra_levels)):
             f = runs / case / lv / "summary.json"
+            if not f.exists() and lv not in {lv for f in families for lv in f}:
+                continue
             if not f.exists():
                 if lv in kept:
                     levels[lv] = kept[lv]
@@ -464,6 +468,7 @@ def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Pa
         record["cases"][case] = {"buckle": params["buckle"],
                                  "encircling": Buckle(params["buckle"]).encircling,
                                  "tightening_mm": params.get("tightening"),
+                                 "model": {k: params.get(k, v) for k, v in STUDY_MODEL.items()},
                                  "levels": levels}
     out.write_text(json.dumps(record, indent=1) + "\n")
     log.info("wrote %s", out)
@@ -480,8 +485,7 @@ def main(argv=None) -> int:
                                      description="write the study record runs quote their "
                                      "mesh error from (eyefem/eye/mesh_study.json)")
         ap.add_argument("--cases", default="case1,case4,case5")
-        ap.add_argument("--families", default="finer,default,half;"
-                        "gradedc36,gradedc26,gradedc18;finer,fine,default",
+        ap.add_argument("--families", default="finer,default,half;finer,fine,default",
                         help="level triples, fine first, separated by ';' (default: those of "
                         "the shipped record)")
         ap.add_argument("--case-dir", default="cases/surgery")
@@ -489,9 +493,13 @@ def main(argv=None) -> int:
         ap.add_argument("--out", default="eyefem/eye/mesh_study.json")
         ap.add_argument("--update", action="store_true",
                         help="keep the levels of the record at --out that --runs lacks")
+        ap.add_argument("--levels", default="gradedc26",
+                        help="levels recorded outside the families, where run (default: "
+                        "gradedc26, the surgical cases' mesh before fine; '' for none)")
         a = ap.parse_args(argv[1:])
         export(Path(a.runs), a.cases.split(","), [f.split(",") for f in a.families.split(";")],
-               Path(a.case_dir), Path(a.out), update=a.update)
+               Path(a.case_dir), Path(a.out), update=a.update,
+               extra_levels=[lv for lv in a.levels.split(",") if lv])
         return 0
     if argv and argv[0] in ("run-one", "fill"):
         if len(argv) != 4 or any(a.startswith("-") for a in argv[1:]):

@@ -266,25 +266,36 @@ def test_record_update_keeps_levels_and_tabulates_like_the_runs(tmp_path):
     out = bench.export(tmp_path / "runs", ["case1"], family, ROOT / "cases" / "surgery", rec)
     assert set(out["cases"]["case1"]["levels"]) == {"fine", "default"}
     assert bench.collect_record(out, ["case1"], family[0]) == {}
+    # a level outside the families is recorded where it was run, left out where not; the
+    # record holds the model fields the case file sets (the quoted runs compare theirs)
+    d = tmp_path / "runs" / "case1" / "gradedc26"
+    d.mkdir()
+    (d / "summary.json").write_text(json.dumps({**runs["fine"], "n_per_edge": 26}))
+    out = bench.export(tmp_path / "runs", ["case1"], family, ROOT / "cases" / "surgery", rec,
+                       extra_levels=["gradedc26", "finer"])
+    assert set(out["cases"]["case1"]["levels"]) == {"fine", "default", "gradedc26"}
+    model = out["cases"]["case1"]["model"]
+    assert model["buckle_edge"] == 1.0 and model["lens_support"] == 0.343
+    assert model["wall_element"] == "q1p0"  # not in the case file: the field's default
 
 
-# case 5 (seed materials, bites spread over 1.5 mm patches, the 1.5 mm limbus ring, the
-# indentation weighted by area), recorded by `eyefem compare` (coarse) and
-# benchmarks/mesh_convergence.py (half; docs/convergence.md)
+# case 5 (seed materials, the lens held by 0.343 N/mm in all, bites spread over 1.5 mm
+# patches, the 1.5 mm limbus ring, the indentation weighted by area), recorded by `eyefem
+# compare` (coarse) and benchmarks/mesh_convergence.py (half; docs/convergence.md)
 CASE5_RECORDED = {
     "coarse": {
-        "iop_mmhg": 15.101900468623562,
-        "indentation_mm": 0.261434494007343,
-        "axial_length_change_mm": 0.01034495389701462,
-        "refraction_change_D": -0.019042094528233026,
-        "max_suture_force_N": 0.017690120047079292,
+        "iop_mmhg": 15.102830505500563,
+        "indentation_mm": 0.2615975799139676,
+        "axial_length_change_mm": 0.010442170728651945,
+        "refraction_change_D": -0.020049630160241354,
+        "max_suture_force_N": 0.017648017470119483,
     },
     "half": {  # with the orbit's springs on the whole equatorial ring (44 nodes, not 4)
-        "iop_mmhg": 15.026178280675918,
-        "indentation_mm": 0.14900471741829868,
-        "axial_length_change_mm": 0.008022686396074619,
-        "refraction_change_D": -0.01782559962750128,
-        "max_suture_force_N": 0.011954793156174526,
+        "iop_mmhg": 15.026810143355842,
+        "indentation_mm": 0.14938533123775777,
+        "axial_length_change_mm": 0.008059798360992687,
+        "refraction_change_D": -0.018283295908045366,
+        "max_suture_force_N": 0.011886627133975867,
     },
 }
 

@@ -161,13 +161,13 @@ LEVEL_EXPECTED = (f"one of {list(LEVELS)}, graded<N> or gradedc<N> (N {GRADED_N_
                   f"{GRADED_N_RANGE[1]}), or one with the suffix 'x2'")
 """What a case file's ``mesh`` field expects, for its error message."""
 
-SURGICAL_LEVEL = "gradedc26"
-"""The surgical cases' eye mesh (the surgery schema's default): graded toward the band
-zone and the cornea, 16,458 hexahedra. Of the levels that run case 4 in about the uniform
-"default" level's time it is the nearest to the finest meshes studied (docs/convergence.md,
-where its error is quoted; the study does not show any level within the 5 % bounds). The
-uniform level named "default" (11,862 hexahedra, the seed's model size) stays for the
-calibration, the nested study and the cases that name it."""
+SURGICAL_LEVEL = "fine"
+"""The surgical cases' eye mesh (the surgery schema's default): the uniform level with 32
+elements per patch edge, 25,166 hexahedra, the coarsest level of the mesh study within
+its bounds (5 % for the IOP rise, indentation, axial length and refraction changes, 10 %
+for the largest suture force) with the case files' model (docs/convergence.md, "Results:
+the case files' model"). The uniform level named "default" (11,862 hexahedra, the seed's
+model size) stays for the calibration, the nested study and the cases that name it."""
 
 
 def is_graded(level: str) -> bool:

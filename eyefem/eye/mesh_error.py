@@ -15,9 +15,15 @@ cases 1 and 4; segmental: case 5), case by case:
   from the converging family with the smallest GCI of its finest level;
 - ``from_finest``: no family of the case converges (oscillatory, divergent or an order
   outside 0.5..4); the relative difference from the finest level of the level's own
-  family, which the error is not known to be below (a lower estimate, not a bound);
+  family (for a level in no family, of the finest level the case ran), which the error
+  is not known to be below (a lower estimate, not a bound);
 - ``not_estimated``: the level is the finest of its family and nothing converges, or the
   studied case did not run the level (coarse, medium, graded<N> not studied).
+
+A level the study ran outside its families of three (``gradedc26``, the surgical cases'
+mesh before ``fine``)
+is estimated the same way: against a converging family's extrapolation, else from the
+finest level the case ran.
 
 Each estimate names the family it comes from (``family``).
 
@@ -55,7 +61,7 @@ GCI, FROM_EXTRAPOLATION, FROM_FINEST, NOT_ESTIMATED = (
 @lru_cache(maxsize=4)
 def load_study(path: str | None = None) -> dict:
     """The study record: {"materials", "families": [[fine, mid, coarse], ...], "cases":
-    {case: {"encircling": bool, "levels": {level: {"n_per_edge", "elements", "values":
+    {case: {"encircling": bool, "model": {field: value}, "levels": {level: {"n_per_edge", "elements", "values":
     {outcome: value}}}}}}."""
     p = Path(path) if path else STUDY_FILE
     try:
@@ -134,8 +140,21 @@ def best_estimate(levels: dict, families: list[list[str]], level: str, outcome: 
                     "p": s.p, "family": f, "extrapolated": s.extrapolated}
     if estimates:
         return estimates[0]
+    # a level outside every family: its difference from the finest level the case ran
+    ran = [f for f in families if f[0] in levels
+           and _finite(levels[f[0]]["values"].get(outcome))]
+    if ran and phi is not None and math.isfinite(phi):
+        f = max(ran, key=lambda f: levels[f[0]]["n_per_edge"])
+        finest = levels[f[0]]["values"][outcome]
+        if f[0] != level and finest != 0:
+            return {"kind": FROM_FINEST, "relative": abs(phi - finest) / abs(finest),
+                    "behaviour": "not in a family", "p": None, "family": f}
     return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": "not in a family", "p": None,
             "family": None}
+
+
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v)
 
 
 def mesh_error(level: str, encircling: bool, values: dict | None = None,
@@ -145,7 +164,8 @@ def mesh_error(level: str, encircling: bool, values: dict | None = None,
     Args: level: the run's eye mesh level; encircling: its buckle encircles the globe;
       values: the run's outcomes (keys of QUOTED), for the errors in their units.
     Returns: {"level", "materials", "cases": [studied cases used], "family": [levels] (the
-    first family that holds the level) or None, "outcomes": {outcome: {case:
+    first family that holds the level) or None, "model": {case: {field: value}} (the model
+    fields each studied case ran with, where the record has them), "outcomes": {outcome: {case:
     best_estimate + "absolute" (the run's value times the relative error, in the
     outcome's unit; None without it)}}, "note"}."""
     study = study or load_study()
@@ -156,13 +176,15 @@ def mesh_error(level: str, encircling: bool, values: dict | None = None,
            "family": None, "outcomes": {}, "note": ""}
     families = [f for f in study["families"] if level in f]
     usable = {c: rec for c, rec in cases.items()
-              if families and all(lv in rec["levels"] for lv in families[0])}
+              if level in rec["levels"]
+              or (families and all(lv in rec["levels"] for lv in families[0]))}
     if not usable:
-        out["note"] = (f"no studied {kind} case ran level '{level}' in a family of three; "
-                       "its mesh error is not estimated (docs/convergence.md)")
+        out["note"] = (f"no studied {kind} case ran level '{level}'; its mesh error is not "
+                       "estimated (docs/convergence.md)")
         return out
-    out["family"] = families[0]
+    out["family"] = families[0] if families else None
     out["cases"] = list(usable)
+    out["model"] = {c: rec.get("model", {}) for c, rec in usable.items()}
     values = values or {}
     for k in QUOTED:
         out["outcomes"][k] = {}
@@ -180,8 +202,10 @@ def quote_lines(err: dict) -> list[str]:
     last."""
     if not err.get("outcomes"):
         return [f"mesh error: {err.get('note', 'not estimated')}"]
-    head = (f"mesh error of level '{err['level']}' (study of {', '.join(err['cases'])} on "
-            f"{'/'.join(err['family'])}, {err['materials']} materials; docs/convergence.md):")
+    where = (f"on {'/'.join(err['family'])}" if err.get("family")
+             else "outside its families of three")
+    head = (f"mesh error of level '{err['level']}' (study of {', '.join(err['cases'])} "
+            f"{where}, {err['materials']} materials; docs/convergence.md):")
     lines = [head]
     for k, per_case in err["outcomes"].items():
         label, unit = QUOTED[k]

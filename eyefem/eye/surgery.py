@@ -235,10 +235,14 @@ def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
     if p.get("buckle_body", "rigid") != "rigid":
         err["note"] = (err["note"] + " " if err["note"] else "") + (
             "The study used rigid buckles; this run's buckle is deformable.")
-    changed = [f"{k} = {p[k]!r}" for k, v in STUDY_MODEL.items() if k in p and p[k] != v]
+    models = [{**STUDY_MODEL, **m} for m in err.get("model", {}).values()] or [STUDY_MODEL]
+    rigid_only = ("buckle_edge", "ridge_flank")  # shapes of the rigid ring, unused otherwise
+    changed = [f"{k} = {p[k]!r}" for k in STUDY_MODEL
+               if k in p and all(p[k] != m[k] for m in models)
+               and not (k in rigid_only and p.get("buckle_body", "rigid") != "rigid")]
     if changed:
         err["note"] = (err["note"] + " " if err["note"] else "") + (
-            f"The study used the recorded model; this run sets {', '.join(changed)}, which "
+            f"The study's cases ran another model; this run sets {', '.join(changed)}, which "
             "changes how its outcomes move with the mesh (docs/convergence.md).")
     return err
 
@@ -246,9 +250,10 @@ def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
 STUDY_MODEL = {f.name: f.default for f in SURGERY_FIELDS
                if f.name in ("buckle_edge", "ridge_flank", "lens_support",
                              "zonule_insertion_radius", "tissue_mixing", "wall_element")}
-"""The mesh study's model fields at their defaults, the values it was run with
-(eyefem/eye/mesh_study.json): a run that sets another value gets the study's mesh error
-with a note saying so."""
+"""The model fields that change how outcomes move with the mesh, at their defaults: the
+mesh study's record (eyefem/eye/mesh_study.json) holds the values each studied case ran
+with ("model"; these defaults where it does not); a run whose value matches none of the
+studied cases' gets the study's mesh error with a note saying so."""
 
 
 def warn_high_iop(iop_mmhg: float) -> bool:
