@@ -446,10 +446,11 @@ def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Pa
         params = load_case(case_dir / f"{case}.toml", schemas()).parameters
         levels = {}
         kept = old["cases"].get(case, {}).get("levels", {})
-        for lv in sorted({lv for f in families for lv in f} | set(extra_levels)):
+        in_families = {lv for f in families for lv in f}
+        for lv in sorted(in_families | set(extra_levels)):
             f = runs / case / lv / "summary.json"
-            if not f.exists() and lv not in {lv for f in families for lv in f}:
-                continue
+            if not f.exists() and lv not in in_families:
+                continue  # an extra level the case did not run
             if not f.exists():
                 if lv in kept:
                     levels[lv] = kept[lv]

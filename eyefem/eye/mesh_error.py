@@ -21,9 +21,8 @@ cases 1 and 4; segmental: case 5), case by case:
   studied case did not run the level (coarse, medium, graded<N> not studied).
 
 A level the study ran outside its families of three (``gradedc26``, the surgical cases'
-mesh before ``fine``)
-is estimated the same way: against a converging family's extrapolation, else from the
-finest level the case ran.
+mesh before ``fine``) is estimated the same way: against a converging family's
+extrapolation, else from the finest level the case ran.
 
 Each estimate names the family it comes from (``family``).
 
@@ -61,8 +60,8 @@ GCI, FROM_EXTRAPOLATION, FROM_FINEST, NOT_ESTIMATED = (
 @lru_cache(maxsize=4)
 def load_study(path: str | None = None) -> dict:
     """The study record: {"materials", "families": [[fine, mid, coarse], ...], "cases":
-    {case: {"encircling": bool, "model": {field: value}, "levels": {level: {"n_per_edge", "elements", "values":
-    {outcome: value}}}}}}."""
+    {case: {"encircling": bool, "model": {field: value}, "levels": {level: {"n_per_edge",
+    "elements", "values": {outcome: value}}}}}}."""
     p = Path(path) if path else STUDY_FILE
     try:
         study = json.loads(p.read_text())
@@ -120,7 +119,8 @@ def best_estimate(levels: dict, families: list[list[str]], level: str, outcome: 
     the module's order of preference: the GCI in a family that holds the level; else the
     GCI-like figure against the extrapolation of another, converging family (the one
     whose finest level's GCI is smallest); else the first holding family's
-    ``from_finest`` or ``not_estimated``.
+    ``from_finest`` or ``not_estimated`` (a level in no family: ``from_finest`` against the
+    finest level the case ran).
 
     Returns: case_estimate's dict; ``from_extrapolation`` adds "extrapolated" (the
     family's Richardson value)."""
@@ -165,8 +165,8 @@ def mesh_error(level: str, encircling: bool, values: dict | None = None,
       values: the run's outcomes (keys of QUOTED), for the errors in their units.
     Returns: {"level", "materials", "cases": [studied cases used], "family": [levels] (the
     first family that holds the level) or None, "model": {case: {field: value}} (the model
-    fields each studied case ran with, where the record has them), "outcomes": {outcome: {case:
-    best_estimate + "absolute" (the run's value times the relative error, in the
+    fields each studied case ran with, where the record has them), "outcomes": {outcome:
+    {case: best_estimate + "absolute" (the run's value times the relative error, in the
     outcome's unit; None without it)}}, "note"}."""
     study = study or load_study()
     kind = "encircling" if encircling else "segmental"
