@@ -82,7 +82,7 @@ def _triple(levels: dict, family: list[str], outcome: str):
     if not all(lv in levels for lv in family):
         return None
     vals = [levels[lv]["values"].get(outcome) for lv in family]
-    if any(v is None or not math.isfinite(v) for v in vals):
+    if not all(_finite(v) for v in vals):
         return None
     return three_grid_study([1.0 / levels[lv]["n_per_edge"] for lv in family], vals)
 
@@ -130,7 +130,7 @@ def best_estimate(levels: dict, families: list[list[str]], level: str, outcome: 
         if e["kind"] == GCI:
             return e
     phi = levels.get(level, {}).get("values", {}).get(outcome)
-    if phi is not None and math.isfinite(phi) and phi != 0:
+    if _finite(phi) and phi != 0:
         studies = [(s, f) for f in families if f not in own
                    for s in (_triple(levels, f, outcome),) if _converges(s)]
         if studies:
@@ -143,7 +143,7 @@ def best_estimate(levels: dict, families: list[list[str]], level: str, outcome: 
     # a level outside every family: its difference from the finest level the case ran
     ran = [f for f in families if f[0] in levels
            and _finite(levels[f[0]]["values"].get(outcome))]
-    if ran and phi is not None and math.isfinite(phi):
+    if ran and _finite(phi):
         f = max(ran, key=lambda f: levels[f[0]]["n_per_edge"])
         finest = levels[f[0]]["values"][outcome]
         if f[0] != level and finest != 0:
@@ -154,6 +154,7 @@ def best_estimate(levels: dict, families: list[list[str]], level: str, outcome: 
 
 
 def _finite(v) -> bool:
+    """A recorded outcome value that is a finite number (not None, NaN or missing)."""
     return isinstance(v, (int, float)) and math.isfinite(v)
 
 
