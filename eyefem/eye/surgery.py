@@ -554,18 +554,36 @@ field's own default, for case files that leave it out, stays the seed's, so that
 seed's cases 1-6 reproduce)."""
 
 
+CONVERGING_MODEL = {"lens_support": 0.343, "rigid ring": {"buckle_edge": 1.0},
+                    "tire_ridged": {"ridge_flank": 1.5}}
+"""The model fields of the surgical case files, whose outcomes converge with the mesh
+(docs/convergence.md, "Results: the case files' model"), that ``new-case`` writes into a new
+case: the lens's springs in all (N/mm; on the default level the sum of the per-node
+springs), a rigid band's or tire's edges lifting over 1 mm (the 2.5 mm band is not in the
+study; its 0.5 mm edges are as sharp as the tires' were), the ridged tire's 1.5 mm flanks.
+The fields' own defaults, for case files that leave them out, stay the earlier model (0.5
+mm edges, 1 mm flanks, 1e-3 N/mm per lens node), which the recorded results and the
+problems built without a case file use."""
+
+
 def questions(values: dict) -> tuple[frozenset, dict]:
     """What ``eyefem new-case surgery`` asks, given the answers so far (``values``, with
     every field's default filled in): (names of the fields that do not apply to the chosen
     buckle, or are advanced: not asked, kept at their defaults; the chosen buckle's own
-    defaults, name -> value)."""
+    defaults, name -> value: NEW_CASE_DEFAULTS, a sponge's SEGMENTAL_DEFAULTS and the
+    CONVERGING_MODEL's fields that apply to it)."""
     segmental = values["buckle"].startswith("sponge")
     skip = set(ADVANCED_FIELDS)
     skip |= ({"band_tension", "deformable_tightening"} if segmental
              else {"buckle_meridian_deg"})
     if values["buckle_body"] == "rigid":
         skip.add("deformable_tightening")
-    return frozenset(skip), {**NEW_CASE_DEFAULTS, **(SEGMENTAL_DEFAULTS if segmental else {})}
+    model = {"lens_support": CONVERGING_MODEL["lens_support"]}
+    if values["buckle_body"] == "rigid" and values["buckle"] in RING_KINDS:
+        model.update(CONVERGING_MODEL["rigid ring"])
+        model.update(CONVERGING_MODEL.get(values["buckle"], {}))
+    return frozenset(skip), {**NEW_CASE_DEFAULTS, **(SEGMENTAL_DEFAULTS if segmental else {}),
+                             **model}
 
 
 surgery.check = check_parameters
