@@ -71,7 +71,7 @@ choice), whose Richardson extrapolation lies further from the fine level."""
 
 ABBREV = {"coarse": "c", "half": "h", "medium": "m", "default": "D", "fine": "f", "finer": "F",
           "graded_half": "gh", "graded": "G", "graded_fine": "gf", "gradedc18": "c18",
-          "gradedc26": "c26", "gradedc36": "c36"}
+          "gradedc26": "c26", "gradedc36": "c36", "finest": "Ff"}
 
 
 # --------------------------------------------------------------------------- running
@@ -235,13 +235,17 @@ def outcome_values(summary: dict) -> dict:
     return {k: float(v) for k, v in out.items() if v is not None}
 
 
-def study_case(runs: dict, levels: list[str], candidate: str = "default") -> dict:
+def study_case(runs: dict, levels: list[str], candidate: str = "default",
+               lsq_levels: list[str] | None = None) -> dict:
     """The study of one case. runs: level -> summary (levels fine to coarse not needed:
     sorted by h here). Returns {"levels", "h", "values": {outcome: [...]}, "triples":
     {outcome: [ThreeGridStudy dict per consecutive triple]}, "candidate": the level judged
     against the bounds, "default_gci": {outcome: GCI of the candidate level against the
-    finest triple's extrapolation}} (the key keeps its name for the JSON's readers)."""
-    from eyefem.eye.convergence import relative_gci, three_grid_study
+    finest triple's extrapolation}} (the key keeps its name for the JSON's readers), and
+    "least_squares": {outcome: LeastSquaresStudy dict} over ``lsq_levels`` (default: the
+    uniform levels run), where four or more were run."""
+    from eyefem.eye.convergence import least_squares_study, relative_gci, three_grid_study
+    from eyefem.eye.eyemodel import is_graded
 
     levels = sorted([lv for lv in levels if lv in runs], key=lambda lv: -runs[lv]["n_per_edge"])
     h = [1.0 / runs[lv]["n_per_edge"] for lv in levels]  # fine -> coarse
@@ -253,8 +257,17 @@ def study_case(runs: dict, levels: list[str], candidate: str = "default") -> dic
            "newton_iterations": [runs[lv].get("newton_iterations") for lv in levels],
            "max_rss_GB": [runs[lv].get("max_rss_GB") for lv in levels],
            "values": {k: [vals[lv][k] for lv in levels] for k in keys},
-           "triples": {}, "candidate": candidate, "default_gci": {}, "default_gci_p2": {}}
+           "triples": {}, "candidate": candidate, "default_gci": {}, "default_gci_p2": {},
+           "least_squares": {}}
+    # the least-squares procedure over the uniform levels (h = 1 / n means the same
+    # element size there, not on the graded levels), from four of them
+    uniform = [i for i, lv in enumerate(levels)
+               if (lv in lsq_levels if lsq_levels else not is_graded(lv))]
+    out["least_squares_levels"] = [levels[i] for i in uniform] if len(uniform) >= 4 else []
     for k in keys:
+        if out["least_squares_levels"]:
+            out["least_squares"][k] = least_squares_study(
+                [h[i] for i in uniform], [out["values"][k][i] for i in uniform]).as_dict()
         trip = []
         for i in range(len(levels) - 2):
             s = three_grid_study(h[i:i + 3], out["values"][k][i:i + 3])
@@ -324,7 +337,22 @@ def markdown(study: dict) -> str:
             diff = "-" if d is None else f"{100 * d:+.2g} %"
             row += [_pct(g) + ok, _pct(g2) + ok2, diff, _pct(bound) if bound else "-"]
             lines.append("| " + " | ".join(row) + " |")
-        legend = ("(levels: c coarse, h half, m medium, D default, f fine, F finer, gh "
+        lsq = s.get("least_squares") or {}
+        if lsq:
+            names = s["least_squares_levels"]
+            lines += ["", f"Least squares over {', '.join(names)} (Eca and Hoekstra 2014): "
+                      "the fit the error comes from (p: the free order; 1, 2, 12: fixed "
+                      "orders), the estimate of the exact value, and each level's "
+                      "uncertainty U relative to its value:", "",
+                      "| outcome | p | fit | Fs | extrapolated | " +
+                      " | ".join(f"U {x}" for x in names) + " |",
+                      "|---|" + "---:|" * (4 + len(names))]
+            for k, t in lsq.items():
+                rel = [u / abs(v) if v else None for u, v in zip(t["uncertainty"], t["values"])]
+                lines.append(f"| {OUTCOMES[k][0]} | {_fmt(t['p'], 3)} | {t['fit']} | "
+                             f"{t['safety_factor']:g} | {_fmt(t['extrapolated'], 5)} | " +
+                             " | ".join(_pct(r) for r in rel) + " |")
+        legend = ("(levels: c coarse, h half, m medium, D default, f fine, F finer, Ff finest, gh "
                   "graded_half, G graded, gf graded_fine, c18 gradedc18 (c26, c36); "
                   "behaviour of "
                   "each triple, observed order p, Richardson value and GCI_fine of its "
@@ -379,7 +407,7 @@ def plot(case: str, s: dict, path: Path, other: dict | None = None, other_label:
     plt.close(fig)
 
 
-def _studies(cases, levels, candidate: str, found_of) -> dict:
+def _studies(cases, levels, candidate: str, found_of, lsq_levels=None) -> dict:
     """case -> :func:`study_case` of ``found_of(case)`` (level -> summary or record level);
     cases with fewer than three levels are left out, with a warning."""
     study = {}
@@ -388,11 +416,11 @@ def _studies(cases, levels, candidate: str, found_of) -> dict:
         if len(found) < 3:
             log.warning("%s: %d level(s) found; a study needs three", case, len(found))
             continue
-        study[case] = study_case(found, levels, candidate)
+        study[case] = study_case(found, levels, candidate, lsq_levels)
     return study
 
 
-def collect(cases, levels, runs: Path, candidate: str = "default") -> dict:
+def collect(cases, levels, runs: Path, candidate: str = "default", lsq_levels=None) -> dict:
     """case -> :func:`study_case` of the runs RUNS/CASE/LEVEL/summary.json there (cases
     with fewer than three levels run are left out, with a warning)."""
     def found_of(case):
@@ -405,10 +433,11 @@ def collect(cases, levels, runs: Path, candidate: str = "default") -> dict:
                 log.warning("%s: no run at %s (%s missing); left out", case, lv, f)
         return found
 
-    return _studies(cases, levels, candidate, found_of)
+    return _studies(cases, levels, candidate, found_of, lsq_levels)
 
 
-def collect_record(record: dict, cases, levels, candidate: str = "default") -> dict:
+def collect_record(record: dict, cases, levels, candidate: str = "default",
+                   lsq_levels=None) -> dict:
     """As :func:`collect`, from the study record's levels instead of run folders (the
     shipped record keeps the values after the run folders are gone)."""
     def found_of(case):
@@ -417,7 +446,7 @@ def collect_record(record: dict, cases, levels, candidate: str = "default") -> d
             log.warning("%s: the record has no level %s; left out", case, lv)
         return {lv: have[lv] for lv in levels if lv in have}
 
-    return _studies(cases, levels, candidate, found_of)
+    return _studies(cases, levels, candidate, found_of, lsq_levels)
 
 
 RUN_FIGURES = ("newton_iterations", "wall_s", "max_rss_GB")
@@ -522,6 +551,8 @@ def main(argv=None) -> int:
     ap.add_argument("--candidate", default="default",
                     help="the level judged against the bounds (its GCI against the finest "
                     "triple's extrapolation; default: default)")
+    ap.add_argument("--least-squares", help="the levels of the least-squares procedure, four "
+                    "or more (default: the uniform levels of --levels)")
     ap.add_argument("--case-dir", default="cases/surgery")
     ap.add_argument("--runs", default="/tmp/conv", help="run folders RUNS/CASE/LEVEL")
     ap.add_argument("--out", default="/tmp/conv/report", help="where the table and JSON go")
@@ -540,10 +571,11 @@ def main(argv=None) -> int:
                     "final checkpoints; one process per run)")
     args = ap.parse_args(argv)
     cases, levels = args.cases.split(","), args.levels.split(",")
+    lsq = args.least_squares.split(",") if args.least_squares else None
     runs = Path(args.runs)
     if args.record:
         record = json.loads(Path(args.record).read_text())
-        study = collect_record(record, cases, levels, args.candidate)
+        study = collect_record(record, cases, levels, args.candidate, lsq)
         other = (collect_record(record, cases, args.compare_levels.split(","), args.candidate)
                  if args.compare_levels else {})
     elif not args.no_run:
@@ -558,7 +590,7 @@ def main(argv=None) -> int:
                     subprocess.call([sys.executable, __file__, "fill",
                                      str(Path(args.case_dir) / f"{case}.toml"), lv, str(d)])
     if not args.record:
-        study = collect(cases, levels, runs, args.candidate)
+        study = collect(cases, levels, runs, args.candidate, lsq)
         other = (collect(cases, levels, Path(args.compare), args.candidate) if args.compare
                  else {})
     out = Path(args.out)

@@ -20,6 +20,7 @@ from eyefem.eye.convergence import (
     INDETERMINATE,
     MONOTONE,
     OSCILLATORY,
+    least_squares_study,
     observed_order,
     relative_gci,
     three_grid_study,
@@ -117,6 +118,67 @@ def test_constant_ratio_order_is_the_closed_form():
 def test_bad_input_names_the_problem(h, f):
     with pytest.raises(ValueError, match="three_grid_study"):
         three_grid_study(h, f)
+
+
+STUDY_H = [1.0 / LEVELS[lv][0] for lv in ("finest", "finer", "fine", "default", "half")]
+
+
+@pytest.mark.parametrize("p", [0.8, 1.5, 2.0])
+@pytest.mark.parametrize("C", [3.0, -40.0])
+def test_least_squares_recovers_an_exact_power_law(p, C):
+    # phi = 12 + C h^p on the study's five uniform levels: the free-order fit is exact,
+    # so U_i = 1.25 |C| h_i^p (no scatter)
+    h = np.array(STUDY_H)
+    s = least_squares_study(h[::-1], 12.0 + C * h[::-1] ** p)  # any order in
+    assert (s.fit, s.safety_factor, s.note) == ("p", 1.25, "")
+    assert s.p == pytest.approx(p, rel=1e-6)
+    assert s.extrapolated == pytest.approx(12.0, abs=1e-8 * abs(C))
+    assert s.sigma < 1e-9 * abs(C)
+    np.testing.assert_allclose(s.uncertainty, 1.25 * abs(C) * h ** p, rtol=1e-6)
+    assert s.relative(0) == pytest.approx(s.uncertainty[0] / abs(12.0 + C * h[0] ** p))
+
+
+def test_least_squares_is_affine_invariant():
+    h = np.array(STUDY_H)
+    f = np.array([1.1633, 1.1442, 1.12, 1.0923, 1.05])
+    a, b = least_squares_study(h, f), least_squares_study(h, -3.0 * f + 7.0)
+    assert (a.fit, a.safety_factor) == (b.fit, b.safety_factor)
+    assert b.extrapolated == pytest.approx(-3.0 * a.extrapolated + 7.0, rel=1e-9)
+    np.testing.assert_allclose(b.uncertainty, 3.0 * np.array(a.uncertainty), rtol=1e-7)
+
+
+def test_least_squares_falls_back_on_fixed_orders_with_the_larger_factor():
+    h = np.array(STUDY_H)
+    high = least_squares_study(h, 12.0 - 500.0 * h ** 3)  # p 3: orders 2 or 1 and 2
+    assert high.fit in ("2", "12") and high.safety_factor == 3.0
+    assert "outside 0.5..2.1" in high.note
+    # the finest level's uncertainty covers its true error
+    assert high.uncertainty[0] > 500.0 * h[0] ** 3
+    slow = least_squares_study(h, 12.0 - h ** 0.3)  # p 0.3: orders 1, 2 or both
+    assert slow.fit in ("1", "2", "12") and slow.p == pytest.approx(0.3, rel=1e-4)
+    # the finest level's uncertainty covers its true error 12 - phi
+    assert slow.uncertainty[0] > 0.1 * h[0] ** 0.3
+
+
+def test_least_squares_of_scatter_widens_the_uncertainty():
+    # values that scatter by more than they move: sigma >= the data range, and
+    # U = 3 sigma / range (error + sigma + |phi - fit|) >= the scatter itself
+    h = np.array(STUDY_H)
+    f = np.array([1.0, 1.1, 0.9, 1.1, 0.92])
+    s = least_squares_study(h, f)
+    assert s.sigma >= s.data_range == pytest.approx(0.2 / 4)
+    assert s.uncertainty[0] >= 3.0 * (s.error[0] + s.sigma) - 1e-12
+    assert "scatter exceeds the data range" in s.note and s.safety_factor == 3.0
+    assert s.uncertainty[0] > 0.1  # the scatter's size (0.1 about the mean)
+    flat = least_squares_study(h, np.ones(5))
+    assert flat.uncertainty == (0.0,) * 5 and "same on every grid" in flat.note
+
+
+@pytest.mark.parametrize("h, f", [(STUDY_H[:3], [1, 2, 3]), (STUDY_H[:3] + STUDY_H[:1], [1, 2, 3, 4]),
+                                  (STUDY_H[:4], [1, 2, float("nan"), 3])])
+def test_least_squares_bad_input_names_the_problem(h, f):
+    with pytest.raises(ValueError, match="least_squares_study"):
+        least_squares_study(h, f)
 
 
 def test_fine_level_keeps_four_wall_layers_and_sound_elements():
@@ -227,6 +289,13 @@ def test_study_of_synthetic_runs():
     assert m["candidate"] == "medium" and vm != v
     assert m["default_gci"]["iop_rise_mmhg"] == pytest.approx(1.25 * abs(10.0 - vm) / vm)
     assert "GCI of medium" in bench.markdown({"caseX": m})
+    # four uniform levels: the least-squares procedure over them (the IOP rise's
+    # h^2 exactly: its free order and limit)
+    ls = s["least_squares"]["iop_rise_mmhg"]
+    assert s["least_squares_levels"] == ["fine", "default", "medium", "coarse"]
+    assert (ls["fit"], ls["p"]) == ("p", pytest.approx(2.0, rel=1e-6))
+    assert ls["extrapolated"] == pytest.approx(10.0, rel=1e-8)
+    assert "Least squares over fine, default, medium, coarse" in table
 
 
 def test_record_update_keeps_levels_and_tabulates_like_the_runs(tmp_path):

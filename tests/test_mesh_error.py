@@ -100,6 +100,28 @@ def test_a_level_quotes_another_familys_extrapolation_when_its_own_does_not_conv
     assert e["kind"] == NOT_ESTIMATED and e["relative"] is None
 
 
+def test_a_family_the_case_did_not_run_does_not_hide_one_it_ran():
+    # the finest level ran for one case only: for the others, the family holding it is
+    # "not run", and the level's estimate comes from the family the case did run
+    n = {"finest": 54, "finer": 44, "fine": 32, "default": 22}
+    vals = {"finer": 1.00, "fine": 0.95, "default": 0.99}  # oscillatory
+    study = {"materials": "seed", "families": [["finest", "finer", "fine"],
+                                               ["finer", "fine", "default"]],
+             "cases": {"caseX": {"encircling": True, "levels": {
+                 lv: {"n_per_edge": n[lv], "values": {"indentation_mm": v}}
+                 for lv, v in vals.items()}}}}
+    e = mesh_error("fine", True, None, study)["outcomes"]["indentation_mm"]["caseX"]
+    assert (e["kind"], e["family"]) == (FROM_FINEST, ["finer", "fine", "default"])
+    assert e["relative"] == pytest.approx(0.05)
+    # with the finest level run, its family comes first: fine against the finest level
+    vals["finest"] = 0.97
+    study["cases"]["caseX"]["levels"]["finest"] = {"n_per_edge": 54,
+                                                   "values": {"indentation_mm": 0.97}}
+    e = mesh_error("fine", True, None, study)["outcomes"]["indentation_mm"]["caseX"]
+    assert (e["kind"], e["family"]) == (FROM_FINEST, ["finest", "finer", "fine"])
+    assert e["relative"] == pytest.approx(0.02 / 0.97)
+
+
 def test_levels_and_buckles_outside_the_study_are_not_estimated():
     study = _study({lv: {"iop_rise_mmhg": 1.0 + N[lv]} for lv in FAMILY}, encircling=True)
     for level, encircling in (("coarse", True), ("default", False)):

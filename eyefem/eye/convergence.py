@@ -192,3 +192,173 @@ def relative_gci(value: float, extrapolated: float,
     if not (math.isfinite(value) and math.isfinite(extrapolated)) or value == 0:
         return float("nan")
     return safety_factor * abs(extrapolated - value) / abs(value)
+
+
+# ---------------------------------------------------------------- four or more grids
+
+LSQ_SAFETY_FACTORS = (1.25, 3.0)
+"""Safety factors of the least-squares procedure: a fit of the free order in 0.5..2.1
+that lies within the data's scatter, and every other case."""
+
+LSQ_ORDER_RANGE = (0.5, 2.1)
+"""Free orders for which the least-squares procedure keeps the free-order fit."""
+
+LSQ_ORDER_BOUNDS = (0.02, 8.0)
+"""Orders the free-order fit searches."""
+
+LSQ_FITS = {"p": None, "1": (1.0,), "2": (2.0,), "12": (1.0, 2.0)}
+"""The least-squares procedure's fits: phi0 + alpha h^p (p free), and phi0 plus terms of
+the fixed orders given."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LeastSquaresStudy:
+    """Discretisation uncertainty of one quantity from four or more grids, by the
+    least-squares procedure of Eca and Hoekstra (2014, J. Comput. Phys. 262:104, "A
+    procedure for the estimation of the numerical uncertainty of CFD calculations based on
+    grid refinement studies"): each fit unweighted and with the weights w_i proportional to
+    1 / h_i, the one with the smaller standard deviation kept.
+
+    Attributes:
+      h, values: grid sizes fine -> coarse and the quantity on them.
+      p: order of the free-order fit phi0 + alpha h^p (LSQ_ORDER_BOUNDS; nan where the
+        values are the same on every grid).
+      fit: the fit the error comes from: "p" (0.5 <= p < 2.1), else the fixed-order fit
+        with the smallest standard deviation: "2" or "12" (p >= 2.1), "1", "2" or "12"
+        (p < 0.5).
+      extrapolated: that fit's phi0, the estimate of the exact value.
+      sigma: that fit's standard deviation, sqrt(sum n w_i (phi_i - fit_i)^2 / (n - q)), q
+        the fitted coefficients, w_i = 1 / n unweighted.
+      data_range: (max phi - min phi) / (n - 1).
+      safety_factor: 1.25 where fit == "p" and sigma < data_range, else 3.
+      error: |fit_i - phi0| per grid, the fit's discretisation error.
+      uncertainty: U_i per grid (absolute): Fs error_i + sigma + |phi_i - fit_i| where
+        sigma < data_range, else 3 sigma / data_range (error_i + sigma + |phi_i - fit_i|).
+      note: a warning (empty when the free-order fit is used and fits the data).
+    """
+
+    h: tuple
+    values: tuple
+    p: float
+    fit: str
+    extrapolated: float
+    sigma: float
+    data_range: float
+    safety_factor: float
+    error: tuple
+    uncertainty: tuple
+    note: str = ""
+
+    def relative(self, i: int = 0) -> float:
+        """U_i / |phi_i| of grid i (0: the finest)."""
+        v = self.values[i]
+        return self.uncertainty[i] / abs(v) if v != 0 else float("nan")
+
+    def as_dict(self) -> dict:
+        """JSON-ready dict (nan -> None), with the finest grid's relative uncertainty."""
+        d = {k: (list(v) if isinstance(v, tuple) else v)
+             for k, v in dataclasses.asdict(self).items()}
+        d["relative_fine"] = self.relative(0)
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                for k, v in d.items()}
+
+
+def _fixed_order_fit(h, f, orders, weighted=False):
+    """Least squares phi0 + sum_k a_k h^orders[k], unweighted or with the weights
+    w_i = (1 / h_i) / sum_j (1 / h_j) (the finer grids count more): (phi0, fitted values,
+    sigma), sigma = sqrt(sum n w_i (phi_i - fit_i)^2 / (n - q))."""
+    n = len(h)
+    w = (1.0 / h) / np.sum(1.0 / h) if weighted else np.full(n, 1.0 / n)
+    a = np.column_stack([np.ones_like(h)] + [h ** q for q in orders])
+    sw = np.sqrt(w)
+    coef = np.linalg.lstsq(a * sw[:, None], f * sw, rcond=None)[0]
+    fit = a @ coef
+    dof = n - a.shape[1]
+    return float(coef[0]), fit, float(np.sqrt(np.sum(n * w * (f - fit) ** 2) / dof))
+
+
+def _best_fit(h, f, orders):
+    """The unweighted or weighted fit of ``orders``, whichever has the smaller sigma."""
+    return min((_fixed_order_fit(h, f, orders, wt) for wt in (False, True)),
+               key=lambda r: r[2])
+
+
+def _free_order_fit(h, f):
+    """Least squares phi0 + alpha h^p over p in [LSQ_ORDER_BOUNDS], unweighted or weighted,
+    whichever has the smaller sigma: (p, phi0, fitted values, sigma); p at a bound where
+    the best fit lies beyond it."""
+    from scipy.optimize import minimize_scalar
+
+    scale = h / h.max()  # h^p on the coarsest grid = 1: the fit well conditioned at any p
+
+    best = None
+    for weighted in (False, True):
+        def ss(logp):
+            return _fixed_order_fit(scale, f, (math.exp(logp),), weighted)[2]
+
+        grid = np.linspace(*np.log(LSQ_ORDER_BOUNDS), 241)
+        k = int(np.argmin([ss(x) for x in grid]))
+        lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+        res = minimize_scalar(ss, bounds=(lo, hi), method="bounded",
+                              options={"xatol": 1e-10})
+        p = math.exp(res.x) if res.fun <= ss(grid[k]) else math.exp(grid[k])
+        phi0, fit, sigma = _fixed_order_fit(scale, f, (p,), weighted)
+        if best is None or sigma < best[3]:
+            best = (p, phi0, fit, sigma)
+    return best
+
+
+def least_squares_study(h, values) -> LeastSquaresStudy:
+    """The least-squares procedure (LeastSquaresStudy) for one quantity on n >= 4 grids.
+
+    Args:
+      h: grid sizes, any order (sorted here fine -> coarse), distinct and > 0.
+      values: the quantity on those grids (same order), finite.
+    """
+    h = np.asarray(h, float)
+    f = np.asarray(values, float)
+    if h.ndim != 1 or h.shape != f.shape or len(h) < 4:
+        raise ValueError(f"least_squares_study: need n >= 4 grid sizes and as many values, "
+                         f"got h {h.shape}, values {f.shape}; three grids: three_grid_study")
+    if np.any(h <= 0) or len(np.unique(h)) != len(h):
+        raise ValueError(f"least_squares_study: grid sizes h={h.tolist()} must be distinct "
+                         "and > 0")
+    if not np.all(np.isfinite(f)):
+        raise ValueError(f"least_squares_study: values {f.tolist()} must be finite "
+                         "(a failed run?)")
+    order = np.argsort(h)
+    h, f = h[order], f[order]
+    n = len(h)
+    data_range = float((f.max() - f.min()) / (n - 1))
+    if data_range == 0.0:
+        zero = tuple(0.0 for _ in f)
+        return LeastSquaresStudy(tuple(h.tolist()), tuple(f.tolist()), float("nan"), "p",
+                                 float(f[0]), 0.0, 0.0, LSQ_SAFETY_FACTORS[0], zero, zero,
+                                 "the values are the same on every grid")
+    scale = h / h.max()
+    p, phi0, fit, sigma = _free_order_fit(h, f)
+    lo, hi = LSQ_ORDER_RANGE
+    if lo <= p < hi:
+        name, note = "p", ""
+    else:
+        names = ("2", "12") if p >= hi else ("1", "2", "12")
+        fits = {nm: _best_fit(scale, f, LSQ_FITS[nm]) for nm in names}
+        name = min(names, key=lambda nm: fits[nm][2])
+        phi0, fit, sigma = fits[name]
+        bound = (" (the search's bound)" if p <= LSQ_ORDER_BOUNDS[0] * 1.0001
+                 or p >= LSQ_ORDER_BOUNDS[1] * 0.9999 else "")
+        note = (f"free order p = {p:.2g}{bound} outside {lo}..{hi}: the fixed orders "
+                f"{' and '.join(f'{q:g}' for q in LSQ_FITS[name])} fit best, Fs 3")
+    error = np.abs(fit - phi0)
+    dev = np.abs(f - fit)
+    good = sigma < data_range
+    fs = LSQ_SAFETY_FACTORS[0] if name == "p" and good else LSQ_SAFETY_FACTORS[1]
+    if good:
+        u = fs * error + sigma + dev
+    else:
+        u = 3.0 * sigma / data_range * (error + sigma + dev)
+        note = (note + "; " if note else "") + \
+            "the fit's scatter exceeds the data range: U = 3 sigma / range (error + ...)"
+    return LeastSquaresStudy(tuple(h.tolist()), tuple(f.tolist()), float(p), name,
+                             float(phi0), float(sigma), data_range, fs,
+                             tuple(error.tolist()), tuple(u.tolist()), note)

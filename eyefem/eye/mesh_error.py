@@ -119,13 +119,18 @@ def best_estimate(levels: dict, families: list[list[str]], level: str, outcome: 
     the module's order of preference: the GCI in a family that holds the level; else the
     GCI-like figure against the extrapolation of another, converging family (the one
     whose finest level's GCI is smallest); else the first holding family's
-    ``from_finest`` or ``not_estimated`` (a level in no family: ``from_finest`` against the
-    finest level the case ran).
+    ``from_finest`` or ``not_estimated``: of the families the case ran, the one whose top
+    level is finest first (a level in no family: ``from_finest`` against the finest level
+    the case ran).
 
     Returns: case_estimate's dict; ``from_extrapolation`` adds "extrapolated" (the
     family's Richardson value)."""
     own = [f for f in families if level in f]
-    estimates = [case_estimate(levels, f, level, outcome) for f in own]
+    # the families the case ran, the one with the finest top level first (the finest
+    # level ran for one case only: a family the case did not run comes last)
+    estimates = sorted((case_estimate(levels, f, level, outcome) for f in own),
+                       key=lambda e: (e["behaviour"] == "not run",
+                                      -levels.get(e["family"][0], {}).get("n_per_edge", 0)))
     for e in estimates:
         if e["kind"] == GCI:
             return e
