@@ -478,14 +478,12 @@ def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Pa
         in_families = {lv for f in families for lv in f}
         for lv in sorted(in_families | set(extra_levels)):
             f = runs / case / lv / "summary.json"
-            if not f.exists() and lv not in in_families:
-                continue  # an extra level the case did not run
             if not f.exists():
                 if lv in kept:
                     levels[lv] = kept[lv]
                     log.info("%s: %s kept from %s", case, lv, out)
-                    continue
-                log.warning("%s: no run at %s (%s missing); left out", case, lv, f)
+                elif lv in in_families:  # (an extra level the case did not run: silent)
+                    log.warning("%s: no run at %s (%s missing); left out", case, lv, f)
                 continue
             summary = json.loads(f.read_text())
             if summary.get("unbalanced_steps", {}).get("count", 0):

@@ -170,6 +170,10 @@ def test_least_squares_of_scatter_widens_the_uncertainty():
     assert s.uncertainty[0] >= 3.0 * (s.error[0] + s.sigma) - 1e-12
     assert "scatter exceeds the data range" in s.note and s.safety_factor == 3.0
     assert s.uncertainty[0] > 0.1  # the scatter's size (0.1 about the mean)
+    # four levels (case 1's scleral stress, kPa, finest to default): no two-term fit,
+    # which would follow the scatter and extrapolate to 51 kPa, outside the data
+    four = least_squares_study(h[:4], [56.7094, 56.7266, 57.7721, 56.4049])
+    assert four.fit in ("1", "2") and 56.4 < four.extrapolated < 57.8
     flat = least_squares_study(h, np.ones(5))
     assert flat.uncertainty == (0.0,) * 5 and "same on every grid" in flat.note
 
@@ -346,6 +350,12 @@ def test_record_update_keeps_levels_and_tabulates_like_the_runs(tmp_path):
     model = out["cases"]["case1"]["model"]
     assert model["buckle_edge"] == 1.0 and model["lens_support"] == 0.343
     assert model["wall_element"] == "q1p0"  # not in the case file: the field's default
+    # --update keeps an extra level of the record whose run folder is gone
+    import shutil
+    shutil.rmtree(d)
+    out = bench.export(tmp_path / "runs", ["case1"], family, ROOT / "cases" / "surgery", rec,
+                       update=True, extra_levels=["gradedc26"])
+    assert out["cases"]["case1"]["levels"]["gradedc26"]["n_per_edge"] == 26
 
 
 # case 5 (seed materials, the lens held by 0.343 N/mm in all, bites spread over 1.5 mm

@@ -225,7 +225,7 @@ class LeastSquaresStudy:
         values are the same on every grid).
       fit: the fit the error comes from: "p" (0.5 <= p < 2.1), else the fixed-order fit
         with the smallest standard deviation: "2" or "12" (p >= 2.1), "1", "2" or "12"
-        (p < 0.5).
+        (p < 0.5); "12" from five grids (two degrees of freedom left).
       extrapolated: that fit's phi0, the estimate of the exact value.
       sigma: that fit's standard deviation, sqrt(sum n w_i (phi_i - fit_i)^2 / (n - q)), q
         the fitted coefficients, w_i = 1 / n unweighted.
@@ -342,6 +342,9 @@ def least_squares_study(h, values) -> LeastSquaresStudy:
         name, note = "p", ""
     else:
         names = ("2", "12") if p >= hi else ("1", "2", "12")
+        # a fixed-order fit keeps two degrees of freedom: with four grids the two-term fit
+        # (three coefficients) follows the scatter and extrapolates outside the data
+        names = tuple(nm for nm in names if n - 1 - len(LSQ_FITS[nm]) >= 2)
         fits = {nm: _best_fit(scale, f, LSQ_FITS[nm]) for nm in names}
         name = min(names, key=lambda nm: fits[nm][2])
         phi0, fit, sigma = fits[name]

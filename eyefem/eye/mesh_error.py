@@ -14,9 +14,9 @@ cases 1 and 4; segmental: case 5), case by case:
   the same exact value): Fs |phi_ext - phi| / |phi| against that family's extrapolation,
   from the converging family with the smallest GCI of its finest level;
 - ``from_finest``: no family of the case converges (oscillatory, divergent or an order
-  outside 0.5..4); the relative difference from the finest level of the level's own
-  family (for a level in no family, of the finest level the case ran), which the error
-  is not known to be below (a lower estimate, not a bound);
+  outside 0.5..4); the largest relative difference from the finer levels of the level's
+  own family (for a level in no family, from the finest level the case ran), which the
+  error is not known to be below (a lower estimate, not a bound);
 - ``not_estimated``: the level is the finest of its family and nothing converges, or the
   studied case did not run the level (coarse, medium, graded<N> not studied).
 
@@ -106,9 +106,11 @@ def case_estimate(levels: dict, family: list[str], level: str, outcome: str) -> 
     if _converges(s):
         return {"kind": GCI, "relative": relative_gci(phi, s.extrapolated),
                 "behaviour": s.behaviour, "p": p, "family": family}
-    finest = levels[family[0]]["values"][outcome]
-    if level != family[0] and finest != 0:
-        return {"kind": FROM_FINEST, "relative": abs(phi - finest) / abs(finest),
+    # the largest difference from the family's levels finer than this one (the values
+    # oscillate: the finest level alone can lie closer than the one between)
+    finer = [levels[lv]["values"][outcome] for lv in family[:family.index(level)]]
+    if finer and all(v != 0 for v in finer):
+        return {"kind": FROM_FINEST, "relative": max(abs(phi - v) / abs(v) for v in finer),
                 "behaviour": s.behaviour, "p": p, "family": family}
     return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": s.behaviour, "p": p,
             "family": family}
@@ -230,8 +232,9 @@ def quote_lines(err: dict) -> list[str]:
                 what = "GCI" if fam == err["family"] else f"GCI on {'/'.join(fam)}"
             elif e["kind"] == FROM_EXTRAPOLATION:
                 what = f"against {'/'.join(fam)}'s extrapolation, p = {e['p']:.1f}"
-            else:
-                what = f"from {fam[0]}, {how}"
+            else:  # the largest difference from the family's finer levels
+                above = fam[:fam.index(err["level"])] if err["level"] in fam else fam[:1]
+                what = f"from {'/'.join(above)}, {how}"
             parts.append(f"{case} {pct:.1f} %{absolute} ({what})")
         lines.append(f"  {label:<22} " + "; ".join(parts))
     if err.get("note"):
