@@ -385,6 +385,12 @@ def plot(case: str, s: dict, path: Path, other: dict | None = None, other_label:
             ax.plot(other["h"], other["values"][k], "s--", color="0.6", ms=4, label=other_label)
         for x, y, lv in zip(s["h"], s["values"][k], s["levels"]):
             ax.annotate(lv, (x, y), textcoords="offset points", xytext=(3, 3), fontsize=7)
+        ls = (s.get("least_squares") or {}).get(k)
+        if ls:  # each level's least-squares uncertainty U_i as an error bar
+            ax.errorbar(ls["h"], ls["values"], yerr=ls["uncertainty"], fmt="none",
+                        ecolor="C1", elinewidth=0.8, capsize=2,
+                        label=f"least squares U (fit {ls['fit']}, Fs {ls['safety_factor']:g})")
+            ax.plot([0.0], [ls["extrapolated"]], "D", ms=5, color="C1")
         t = s["triples"][k][0] if s["triples"][k] else None
         if t and t["extrapolated"] is not None and not t["note"]:
             ax.plot([0.0], [t["extrapolated"]], "*", ms=10, color="C2",
@@ -394,6 +400,10 @@ def plot(case: str, s: dict, path: Path, other: dict | None = None, other_label:
             what = (f"p = {t['p']:.2f}: not credible" if t["behaviour"] == "monotone"
                     else t["behaviour"])
             ax.text(0.02, 0.05, what, transform=ax.transAxes, fontsize=8)
+        if ls:  # the runs set the scale; wider error bars run off it
+            v = list(s["values"][k]) + [ls["extrapolated"]]
+            span = max(max(v) - min(v), 1e-12 * max(abs(x) for x in v))
+            ax.set_ylim(min(v) - 0.4 * span, max(v) + 0.4 * span)
         ax.set_xlim(left=0.0)
         ax.set_xlabel("h = 1 / n")
         ax.set_title(OUTCOMES[k][0], fontsize=9)

@@ -350,8 +350,10 @@ def least_squares_study(h, values) -> LeastSquaresStudy:
         phi0, fit, sigma = fits[name]
         bound = (" (the search's bound)" if p <= LSQ_ORDER_BOUNDS[0] * 1.0001
                  or p >= LSQ_ORDER_BOUNDS[1] * 0.9999 else "")
-        note = (f"free order p = {p:.2g}{bound} outside {lo}..{hi}: the fixed orders "
-                f"{' and '.join(f'{q:g}' for q in LSQ_FITS[name])} fit best, Fs 3")
+        orders = LSQ_FITS[name]
+        note = (f"free order p = {p:.2g}{bound} outside {lo}..{hi}: the fixed "
+                f"order{'s' if len(orders) > 1 else ''} "
+                f"{' and '.join(f'{q:g}' for q in orders)} fit best, Fs 3")
     error = np.abs(fit - phi0)
     dev = np.abs(f - fit)
     good = sigma < data_range
