@@ -86,3 +86,19 @@ def _suspect_is_said(caplog, warner, flagged, said, quiet):
     with caplog.at_level(logging.WARNING):
         assert warn(flagged)
     assert all(words in caplog.text for words in said), caplog.text
+
+
+def test_a_mesh_too_big_for_the_machine_is_said(caplog, monkeypatch):
+    """A level whose run would not fit in this machine's memory is said before the run,
+    with the fix; the case files' level on a 23 GB machine is not."""
+    from eyefem.eye import surgery
+
+    monkeypatch.setattr(surgery, "physical_memory_kb", lambda: 23.0 * 1024 ** 2)
+    with caplog.at_level(logging.WARNING):
+        assert not surgery.warn_memory(25166, "fine")  # about 5.5 GB
+    assert caplog.text == ""
+    monkeypatch.setattr(surgery, "physical_memory_kb", lambda: 8.0 * 1024 ** 2)
+    with caplog.at_level(logging.WARNING):
+        assert surgery.warn_memory(72920, "finest")  # about 14 GB on 8 GB
+    assert all(w in caplog.text for w in ("'finest' (72920 hexahedra)", "about 14 GB",
+                                           "has 8 GB", "--mesh fine"))

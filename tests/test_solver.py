@@ -526,7 +526,7 @@ def test_pardiso_patterns_are_held_within_the_memory_budget(monkeypatch):
     kb = f0.entry["kb"]
     assert kb > 0
     monkeypatch.setattr(linsolve, "PARDISO_MEMORY_FRACTION",
-                        1.5 * kb / linsolve._physical_memory_kb())
+                        1.5 * kb / linsolve.physical_memory_kb())
     f1 = linsolve.factorize(A1, "pardiso")
     assert f1.key in linsolve._PARDISO_BY_PATTERN
     assert f0.key not in linsolve._PARDISO_BY_PATTERN and f0.entry["freed"]

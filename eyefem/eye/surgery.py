@@ -45,6 +45,7 @@ from eyefem.fem.units import MMHG
 from eyefem.io.casefile import Field, positive
 from eyefem.io.output import write_csv
 from eyefem.io.runner import Setup
+from eyefem.solve.linsolve import physical_memory_kb
 from eyefem.solve.model import node_dofs, solid_model
 
 log = logging.getLogger(__name__)
@@ -162,6 +163,27 @@ def _materials(materials, preset: str = "seed"):
     return with_overrides(preset, {**bodies, **(materials or {})}, log)
 
 
+RUN_MEMORY_GB = (1.0, 1.8e-4)
+"""Peak resident memory of a surgical run, GB: a + b x hexahedra, an estimate from the
+measured runs (fine, 25,166 hexahedra: 4.5-6.1 GB; finer, 48,324: 10.5-11.6 GB; finest,
+72,920: 11.9 GB; docs/performance.md)."""
+
+
+def warn_memory(n_elem: int, level: str) -> bool:
+    """Say (log warning) and return True when a surgical run on ``n_elem`` hexahedra
+    needs more than 80 % of this machine's memory (RUN_MEMORY_GB): the system would kill
+    it without a word."""
+    need = RUN_MEMORY_GB[0] + RUN_MEMORY_GB[1] * n_elem
+    have = physical_memory_kb() / 1024.0 ** 2
+    if need <= 0.8 * have:
+        return False
+    log.warning("eye mesh level '%s' (%d hexahedra): a surgical run needs about %.0f GB of "
+                "memory (docs/performance.md) and this machine has %.0f GB; the system may "
+                "stop it without a message. Choose a coarser level (--mesh fine or "
+                "default) or a machine with more memory", level, n_elem, need, have)
+    return True
+
+
 def surgery(p, materials):
     """Build the surgery Setup from case parameters (see SURGERY_FIELDS) and material
     overrides (name -> MooneyRivlin): the eye, the buckle body, the staged procedure."""
@@ -170,6 +192,7 @@ def surgery(p, materials):
     body = buckle_body(p, buckle)
     body.warn(p, buckle)
     eye = build_eye(eye_geometry(p), p["mesh"])
+    warn_memory(eye.mesh.n_elem, p["mesh"])
     g = eye.geometry
     mesh, band = body.with_mesh(_with_wetted_surface(eye.mesh), buckle, g, p)
     # encircling: the circumference 2 pi R sin(theta_b) shortens by `tightening`

@@ -98,7 +98,7 @@ beyond it the oldest are freed. On a large mesh the patterns that contact re-pai
 makes would otherwise hold several factorisations of gigabytes each."""
 
 
-def _physical_memory_kb() -> float:
+def physical_memory_kb() -> float:
     """The machine's physical memory, KB (inf where the system does not say)."""
     try:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1024.0
@@ -201,7 +201,7 @@ class _Pardiso:
         self.entry["freed"] = False
         if not self.entry.get("kept"):
             _PARDISO_BY_PATTERN.pop(self.key, None)
-            budget = PARDISO_MEMORY_FRACTION * _physical_memory_kb()
+            budget = PARDISO_MEMORY_FRACTION * physical_memory_kb()
             while _PARDISO_BY_PATTERN and (self.entry["kb"] + sum(
                     e.get("kb", 0.0) for e in _PARDISO_BY_PATTERN.values()) > budget):
                 _free_pattern(next(iter(_PARDISO_BY_PATTERN)))
