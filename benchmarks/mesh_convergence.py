@@ -523,7 +523,8 @@ def main(argv=None) -> int:
                                      description="write the study record runs quote their "
                                      "mesh error from (eyefem/eye/mesh_study.json)")
         ap.add_argument("--cases", default="case1,case4,case5")
-        ap.add_argument("--families", default="finer,default,half;finer,fine,default",
+        ap.add_argument("--families",
+                        default="finer,default,half;finer,fine,default;finest,finer,fine",
                         help="level triples, fine first, separated by ';' (default: those of "
                         "the shipped record)")
         ap.add_argument("--case-dir", default="cases/surgery")
