@@ -577,8 +577,7 @@ field's own default, for case files that leave it out, stays the seed's, so that
 seed's cases 1-6 reproduce)."""
 
 
-CONVERGING_MODEL = {"lens_support": 0.343, "rigid ring": {"buckle_edge": 1.0},
-                    "tire_ridged": {"ridge_flank": 1.5}}
+CONVERGING_MODEL = {"lens_support": 0.343, "buckle_edge": 1.0, "ridge_flank": 1.5}
 """The model fields of the surgical case files, whose outcomes converge with the mesh
 (docs/convergence.md, "Results: the case files' model"), that ``new-case`` writes into a new
 case: the lens's springs in all (N/mm; on the default level the sum of the per-node
@@ -601,10 +600,10 @@ def questions(values: dict) -> tuple[frozenset, dict]:
              else {"buckle_meridian_deg"})
     if values["buckle_body"] == "rigid":
         skip.add("deformable_tightening")
-    model = {"lens_support": CONVERGING_MODEL["lens_support"]}
-    if values["buckle_body"] == "rigid" and values["buckle"] in RING_KINDS:
-        model.update(CONVERGING_MODEL["rigid ring"])
-        model.update(CONVERGING_MODEL.get(values["buckle"], {}))
+    rigid = values["buckle_body"] == "rigid"
+    applies = {"lens_support": True, "buckle_edge": rigid and values["buckle"] in RING_KINDS,
+               "ridge_flank": rigid and values["buckle"] == "tire_ridged"}
+    model = {k: v for k, v in CONVERGING_MODEL.items() if applies[k]}
     return frozenset(skip), {**NEW_CASE_DEFAULTS, **(SEGMENTAL_DEFAULTS if segmental else {}),
                              **model}
 
