@@ -120,7 +120,7 @@ def test_a_family_the_case_did_not_run_does_not_hide_one_it_ran():
         levels["finest"] = {"n_per_edge": 54, "values": {"indentation_mm": finest}}
         e = mesh_error("fine", True, None, study)["outcomes"]["indentation_mm"]["caseX"]
         assert (e["kind"], e["family"]) == (FROM_FINEST, ["finest", "finer", "fine"])
-        assert e["relative"] == pytest.approx(rel)
+        assert e["relative"] == pytest.approx(rel) and e["compared"] == ["finest", "finer"]
 
 
 def test_levels_and_buckles_outside_the_study_are_not_estimated():

@@ -96,7 +96,8 @@ def case_estimate(levels: dict, family: list[str], level: str, outcome: str) -> 
     that holds the level.
 
     Args: levels: level -> {"n_per_edge", "values"}; family: three level names, fine first.
-    Returns: {"kind", "relative" (or None), "behaviour", "p" (or None), "family"}."""
+    Returns: {"kind", "relative" (or None), "behaviour", "p" (or None), "family"};
+    ``from_finest`` adds "compared" (the finer levels the difference is taken from)."""
     s = _triple(levels, family, outcome)
     if s is None:
         return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": "not run", "p": None,
@@ -108,10 +109,11 @@ def case_estimate(levels: dict, family: list[str], level: str, outcome: str) -> 
                 "behaviour": s.behaviour, "p": p, "family": family}
     # the largest difference from the family's levels finer than this one (the values
     # oscillate: the finest level alone can lie closer than the one between)
-    finer = [levels[lv]["values"][outcome] for lv in family[:family.index(level)]]
+    above = family[:family.index(level)]
+    finer = [levels[lv]["values"][outcome] for lv in above]
     if finer and all(v != 0 for v in finer):
         return {"kind": FROM_FINEST, "relative": max(abs(phi - v) / abs(v) for v in finer),
-                "behaviour": s.behaviour, "p": p, "family": family}
+                "behaviour": s.behaviour, "p": p, "family": family, "compared": above}
     return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": s.behaviour, "p": p,
             "family": family}
 
@@ -155,7 +157,8 @@ def best_estimate(levels: dict, families: list[list[str]], level: str, outcome: 
         finest = levels[f[0]]["values"][outcome]
         if f[0] != level and finest != 0:
             return {"kind": FROM_FINEST, "relative": abs(phi - finest) / abs(finest),
-                    "behaviour": "not in a family", "p": None, "family": f}
+                    "behaviour": "not in a family", "p": None, "family": f,
+                    "compared": f[:1]}
     return {"kind": NOT_ESTIMATED, "relative": None, "behaviour": "not in a family", "p": None,
             "family": None}
 
@@ -232,9 +235,8 @@ def quote_lines(err: dict) -> list[str]:
                 what = "GCI" if fam == err["family"] else f"GCI on {'/'.join(fam)}"
             elif e["kind"] == FROM_EXTRAPOLATION:
                 what = f"against {'/'.join(fam)}'s extrapolation, p = {e['p']:.1f}"
-            else:  # the largest difference from the family's finer levels
-                above = fam[:fam.index(err["level"])] if err["level"] in fam else fam[:1]
-                what = f"from {'/'.join(above)}, {how}"
+            else:  # the largest difference from the levels compared with
+                what = f"from {'/'.join(e['compared'])}, {how}"
             parts.append(f"{case} {pct:.1f} %{absolute} ({what})")
         lines.append(f"  {label:<22} " + "; ".join(parts))
     if err.get("note"):
