@@ -283,20 +283,19 @@ def _best_fit(h, f, orders):
                key=lambda r: r[2])
 
 
-def _free_order_fit(h, f):
+def _free_order_fit(scale, f):
     """Least squares phi0 + alpha h^p over p in [LSQ_ORDER_BOUNDS], unweighted or weighted,
     whichever has the smaller sigma: (p, phi0, fitted values, sigma); p at a bound where
-    the best fit lies beyond it."""
+    the best fit lies beyond it. scale: h / max h (h^p = 1 on the coarsest grid: the fit
+    well conditioned at any p)."""
     from scipy.optimize import minimize_scalar
 
-    scale = h / h.max()  # h^p on the coarsest grid = 1: the fit well conditioned at any p
-
+    grid = np.linspace(*np.log(LSQ_ORDER_BOUNDS), 241)
     best = None
     for weighted in (False, True):
         def ss(logp):
             return _fixed_order_fit(scale, f, (math.exp(logp),), weighted)[2]
 
-        grid = np.linspace(*np.log(LSQ_ORDER_BOUNDS), 241)
         k = int(np.argmin([ss(x) for x in grid]))
         lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
         res = minimize_scalar(ss, bounds=(lo, hi), method="bounded",
@@ -336,7 +335,7 @@ def least_squares_study(h, values) -> LeastSquaresStudy:
                                  float(f[0]), 0.0, 0.0, LSQ_SAFETY_FACTORS[0], zero, zero,
                                  "the values are the same on every grid")
     scale = h / h.max()
-    p, phi0, fit, sigma = _free_order_fit(h, f)
+    p, phi0, fit, sigma = _free_order_fit(scale, f)
     lo, hi = LSQ_ORDER_RANGE
     if lo <= p < hi:
         name, note = "p", ""
