@@ -470,17 +470,22 @@ def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Pa
     for the levels of ``families`` (each three levels, fine first) and the ``extra_levels``
     that were run (quoted against the families' extrapolations), and the model fields each
     case ran with. ``update``: keep the levels of the record already at ``out`` that RUNS
-    does not hold (the runs found there replace theirs)."""
+    does not hold (the runs found there replace theirs), and its cases ``cases`` does not
+    name."""
     from eyefem.catalog import schemas
     from eyefem.eye.buckles import Buckle
     from eyefem.eye.surgery import STUDY_MODEL
     from eyefem.io.casefile import load_case
 
     old = json.loads(out.read_text()) if update and out.exists() else {"cases": {}}
+    recorded = sorted(set(cases) | set(old["cases"]))
     record = {"source": "docs/convergence.md; python benchmarks/mesh_convergence.py export "
-              f"--cases {','.join(cases)} --families "
+              f"--cases {','.join(recorded)} --families "
               f"'{';'.join(','.join(f) for f in families)}'",
-              "materials": "seed", "families": families, "cases": {}}
+              "materials": "seed", "families": families,
+              "cases": {c: old["cases"][c] for c in recorded if c not in cases}}
+    for c in record["cases"]:
+        log.info("%s kept from %s", c, out)
     for case in cases:
         params = load_case(case_dir / f"{case}.toml", schemas()).parameters
         levels = {}
@@ -508,6 +513,7 @@ def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Pa
                                  "tightening_mm": params.get("tightening"),
                                  "model": {k: params.get(k, v) for k, v in STUDY_MODEL.items()},
                                  "levels": levels}
+    record["cases"] = {c: record["cases"][c] for c in recorded}
     out.write_text(json.dumps(record, indent=1) + "\n")
     log.info("wrote %s", out)
     return record

@@ -320,12 +320,17 @@ def test_record_update_keeps_levels_and_tabulates_like_the_runs(tmp_path):
     rec = tmp_path / "record.json"
     medium = {"n_per_edge": LEVELS["medium"][0], "elements": 7,
               "values": bench.outcome_values(runs["medium"])}
-    rec.write_text(json.dumps({"cases": {"case1": {"levels": {"medium": medium}}}}))
+    other = {"buckle": "tire_ridged", "encircling": True, "levels": {"medium": medium}}
+    rec.write_text(json.dumps({"cases": {"case4": other,
+                                         "case1": {"levels": {"medium": medium}}}}))
     family = [["fine", "default", "medium"]]
     out = bench.export(tmp_path / "runs", ["case1"], family, ROOT / "cases" / "surgery", rec,
                        update=True)
     levels = out["cases"]["case1"]["levels"]
     assert set(levels) == {"fine", "default", "medium"} and levels["medium"] == medium
+    # a case --cases does not name stays as recorded (updating one case keeps the others)
+    assert list(out["cases"]) == ["case1", "case4"] and out["cases"]["case4"] == other
+    assert "--cases case1,case4 " in out["source"]
     assert levels["fine"]["newton_iterations"] == 9 and levels["fine"]["wall_s"] == 2.0
     from_record = bench.collect_record(json.loads(rec.read_text()), ["case1"], family[0])
     direct = bench.study_case(runs, family[0])
