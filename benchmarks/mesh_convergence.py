@@ -482,10 +482,8 @@ def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Pa
     record = {"source": "docs/convergence.md; python benchmarks/mesh_convergence.py export "
               f"--cases {','.join(recorded)} --families "
               f"'{';'.join(','.join(f) for f in families)}'",
-              "materials": "seed", "families": families,
-              "cases": {c: old["cases"][c] for c in recorded if c not in cases}}
-    for c in record["cases"]:
-        log.info("%s kept from %s", c, out)
+              "materials": "seed", "families": families, "cases": {}}
+    fresh = {}
     for case in cases:
         params = load_case(case_dir / f"{case}.toml", schemas()).parameters
         levels = {}
@@ -508,12 +506,15 @@ def export(runs: Path, cases: list[str], families: list[list[str]], case_dir: Pa
                           "elements": summary.get("elements"),
                           **{k: summary.get(k) for k in RUN_FIGURES},
                           "values": outcome_values(summary)}
-        record["cases"][case] = {"buckle": params["buckle"],
-                                 "encircling": Buckle(params["buckle"]).encircling,
-                                 "tightening_mm": params.get("tightening"),
-                                 "model": {k: params.get(k, v) for k, v in STUDY_MODEL.items()},
-                                 "levels": levels}
-    record["cases"] = {c: record["cases"][c] for c in recorded}
+        fresh[case] = {"buckle": params["buckle"],
+                       "encircling": Buckle(params["buckle"]).encircling,
+                       "tightening_mm": params.get("tightening"),
+                       "model": {k: params.get(k, v) for k, v in STUDY_MODEL.items()},
+                       "levels": levels}
+    for c in recorded:
+        if c not in fresh:
+            log.info("%s kept from %s", c, out)
+        record["cases"][c] = fresh.get(c, old["cases"].get(c))
     out.write_text(json.dumps(record, indent=1) + "\n")
     log.info("wrote %s", out)
     return record
