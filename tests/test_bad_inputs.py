@@ -93,6 +93,8 @@ CASE_FILE_ERRORS = [  # (id, case text, words of the message); exit code 2, noth
     ("bite length shorter than its width", SURGERY + "bite_length = 2.0\n",
      "shorter than the patch's width 2 x bite_radius = 3.0 mm"),
     ("bite length out of range", SURGERY + "bite_length = 0.2\n", "0 (a disc) or 0.4 to 12 mm"),
+    ("contact quadrature out of range", SURGERY + "contact_quadrature = 5\n",
+     "'contact_quadrature' = 5 is out of range: 0 (nodes) or 1 to 4"),
 ]
 
 

@@ -96,6 +96,105 @@ def test_ring_gap_is_invariant_under_rotation_about_the_axis(shell):
     np.testing.assert_allclose(g1, g2, atol=1e-12)
 
 
+def test_faces_integrate_a_uniform_penetration_to_a_uniform_pressure():
+    """A sphere of radius R pressed uniformly by d = 0.5 mm (a ring wider than the sphere,
+    plain penalty): integrated over the faces, the total contact force is the penalty per
+    unit area k_A times d times the area 4 pi R^2, less the bilinear faces' chord (each point
+    of a face lies inside the sphere by at most its sagitta s: the force lies between
+    k_A (d - s) A and k_A d A, A the faces' area, within 1 % of the sphere's), and the nodes'
+    contact pressure is uniform to the same chord; lumped at the nodes, the pressure follows
+    the nodes' tributary areas (+-30 % on the cubed sphere)."""
+    mesh = generators.spherical_shell(R - 0.5, 0.5, 16, 1)
+    d = 0.5
+    out = {}
+    for quadrature in (0, 2):
+        t = BuckleContact("b", mesh, "outer", "ring", R, theta_b=np.pi / 2, width=4 * R,
+                          modulus=0.5, smoothing=1e-6, quadrature=quadrature)
+        q, params = np.zeros(3 * mesh.n_nodes), {**t.params, "d": np.array([d])}
+        force = t.contact_forces(t._gap_np(q, params)).sum()
+        pres = t.point_fields(q, params, mesh.n_nodes)["b_pressure_MPa"][t.nodes]
+        out[quadrature] = (t, force, pres)
+    t, force, pres = out[2]
+    k_A = t.alpha / np.mean(t.node_area)
+    A = 4 * np.pi * R**2
+    assert t.data["area"].sum() == pytest.approx(A, rel=1e-2)
+    diag = np.linalg.norm(mesh.nodes[t.faces[:, 0]] - mesh.nodes[t.faces[:, 2]], axis=1).max()
+    s = R - np.sqrt(R**2 - (diag / 2) ** 2)  # the largest face's sagitta, mm
+    assert k_A * (d - s) * 0.99 * A < force < k_A * d * A
+    assert pres.max() / pres.min() < 1 + 2 * s / d
+    assert pres.min() > k_A * (d - s) * 0.98
+    _, force_nodes, pres_nodes = out[0]
+    assert force_nodes == pytest.approx(k_A * d * A, rel=1e-2)
+    assert pres_nodes.max() / pres_nodes.min() > 1.5
+
+
+@pytest.mark.parametrize("shape", ["ring", "sponge"])
+def test_face_contact_energy_is_invariant_under_a_rotation_of_eye_and_buckle(shell, shape):
+    """The eye's mesh, its displacement and the buckle's frame turned together about an
+    arbitrary axis through the globe centre (a sponge) or about the eye axis (a ring, whose
+    axis is z): the same energy of every contact point."""
+    from scipy.spatial.transform import Rotation
+
+    Q = (Rotation.from_rotvec([0.3, -0.5, 0.8]) if shape == "sponge"
+         else Rotation.from_rotvec([0.0, 0.0, 0.9])).as_matrix()
+    frame = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 0, -1.0]])
+    turned = shell.replace(nodes=shell.nodes @ Q.T)
+    rng = np.random.default_rng(7)
+    u = 0.05 * rng.standard_normal(shell.nodes.shape)
+    energies = []
+    for mesh, F, v in ((shell, frame, u), (turned, frame @ Q.T, u @ Q.T)):
+        if shape == "sponge":
+            t = BuckleContact("b", mesh, "outer", "sponge", R, n0=tuple(F[0]), m0=tuple(F[1]),
+                              axis=tuple(F[2]), sponge_radius=2.5, modulus=0.5, curved=True,
+                              quadrature=2)
+        else:
+            t = _ring(mesh, quadrature=2)
+        params = {**t.params, "d": np.array([0.45]), "ridge": np.array([0.3])}
+        energies.append(np.asarray(t.local_energy(jnp.asarray(v.ravel()[t.dofs]), params, t.data)))
+    assert energies[0].max() > 1e-4  # some points in contact
+    np.testing.assert_allclose(energies[1], energies[0], rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.parametrize("quadrature", [0, 2])
+@pytest.mark.parametrize("shape", ["ring", "sponge"])
+def test_energy_derivatives_in_the_buckles_params_match_finite_differences(shell, shape,
+                                                                            quadrature):
+    """The design gradients move the buckle through its params (inward motion d, fit dr;
+    a ring's shift s along the meridians and ridge; a sponge's turn rot about the eye
+    axis): autodiff derivatives of the contact energy in each against central differences,
+    at the nodes and over the faces."""
+    import jax
+
+    if shape == "ring":
+        t, names = _ring(shell, quadrature=quadrature), ("d", "s", "dr", "ridge")
+    else:
+        t, names = BuckleContact(
+            "b", shell, "outer", "sponge", R, n0=(1.0, 0, 0), m0=(0, 0, -1.0),
+            axis=(0, 0, -1.0), sponge_radius=2.5, sponge_length=10.0, modulus=0.5, curved=True,
+            quadrature=quadrature), ("d", "dr", "rot")
+    rng = np.random.default_rng(8)
+    q_loc = jnp.asarray(0.03 * rng.standard_normal(t.dofs.shape))
+    base = {**t.params, "d": np.array([0.6]), "s": np.array([0.3]), "dr": np.array([0.02]),
+            "ridge": np.array([0.4]), "rot": np.array([0.01])}
+
+    def energy(p):
+        return jnp.sum(t.local_energy(q_loc, p, t.data))
+
+    grads = jax.grad(energy)(jax.tree_util.tree_map(jnp.asarray, base))
+    h = 1e-6
+    for name in names:
+        up = {**base, name: base[name] + h}
+        down = {**base, name: base[name] - h}
+        fd = (float(energy(up)) - float(energy(down))) / (2 * h)
+        assert abs(float(grads[name][0])) > 1e-3, name  # the param moves the contact
+        assert float(grads[name][0]) == pytest.approx(fd, rel=1e-6), name
+
+
+def test_quadrature_outside_1_to_4_is_refused(shell):
+    with pytest.raises(ValueError, match="quadrature = 5"):
+        _ring(shell, quadrature=5)
+
+
 def test_smoothed_penetration_is_the_penalty_deep_in_and_vanishes_outside():
     eps = 2e-3
     assert float(smooth_penetration(jnp.asarray(-0.1), eps)) == pytest.approx(0.1, rel=1e-12)
@@ -120,35 +219,46 @@ def _fd_check(term, q_loc, params):
         np.testing.assert_allclose(H[:, :, j], fd_H, rtol=1e-5, atol=1e-7 * max(1, np.abs(H).max()))
 
 
+def _local_state(t, rng, amplitude=0.05, sunk=0.2):
+    """Random local dofs of every contact point, the free radial dof (last column) sunk by
+    ``sunk`` mm (the same value in every row, as the global dof it is)."""
+    n, k = t.dofs.shape
+    return np.concatenate([amplitude * rng.standard_normal((n, k - 1)), np.full((n, 1), sunk)],
+                          axis=1)
+
+
+@pytest.mark.parametrize("quadrature", [0, 2])
 @pytest.mark.parametrize("shape", ["ring", "ring with 1.5 mm edges", "sponge", "curved sponge"])
-def test_buckle_contact_gradient_and_tangent_match_finite_differences(shell, shape):
+def test_buckle_contact_gradient_and_tangent_match_finite_differences(shell, shape, quadrature):
     if shape.startswith("ring"):
         edge = {"edge_width": 1.5} if "edges" in shape else {}
-        t = _ring(shell, extra_dof=3 * shell.n_nodes, **edge)
+        t = _ring(shell, extra_dof=3 * shell.n_nodes, quadrature=quadrature, **edge)
     else:
         t = BuckleContact("b", shell, "outer", "sponge", R, n0=(1.0, 0, 0), m0=(0, 0, -1.0),
                           axis=(0, 0, -1.0), sponge_radius=2.5, sponge_length=10.0, modulus=0.5,
-                          extra_dof=3 * shell.n_nodes, curved=shape == "curved sponge")
+                          extra_dof=3 * shell.n_nodes, curved=shape == "curved sponge",
+                          quadrature=quadrature)
     rng = np.random.default_rng(1)
-    q_loc = np.concatenate([0.05 * rng.standard_normal((len(t.nodes), 3)),
-                            np.full((len(t.nodes), 1), 0.2)], axis=1)  # extra dof: sunk 0.2 mm
-    params = {**t.params, "d": np.array([0.1]), "s": np.array([0.2]), "ridge": np.array([0.4]),
-              "dr": np.array([0.05]), "rot": np.array([0.03])}
+    q_loc = _local_state(t, rng)
+    # the faces' points lie up to 0.3 mm inside this coarse shell's sphere: press deeper
+    params = {**t.params, "d": np.array([0.4 if quadrature else 0.1]), "s": np.array([0.2]),
+              "ridge": np.array([0.4]), "dr": np.array([0.05]), "rot": np.array([0.03])}
     pen = -np.asarray(t.gaps(q_loc, params, t.data))
     assert (pen > 0.01).any() and (pen < -0.01).any()  # some nodes in contact, some clear
     _fd_check(t, q_loc, params)
 
 
-def test_gauss_newton_tangent_is_the_exact_one_less_the_surface_curvature_term(shell):
+@pytest.mark.parametrize("quadrature", [0, 2])
+def test_gauss_newton_tangent_is_the_exact_one_less_the_surface_curvature_term(shell, quadrature):
     """The solver's modified tangent of the buckle contact: same gradient as the energy's,
     Hessian = exact Hessian - alpha p p' hess(g) (the curvature term, from autodiff of the
     gaps alone), and positive semidefinite where the exact one is not."""
     import jax
     from scipy.special import expit
 
-    t = _ring(shell, extra_dof=3 * shell.n_nodes)
+    t = _ring(shell, extra_dof=3 * shell.n_nodes, quadrature=quadrature)
     rng = np.random.default_rng(3)
-    n = len(t.nodes)
+    n = t.n_points
     q = np.zeros(3 * shell.n_nodes + 1)
     q[:3 * shell.n_nodes] = 0.05 * rng.standard_normal(3 * shell.n_nodes)
     q[-1] = 0.2
@@ -234,21 +344,21 @@ def test_anchored_sutures_gradient_tangent_and_force(shell):
     assert f[2] < 1e-12 and f[1] == pytest.approx(k[1] * 2e-4 * np.log(2) * 0.5, rel=1e-9)
 
 
-def test_gap_linearisation_is_the_directional_derivative_of_the_gaps(shell):
+@pytest.mark.parametrize("quadrature", [0, 2])
+def test_gap_linearisation_is_the_directional_derivative_of_the_gaps(shell, quadrature):
     """The solver's contact look-ahead uses the gaps, their first-order change along a step,
     their gradients and the gaps at the step's end: checked against the gaps and central
     differences."""
-    t = _ring(shell, extra_dof=3 * shell.n_nodes)
+    t = _ring(shell, extra_dof=3 * shell.n_nodes, quadrature=quadrature)
     rng = np.random.default_rng(5)
-    n = len(t.nodes)
-    q_loc = np.concatenate([0.05 * rng.standard_normal((n, 3)), np.full((n, 1), 0.2)], axis=1)
-    dq = 0.1 * rng.standard_normal((n, 4))
+    q_loc = _local_state(t, rng)
+    dq = 0.1 * rng.standard_normal(q_loc.shape)
     params = {**t.params, "d": np.array([0.1]), "ridge": np.array([0.4])}
     g, dg, G, g_end = (np.asarray(a) for a in t.gap_linearisation(
         jnp.asarray(q_loc), jnp.asarray(dq), params, t.data))
     gaps = lambda x: np.asarray(t.gaps(jnp.asarray(x), params, t.data))  # noqa: E731
     np.testing.assert_array_equal(g, gaps(q_loc))
-    h = 1e-6
+    h = 1e-5  # gaps beyond the ring's edges reach 10^3 mm: round-off ~ 1e-16 |g| / h
     np.testing.assert_allclose(dg, (gaps(q_loc + h * dq) - gaps(q_loc - h * dq)) / (2 * h),
                                rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(np.einsum("nk,nk->n", G, dq), dg, rtol=1e-12, atol=1e-14)

@@ -329,6 +329,29 @@ def test_ring_edge_wider_than_half_the_ring_or_on_a_deformable_band_is_refused()
     check_parameters(default_parameters(buckle="band", buckle_edge=1.0))
 
 
+def test_contact_quadrature_integrates_the_rigid_buckle_over_the_scleral_faces():
+    """contact_quadrature = n: one contact point per Gauss point of the outer scleral faces
+    (their 12 dofs and the sponge's free radial dof), refused on a deformable buckle."""
+    from eyefem.eye.surgery import check_parameters, surgery
+
+    nodes = surgery(default_parameters(mesh="coarse", buckle="sponge_radial"), None)
+    faces = surgery(default_parameters(mesh="coarse", buckle="sponge_radial",
+                                       contact_quadrature=2), None)
+    t0, t2 = nodes.model.term("buckle"), faces.model.term("buckle")
+    n_faces = len(faces.model.mesh.face_set("eye/sclera_outer"))
+    assert t0.dofs.shape == (len(t0.nodes), 4) and t2.dofs.shape == (4 * n_faces, 13)
+    # the same stiffness per unit area (N/mm^3) as the nodes' penalty over their mean area
+    np.testing.assert_allclose(t2.data["alpha"] / t2.data["area"],
+                               t0.alpha / np.mean(t0.node_area), rtol=1e-12)
+    # the points' area weights add up to the faces' area (half the diagonals' cross product)
+    x = faces.model.mesh.nodes[faces.model.mesh.face_set("eye/sclera_outer")]
+    area = 0.5 * np.linalg.norm(np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 1]), axis=1).sum()
+    assert t2.data["area"].sum() == pytest.approx(area, rel=1e-3)
+    with pytest.raises(ValueError, match="contact_quadrature = 2 integrates the rigid"):
+        check_parameters(default_parameters(buckle="band", buckle_body="deformable",
+                                            contact_quadrature=2))
+
+
 @pytest.mark.parametrize("given", [None, 0.5])
 def test_ridged_tire_flank_default_or_as_given(given):
     from eyefem.eye.surgery import surgery

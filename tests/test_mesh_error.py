@@ -222,6 +222,13 @@ def test_run_record_says_when_the_run_is_not_like_the_study():
     other = run_mesh_error({**p, "buckle_edge": 0.5, "lens_support": 0.0, "ridge_flank": 2.0},
                            True, out)
     assert "ridge_flank = 2.0, buckle_edge = 0.5, lens_support = 0.0" in other["note"]
+    # the studied cases' contact sat at the nodes: a run integrating it over the faces is
+    # told, a deformable buckle (whose contact the field does not shape) is not
+    faces = run_mesh_error({**p, "contact_quadrature": 2}, False, out)
+    assert "contact_quadrature = 2" in faces["note"]
+    deformable = run_mesh_error({**p, "contact_quadrature": 2, "buckle_body": "sponge"}, False,
+                                out)
+    assert "contact_quadrature" not in deformable["note"]
 
 
 def test_unreadable_record_names_the_file(tmp_path):

@@ -116,10 +116,12 @@ def buckle_term(parts: SurgeryParts, scale: float) -> BuckleContact:
                              ridge_flank=parts.p["ridge_flank"],
                              edge_width=parts.p["buckle_edge"],
                              modulus=6 * SEED_MATERIALS["sclera"], extra_dof=parts.extra_dof,
-                             smoothing=contact_smoothing(parts))
+                             smoothing=contact_smoothing(parts),
+                             quadrature=parts.p["contact_quadrature"])
     n0, m0, ax = sponge_frame(parts)
     return BuckleContact("buckle", parts.eye.mesh, "eye/sclera_outer", "sponge", R,
                          n0=tuple(n0), m0=tuple(m0), axis=tuple(ax), sponge_radius=w / 2,
                          sponge_length=SPONGE_LENGTH, modulus=6 * SEED_MATERIALS["sclera"],
                          extra_dof=parts.extra_dof, curved=b.kind == "sponge_radial",
-                         smoothing=contact_smoothing(parts))
+                         smoothing=contact_smoothing(parts),
+                         quadrature=parts.p["contact_quadrature"])

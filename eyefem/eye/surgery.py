@@ -137,6 +137,11 @@ SURGERY_FIELDS = [
           "buckle, 0.002 mm for a sponge (whose indentation is ten times smaller) and for a "
           "deformable band (0.01 mm for a deformable tire)",
           lambda v: v == 0 or 1e-4 <= v <= 0.1, "0 (automatic) or 1e-4 to 0.1 mm"),
+    Field("contact_quadrature", int, 0, "a rigid buckle's contact penalty: 0, one per outer "
+          "scleral node (node to surface); n = 1 to 4, integrated over the outer scleral faces "
+          "with n x n Gauss points each, the same stiffness per unit area (a footprint a few "
+          "elements wide is sampled by the faces' points, not by the nodes that fall in it: "
+          "docs/surgery.md)", lambda v: 0 <= v <= 4, "0 (nodes) or 1 to 4"),
     Field("contact_normals", str, "facet", "a deformable buckle's contact on the faceted "
           "sclera: 'facet' (its flat faces) or 'nodal' (the quadratic Nagata patches through "
           "them with the nodes' normals: no jump of the contact normal at facet edges)",
@@ -259,7 +264,8 @@ def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
         err["note"] = (err["note"] + " " if err["note"] else "") + (
             "The study used rigid buckles; this run's buckle is deformable.")
     models = [{**STUDY_MODEL, **m} for m in err.get("model", {}).values()] or [STUDY_MODEL]
-    rigid_only = ("buckle_edge", "ridge_flank")  # shapes of the rigid ring, unused otherwise
+    rigid_only = ("buckle_edge", "ridge_flank",  # the rigid buckle's, unused otherwise
+                  "contact_quadrature")
     changed = [f"{k} = {p[k]!r}" for k in STUDY_MODEL
                if k in p and all(p[k] != m[k] for m in models)
                and not (k in rigid_only and p.get("buckle_body", "rigid") != "rigid")]
@@ -272,7 +278,8 @@ def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
 
 STUDY_MODEL = {f.name: f.default for f in SURGERY_FIELDS
                if f.name in ("buckle_edge", "ridge_flank", "lens_support",
-                             "zonule_insertion_radius", "tissue_mixing", "wall_element")}
+                             "zonule_insertion_radius", "tissue_mixing", "wall_element",
+                             "contact_quadrature")}
 """The model fields that change how outcomes move with the mesh, at their defaults: the
 mesh study's record (eyefem/eye/mesh_study.json) holds the values each studied case ran
 with ("model"; these defaults where it does not); a run whose value matches none of the
@@ -405,6 +412,11 @@ def _check_deformable(p):
         raise ValueError(f"buckle_edge = {p['buckle_edge']} mm shapes the rigid ring's edges; "
                          f"a deformable buckle has its own mesh: with buckle_body = "
                          f"'deformable' leave buckle_edge at {EDGE_WIDTH}")
+    if p.get("contact_quadrature", 0) != 0:
+        raise ValueError(f"contact_quadrature = {p['contact_quadrature']} integrates the rigid "
+                         "buckle's contact over the scleral faces; a deformable buckle's "
+                         "contact is node to surface: with buckle_body = 'deformable' leave "
+                         "contact_quadrature at 0")
     if p["buckle"] == "sponge_radial" and p["tightening"] != 0:
         raise ValueError(f"tightening = {p['tightening']} mm: a deformable sponge is pressed in "
                          "by its sutures alone (suture_tightening); set tightening = 0")
@@ -556,7 +568,8 @@ def pictures(parts: SurgeryParts, model, q, theta, out_dir: Path, *, summary=Non
 
 ADVANCED_FIELDS = frozenset({
     "globe_torsion", "globe_rotation", "globe_translation", "globe_axial", "steps_pressurise",
-    "steps_tighten", "steps_suture", "contact_smoothing", "contact_normals", "n_segments",
+    "steps_tighten", "steps_suture", "contact_smoothing", "contact_quadrature",
+    "contact_normals", "n_segments",
     "ridge_flank", "buckle_edge", "bite_length", "limbus_width", "zonule_insertion_radius",
     "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",

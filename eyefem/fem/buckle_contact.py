@@ -47,6 +47,18 @@ g = 0 it leaves a stand-off force alpha eps ln 2 (about 1e-3 N per node by defau
 The default penalty alpha = BUCKLE_PENALTY_FACTOR E h: stiff enough that penetrations
 stay a few micrometres under the buckle loads, soft enough to keep the Newton
 system well conditioned against the thin, soft scleral shell.
+
+With ``quadrature`` = n > 0 the penalty is integrated over the faces of the candidate
+surface instead of lumped at its nodes: the energy is the sum over faces and over their
+n x n Gauss points of 1/2 k_A w J p(g)^2, with g the gap of the point of the bilinear
+face (its position interpolated from the face's nodes), w J its area weight (mm^2) and
+k_A = alpha / (mean tributary area of the nodes) the penalty per unit area (N/mm^3), so
+that on a uniform mesh both integrations are equally stiff. A contact footprint a few
+elements wide is then sampled by its faces' points rather than by the nodes that fall
+in it: the contact pressure of a uniform penetration is uniform (the nodal version's
+follows the nodes' areas), and a buckle's outcomes depend less on where it sits among
+the nodes. Each contact point is one item of the term (its face's 12 dofs, and the free
+radial dof).
 """
 
 from __future__ import annotations
@@ -59,7 +71,7 @@ import numpy as np
 
 from eyefem.fem.bars import rotate_z
 from eyefem.fem.contact import node_areas, penalty_gauss_newton
-from eyefem.fem.mesh import Mesh
+from eyefem.fem.mesh import Mesh, quad_shape
 from eyefem.fem.rigid import grid_triangles
 from eyefem.fem.terms import Term
 
@@ -78,6 +90,21 @@ RIDGE_FLANK = 1.0
 def smooth_penetration(g, eps):
     """eps softplus(-g / eps) (mm), overflow-safe: the smoothed <-g>."""
     return eps * jnp.logaddexp(-g / eps, 0.0)
+
+
+def face_points(mesh: Mesh, face_set: str, n: int):
+    """Gauss points of the faces of a face set: faces (m, 4) node ids, shape function
+    values N (m, 4) and area weights w J (m,) mm^2, one row per point (n x n per face,
+    face by face), in the reference configuration."""
+    faces = mesh.face_set(face_set)
+    t, w = np.polynomial.legendre.leggauss(n)
+    xi = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
+    w2 = np.outer(w, w).ravel()
+    N, dN = quad_shape(xi)  # (q, 4), (q, 4, 2)
+    T = np.einsum("qak,fai->fqki", dN, mesh.nodes[faces])
+    J = np.linalg.norm(np.cross(T[:, :, 0], T[:, :, 1]), axis=-1)  # (f, q)
+    return (np.repeat(faces, len(w2), axis=0), np.tile(N, (len(faces), 1)),
+            (w2 * J).ravel())
 
 
 def ring_profile(a, width, ridge, ridge_width, flank=RIDGE_FLANK, edge=EDGE_WIDTH):
@@ -111,6 +138,9 @@ class BuckleContact(Term):
       smoothing: eps of the smoothed penetration, mm.
       extra_dof: global dof of the buckle's free radial motion (mm, inward), or -1.
       curved: sponge only: its axis is the arc along the meridian (a radial sponge).
+      quadrature: 0 (default): one penalty per candidate node; n in 1..4: the penalty
+        integrated over the candidate surface's faces (the face set named ``node_set``)
+        with n x n Gauss points each (module docstring).
     """
 
     name: str
@@ -134,6 +164,7 @@ class BuckleContact(Term):
     smoothing: float = 2e-3
     extra_dof: int = -1
     curved: bool = False
+    quadrature: int = 0
 
     def __post_init__(self):
         if self.shape not in ("ring", "sponge"):
@@ -152,34 +183,68 @@ class BuckleContact(Term):
         if not self.smoothing > 0:
             raise ValueError(f"buckle contact '{self.name}': smoothing {self.smoothing} mm; "
                              "must be > 0")
+        if self.quadrature not in (0, 1, 2, 3, 4):
+            raise ValueError(f"buckle contact '{self.name}': quadrature = {self.quadrature}; use "
+                             "0 (a penalty per node) or 1 to 4 Gauss points per face edge")
         object.__setattr__(self, "nodes", nodes)
         object.__setattr__(self, "alpha", float(alpha))
-        dofs = 3 * nodes[:, None] + np.arange(3)
-        if self.extra_dof >= 0:
-            dofs = np.concatenate([dofs, np.full((len(nodes), 1), self.extra_dof)], axis=1)
-        object.__setattr__(self, "dofs", dofs)
+        node_dofs = 3 * nodes[:, None] + np.arange(3)
+        object.__setattr__(self, "node_dofs", node_dofs)
         object.__setattr__(self, "params", {"d": np.zeros(1), "s": np.zeros(1),
                                             "ridge": np.zeros(1), "dr": np.zeros(1),
                                             "rot": np.zeros(1)})
         geo = np.array([self.radius, self.theta_b, self.width, self.ridge, self.ridge_width,
                         self.sponge_radius, self.sponge_length, self.ridge_flank,
                         self.edge_width])
-        object.__setattr__(self, "data", {
-            "X": self.mesh.nodes[nodes], "alpha": np.full(len(nodes), alpha),
-            "area": np.maximum(area, 1e-12), "geo": geo,
-            "frame": np.array([self.n0, self.m0, self.axis], float)})
+        frame = np.array([self.n0, self.m0, self.axis], float)
+        object.__setattr__(self, "node_area", np.maximum(area, 1e-12))
+        if self.quadrature:
+            faces, N, wJ = face_points(self.mesh, self.node_set, self.quadrature)
+            per_area = alpha / float(np.mean(area))
+            dofs = (3 * faces[:, :, None] + np.arange(3)).reshape(len(faces), 12)
+            data = {"X": self.mesh.nodes[faces], "N": N, "alpha": per_area * wJ,
+                    "area": wJ, "geo": geo, "frame": frame}
+            object.__setattr__(self, "faces", faces)
+        else:
+            dofs = node_dofs
+            data = {"X": self.mesh.nodes[nodes], "alpha": np.full(len(nodes), alpha),
+                    "area": self.node_area, "geo": geo, "frame": frame}
+        if self.extra_dof >= 0:
+            dofs = np.concatenate([dofs, np.full((len(dofs), 1), self.extra_dof)], axis=1)
+        object.__setattr__(self, "dofs", dofs)
+        object.__setattr__(self, "data", data)
+
+    @property
+    def n_points(self) -> int:
+        """Number of contact points (items): the candidate nodes, or the faces' Gauss points
+        with ``quadrature``."""
+        return len(self.dofs)
 
     def static_key(self):
-        return (self.shape, self.extra_dof >= 0, self.curved)
+        return (self.shape, self.extra_dof >= 0, self.curved, self.quadrature > 0)
 
     def gaps(self, q_loc, params, data):
-        """Signed gaps (n,), mm (negative: penetration)."""
-        x = rotate_z(data["X"] + q_loc[:, :3], -params["rot"][0])
+        """Signed gaps (n,) of the contact points, mm (negative: penetration), from their
+        items' local dofs q_loc (n, k): a node's 3 (nodes) or its face's 12 (quadrature),
+        then the free radial dof where there is one."""
+        if "N" in data:
+            u = q_loc[:, :12].reshape(-1, 4, 3)
+            x = jnp.einsum("na,nai->ni", data["N"], data["X"] + u)
+            extra = q_loc[:, 12] if self.extra_dof >= 0 else None
+        else:
+            x = data["X"] + q_loc[:, :3]
+            extra = q_loc[:, 3] if self.extra_dof >= 0 else None
+        return self.gaps_at(x, extra, params, data)
+
+    def gaps_at(self, x, extra, params, data):
+        """Signed gaps (n,), mm, of current points x (n, 3) mm; ``extra`` (n,): the free
+        radial dof's value at each (mm) or None."""
+        x = rotate_z(x, -params["rot"][0])
         R, th, w, _, rw, rs, L, fl, ew = (data["geo"][i] for i in range(9))
         R = R + params["dr"][0]
         d, s = params["d"][0], params["s"][0]
-        if self.extra_dof >= 0:
-            d = d + q_loc[:, 3]
+        if extra is not None:
+            d = d + extra
         if self.shape == "ring":
             r = jnp.sqrt(jnp.sum(x * x, axis=1))
             rho = jnp.sqrt(x[:, 0] ** 2 + x[:, 1] ** 2 + 1e-30)  # finite gradient on the axis
@@ -230,6 +295,13 @@ class BuckleContact(Term):
     def _gap_np(self, q, params):
         return np.asarray(self.gaps(np.asarray(q)[self.dofs], params, self.data))
 
+    def node_gaps(self, q, params) -> np.ndarray:
+        """Gaps (n_nodes_in_set,) of the candidate nodes themselves, mm (numpy)."""
+        q = np.asarray(q)
+        x = self.mesh.nodes[self.nodes] + q[self.node_dofs]
+        extra = np.full(len(x), q[self.extra_dof]) if self.extra_dof >= 0 else None
+        return np.asarray(self.gaps_at(x, extra, params, self.data))
+
     def report(self, q, params):
         g = self._gap_np(q, params)
         pen = np.maximum(-g, 0.0)
@@ -237,11 +309,12 @@ class BuckleContact(Term):
                 "force_N": float(self.contact_forces(g).sum())}
 
     def contact_forces(self, g):
-        """Normal contact force magnitudes (n,), N, at gaps g (n,) mm: alpha p dp/d(-g)."""
+        """Normal contact force magnitudes (n,), N, of the contact points at their gaps g
+        (n,) mm: alpha p dp/d(-g) (alpha: the point's penalty, N/mm)."""
         from scipy.special import expit
 
         z = -np.asarray(g) / self.smoothing
-        return self.alpha * np.asarray(smooth_penetration(g, self.smoothing)) * expit(z)
+        return self.data["alpha"] * np.asarray(smooth_penetration(g, self.smoothing)) * expit(z)
 
     def _motion(self, q, params):
         """(R + dr, d (with the free radial motion), s, rot) as floats."""
@@ -255,7 +328,7 @@ class BuckleContact(Term):
         width; along the sponge, within its radius of its axis sideways, on its side of
         the globe), where the gap is the distance to the buckle under the node (elsewhere
         it is the smooth fade-out of the penalty or the distance to a far side)."""
-        x = self.mesh.nodes[self.nodes] + np.asarray(q)[self.dofs[:, :3]]
+        x = self.mesh.nodes[self.nodes] + np.asarray(q)[self.node_dofs]
         R, d, s, rot = self._motion(q, params)
         x = np.asarray(rotate_z(x, -rot))
         n0, m0, t = (np.asarray(v, float) for v in (self.n0, self.m0, self.axis))
@@ -275,11 +348,18 @@ class BuckleContact(Term):
 
     def point_fields(self, q, params, n_nodes):
         """'<name>_gap_mm' (NaN off the candidate nodes and off the buckle's footprint)
-        and '<name>_pressure_MPa' (contact force / nodal area; 0 off contact)."""
-        g = self._gap_np(q, params)
+        and '<name>_pressure_MPa' (the nodes' contact forces / their tributary areas; with
+        ``quadrature`` the points' forces distributed to the face nodes by the shape
+        functions; 0 off contact)."""
         gap, pres = np.full(n_nodes, np.nan), np.zeros(n_nodes)
-        gap[self.nodes] = np.where(self.facing(q, params), g, np.nan)
-        pres[self.nodes] = self.contact_forces(g) / self.data["area"]
+        gap[self.nodes] = np.where(self.facing(q, params), self.node_gaps(q, params), np.nan)
+        f = self.contact_forces(self._gap_np(q, params))
+        if self.quadrature:
+            nodal = np.bincount(self.faces.ravel(), (f[:, None] * self.data["N"]).ravel(),
+                                minlength=n_nodes)
+            pres[self.nodes] = nodal[self.nodes] / self.node_area
+        else:
+            pres[self.nodes] = f / self.node_area
         return {f"{self.name}_gap_mm": gap, f"{self.name}_pressure_MPa": pres}
 
     def surface(self, q, params, n_around: int = 144, n_across: int = 12):
