@@ -92,16 +92,15 @@ def smooth_penetration(g, eps):
     return eps * jnp.logaddexp(-g / eps, 0.0)
 
 
-def face_points(mesh: Mesh, face_set: str, n: int):
-    """Gauss points of the faces of a face set: faces (m, 4) node ids, shape function
-    values N (m, 4) and area weights w J (m,) mm^2, one row per point (n x n per face,
-    face by face), in the reference configuration."""
-    faces = mesh.face_set(face_set)
+def face_points(nodes: np.ndarray, faces: np.ndarray, n: int):
+    """The n x n Gauss points of bilinear faces (f, 4) (node ids into nodes (n_nodes, 3),
+    mm): each point's face (q, 4) node ids, shape function values N (q, 4) and area weight
+    w J (q,) mm^2, q = f n^2 rows, face by face, in the configuration ``nodes``."""
     t, w = np.polynomial.legendre.leggauss(n)
     xi = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
     w2 = np.outer(w, w).ravel()
     N, dN = quad_shape(xi)  # (q, 4), (q, 4, 2)
-    T = np.einsum("qak,fai->fqki", dN, mesh.nodes[faces])
+    T = np.einsum("qak,fai->fqki", dN, nodes[faces])
     J = np.linalg.norm(np.cross(T[:, :, 0], T[:, :, 1]), axis=-1)  # (f, q)
     return (np.repeat(faces, len(w2), axis=0), np.tile(N, (len(faces), 1)),
             (w2 * J).ravel())
@@ -199,7 +198,8 @@ class BuckleContact(Term):
         frame = np.array([self.n0, self.m0, self.axis], float)
         object.__setattr__(self, "node_area", np.maximum(area, 1e-12))
         if self.quadrature:
-            faces, N, wJ = face_points(self.mesh, self.node_set, self.quadrature)
+            faces, N, wJ = face_points(self.mesh.nodes, self.mesh.face_set(self.node_set),
+                                       self.quadrature)
             per_area = alpha / float(np.mean(area))
             dofs = (3 * faces[:, :, None] + np.arange(3)).reshape(len(faces), 12)
             data = {"X": self.mesh.nodes[faces], "N": N, "alpha": per_area * wJ,

@@ -120,7 +120,82 @@ def _penalty(g, dg, d2g, alpha, smoothing):
     return e1 * dg, e2 * np.outer(dg, dg) + e1 * d2g
 
 
+def sponge_residual_tangent(x, N, alpha, centre, axis, radius, smoothing):
+    """Residual (3m,) N and tangent (3m, 3m) N/mm of a straight rigid sponge's smoothed
+    penalty (eyefem.fem.buckle_contact) at the contact points x_q = sum_a N[q, a] x_a of
+    the m nodes x (m, 3) mm, each with penalty alpha[q] N/mm: a node (m = 1, N = [[1]]) or
+    a face's Gauss points (m = 4). Per point, within the sponge's length: v = x_q - centre,
+    r = P v with P = I - t t^T (t: the unit axis), g = |r| - radius, dg/dx_q = n = r / |r|,
+    d2g/dx_q^2 = (P - n n^T) / |r|; over the nodes dg = N_q (x) n and d2g = N_q N_q^T (x)
+    d2g/dx_q^2."""
+    m = len(x)
+    P = np.eye(3) - np.outer(axis, axis)
+    r_tot, K_tot = np.zeros(3 * m), np.zeros((3 * m, 3 * m))
+    for Nq, aq in zip(N, alpha):
+        rv = P @ (Nq @ x - centre)
+        rho = np.linalg.norm(rv)
+        n = rv / rho
+        dg = np.kron(Nq, n)
+        d2g = np.kron(np.outer(Nq, Nq), (P - np.outer(n, n)) / rho)
+        r_q, K_q = _penalty(rho - radius, dg, d2g, aq, smoothing)
+        r_tot += r_q
+        K_tot += K_q
+    return r_tot, K_tot
+
+
 # --- tangent-verification checks ----------------------------------------------------------------
+
+
+def _buckle_check(quadrature):
+    """A straight rigid sponge (axis y, radius 2.5 mm, 10 mm long) pressing a warped face:
+    its four nodes (quadrature 0), or its 2 x 2 Gauss points (quadrature 2), a few
+    smoothing lengths deep."""
+    def check(rng):
+        import jax
+        import jax.numpy as jnp
+
+        from eyefem.fem.buckle_contact import BuckleContact, face_points
+        from eyefem.verify.checks import CheckData
+
+        R, rs, L, eps = 10.0, 2.5, 10.0, 0.02
+        X = np.array([[10.0, -0.6, -0.5], [10.0, 0.6, -0.5], [10.0, 0.6, 0.5], [10.0, -0.6, 0.5]])
+        x = X + np.array([0.03, 0.0, 0.0]) + 0.02 * rng.standard_normal((4, 3))
+        alpha_node = 30.0
+        if quadrature:
+            _, N, wJ = face_points(X, np.arange(4)[None], quadrature)
+            alpha = alpha_node / (0.25 * wJ.sum()) * wJ  # per unit area: a node's over its area
+            data = {"X": np.broadcast_to(X, (len(N), 4, 3)), "N": N}
+        else:
+            N, alpha = np.eye(4), np.full(4, alpha_node)
+            data = {"X": X}
+        geo = np.array([R, np.pi / 2, 2.5, 0.0, 0.0, rs, L, 1.0, 0.5])
+        frame = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+        data.update({"alpha": alpha, "geo": geo, "frame": frame})
+        term = BuckleContact.__new__(BuckleContact)  # the kernel only: no mesh needed
+        for k, v in (("shape", "sponge"), ("curved", False), ("extra_dof", -1),
+                     ("smoothing", eps)):
+            object.__setattr__(term, k, v)
+        params = {k: jnp.zeros(1) for k in ("d", "s", "ridge", "dr", "rot")}
+
+        def energy(u):
+            uu = u.reshape(4, 3)
+            q_loc = jnp.broadcast_to(uu.ravel(), (len(N), 12)) if quadrature else uu
+            return jnp.sum(term.local_energy(q_loc, params, data))
+
+        grad = jax.jit(jax.grad(energy))
+        u = (x - X).ravel()
+        r_h, K_h = sponge_residual_tangent(x, N, alpha, np.array([R + rs, 0.0, 0.0]),
+                                           frame[2], rs, eps)
+        gaps = [np.linalg.norm((Nq @ x - [R + rs, 0, 0]) * [1, 0, 1]) - rs for Nq in N]
+        return CheckData(np.asarray(grad(jnp.asarray(u))), r_h,
+                         np.asarray(jax.hessian(energy)(jnp.asarray(u))), K_h,
+                         lambda y: np.asarray(grad(jnp.asarray(y))), u,
+                         f"sponge on a warped face, gaps {min(gaps):.3f}..{max(gaps):.3f} mm, "
+                         + (f"{quadrature}x{quadrature} Gauss points" if quadrature
+                            else "its 4 nodes"))
+
+    return check
+
 
 def _rigid_check(rng):
     import jax
@@ -209,4 +284,6 @@ def contact_checks() -> dict:
         "surface_contact_sticking": _surface_check("sticking"),
         "surface_contact_smoothed": _surface_check("sliding", smoothing=0.02),
         "surface_contact_nodal_normals": _surface_check("sliding", smoothing=0.02, nodal=True),
+        "buckle_contact_nodes": _buckle_check(0),
+        "buckle_contact_faces": _buckle_check(2),
     }
