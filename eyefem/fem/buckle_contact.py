@@ -352,8 +352,10 @@ class BuckleContact(Term):
         ``quadrature`` the points' forces distributed to the face nodes by the shape
         functions; 0 off contact)."""
         gap, pres = np.full(n_nodes, np.nan), np.zeros(n_nodes)
-        gap[self.nodes] = np.where(self.facing(q, params), self.node_gaps(q, params), np.nan)
-        f = self.contact_forces(self._gap_np(q, params))
+        g = self._gap_np(q, params)
+        f = self.contact_forces(g)
+        at_nodes = self.node_gaps(q, params) if self.quadrature else g
+        gap[self.nodes] = np.where(self.facing(q, params), at_nodes, np.nan)
         if self.quadrature:
             nodal = np.bincount(self.faces.ravel(), (f[:, None] * self.data["N"]).ravel(),
                                 minlength=n_nodes)
