@@ -71,7 +71,7 @@ choice), whose Richardson extrapolation lies further from the fine level."""
 
 ABBREV = {"coarse": "c", "half": "h", "medium": "m", "default": "D", "fine": "f", "finer": "F",
           "graded_half": "gh", "graded": "G", "graded_fine": "gf", "gradedc18": "c18",
-          "gradedc26": "c26", "gradedc36": "c36", "finest": "Ff"}
+          "gradedc26": "c26", "gradedc36": "c36", "finest": "Ff", "ultrafine": "U"}
 
 
 # --------------------------------------------------------------------------- running

@@ -95,6 +95,12 @@ CASE_FILE_ERRORS = [  # (id, case text, words of the message); exit code 2, noth
     ("bite length out of range", SURGERY + "bite_length = 0.2\n", "0 (a disc) or 0.4 to 12 mm"),
     ("contact quadrature out of range", SURGERY + "contact_quadrature = 5\n",
      "'contact_quadrature' = 5 is out of range: 0 (nodes) or 1 to 4"),
+    ("sponge end on a ring", SURGERY + "sponge_end = 1.0\n",
+     "sponge_end = 1.0 mm rounds a sponge's ends; the tire_flat is a ring"),
+    ("sponge end out of range", SURGERY + "sponge_end = 0.1\n", "0 or 0.2 to 2 mm"),
+    ("sponge end on a deformable sponge",
+     SURGERY + 'buckle = "sponge_radial"\nbuckle_body = "deformable"\ntightening = 0.0\n'
+     "sponge_end = 1.0\n", "a deformable sponge has its own mesh"),
 ]
 
 

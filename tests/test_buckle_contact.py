@@ -1,13 +1,16 @@
 """Analytic buckle contact and anchored suture bars: closed-form gaps, invariance, and
 autodiff residual/tangent against central finite differences (smoothed penalties)."""
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from eyefem.fem import generators
 from eyefem.fem.bars import AnchoredBars
-from eyefem.fem.buckle_contact import BuckleContact, ring_profile, smooth_penetration
+from eyefem.fem.buckle_contact import (BuckleContact, ring_profile, smooth_penetration,
+                                       sponge_end_lift)
 
 R = 10.0
 
@@ -80,6 +83,41 @@ def test_buckle_edge_sets_the_lifts_width_and_curvature(shell, edge):
     np.testing.assert_allclose(g, expected, atol=1e-12)
     with pytest.raises(ValueError, match="edge_width = 3.5 mm"):
         BuckleContact("b", shell, "outer", "ring", R, width=7.0, edge_width=3.5)
+
+
+@pytest.mark.parametrize("end", [0.5, 1.0])
+def test_sponge_end_rounds_off_over_its_width(shell, end):
+    """A sponge's ends (``end_width``) lift 0.3 mm over their last ``end`` mm, cubically:
+    no kink where the lift starts (value, slope and curvature 0), 0.3 mm at the end, the
+    curvature peaking there at 1.8 / end^2 per mm; the earlier ends (0) are 10 (a - L/2)^2
+    beyond the end only. The gap of a point is its distance from the axis less the
+    sponge's radius plus the lift at its distance along the axis."""
+    lift = lambda a, w=end: np.asarray(sponge_end_lift(np.asarray(a), 10.0, w))  # noqa: E731
+    assert float(lift(5.0 - end - 1e-9)) == 0.0
+    assert float(lift(5.0)) == pytest.approx(0.3, rel=1e-12)
+    assert float(lift(5.0 - end / 2)) == pytest.approx(0.3 / 8, rel=1e-12)
+    assert float(lift(5.5, 0.0)) == pytest.approx(10 * 0.25, rel=1e-12)
+    assert float(lift(5.0, 0.0)) == 0.0
+    a = np.linspace(5.0 - end, 5.0, 20001)
+    h = a[1] - a[0]
+    curvature = np.diff(lift(a), 2) / h**2
+    assert curvature.max() == pytest.approx(1.8 / end**2, rel=1e-3)
+    assert abs(curvature[0]) < 1e-3 * curvature.max()
+    # 8 mm long, so that some of this coarse shell's nodes lie under the rounded ends
+    t = BuckleContact("b", shell, "outer", "sponge", R, n0=(1.0, 0, 0), m0=(0, 0, -1.0),
+                      axis=(0, 0, -1.0), sponge_radius=2.5, sponge_length=8.0, modulus=0.5,
+                      end_width=end)
+    X = t.data["X"]
+    params = {**t.params, "d": np.array([0.2]), "s": np.array([0.3])}
+    g = np.asarray(t.gaps(np.zeros_like(X), params, t.data))
+    C = np.array([R + 2.5 - 0.2, 0.0, 0.0]) + 0.3 * np.array([0, 0, -1.0])
+    along = (X - C) @ np.array([0, 0, -1.0])
+    dist = np.linalg.norm((X - C)[:, :2], axis=1)
+    ends = np.asarray(sponge_end_lift(np.abs(along), 8.0, end))
+    np.testing.assert_allclose(g, dist - 2.5 + ends, atol=1e-12)
+    assert ((ends > 0) & (np.abs(along) < 4.0)).any()  # some nodes under the rounded ends
+    with pytest.raises(ValueError, match="end_width = 5.0 mm"):
+        BuckleContact("b", shell, "outer", "sponge", R, sponge_length=10.0, end_width=5.0)
 
 
 def test_ring_gap_is_invariant_under_rotation_about_the_axis(shell):
@@ -228,7 +266,8 @@ def _local_state(t, rng, amplitude=0.05, sunk=0.2):
 
 
 @pytest.mark.parametrize("quadrature", [0, 2])
-@pytest.mark.parametrize("shape", ["ring", "ring with 1.5 mm edges", "sponge", "curved sponge"])
+@pytest.mark.parametrize("shape", ["ring", "ring with 1.5 mm edges", "sponge", "curved sponge",
+                                   "curved sponge with 2 mm ends"])
 def test_buckle_contact_gradient_and_tangent_match_finite_differences(shell, shape, quadrature):
     if shape.startswith("ring"):
         edge = {"edge_width": 1.5} if "edges" in shape else {}
@@ -236,8 +275,8 @@ def test_buckle_contact_gradient_and_tangent_match_finite_differences(shell, sha
     else:
         t = BuckleContact("b", shell, "outer", "sponge", R, n0=(1.0, 0, 0), m0=(0, 0, -1.0),
                           axis=(0, 0, -1.0), sponge_radius=2.5, sponge_length=10.0, modulus=0.5,
-                          extra_dof=3 * shell.n_nodes, curved=shape == "curved sponge",
-                          quadrature=quadrature)
+                          extra_dof=3 * shell.n_nodes, curved=shape.startswith("curved"),
+                          quadrature=quadrature, end_width=2.0 if "ends" in shape else 0.0)
     rng = np.random.default_rng(1)
     q_loc = _local_state(t, rng)
     # the faces' points lie up to 0.3 mm inside this coarse shell's sphere: press deeper
@@ -245,6 +284,9 @@ def test_buckle_contact_gradient_and_tangent_match_finite_differences(shell, sha
               "ridge": np.array([0.4]), "dr": np.array([0.05]), "rot": np.array([0.03])}
     pen = -np.asarray(t.gaps(q_loc, params, t.data))
     assert (pen > 0.01).any() and (pen < -0.01).any()  # some nodes in contact, some clear
+    if "ends" in shape:  # some points in contact lie under the rounded ends
+        sharp = dataclasses.replace(t, end_width=0.0)
+        assert ((pen > 0) & (pen != -np.asarray(sharp.gaps(q_loc, params, sharp.data)))).any()
     _fd_check(t, q_loc, params)
 
 

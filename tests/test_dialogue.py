@@ -99,26 +99,29 @@ def test_an_encircling_buckle_is_not_asked_a_meridian(tmp_path):
 
 def test_a_new_case_gets_the_case_files_converging_model(tmp_path):
     # docs/convergence.md: the case files' model (1 mm tire edges, the ridge's 1.5 mm
-    # flanks, 0.343 N/mm of lens springs in all) converges with the mesh; the fields' own
+    # flanks, 0.343 N/mm of lens springs in all, a rigid sponge's ends rounded over 1 mm)
+    # converges with the mesh; the fields' own
     # defaults are the earlier model, which a new case must not fall into
     fields = {f.name: f.default for f in PROBLEMS["surgery"][0]}
     out = {"iop_mmhg": 40.0, "indentation_mm": 1.0}
-    for answers, edge, flank in ((["coarse", "tire_ridged"], 1.0, 1.5),
-                                 (["coarse", "tire_flat"], 1.0, 1.0),
-                                 (["coarse", "band"], 1.0, 1.0),
-                                 (["coarse", "sponge_radial"], 0.5, 1.0),
-                                 (["coarse", "tire_flat", "deformable"], 0.5, 1.0)):
+    for answers, edge, flank, end in ((["coarse", "tire_ridged"], 1.0, 1.5, 0.0),
+                                      (["coarse", "tire_flat"], 1.0, 1.0, 0.0),
+                                      (["coarse", "band"], 1.0, 1.0, 0.0),
+                                      (["coarse", "sponge_radial"], 0.5, 1.0, 1.0),
+                                      (["coarse", "sponge_radial", "deformable"], 0.5, 1.0, 0.0),
+                                      (["coarse", "tire_flat", "deformable"], 0.5, 1.0, 0.0)):
         folder = tmp_path / "_".join(answers)
         folder.mkdir()
         _, case = _surgery_prompts(folder, answers)
         p = case.parameters
         assert p["lens_support"] == 0.343, answers
-        assert (p["buckle_edge"], p["ridge_flank"]) == (edge, flank), answers
+        assert (p["buckle_edge"], p["ridge_flank"], p["sponge_end"]) == (edge, flank, end), \
+            answers
         err = run_mesh_error({**fields, **p, "mesh": "fine"},
                              not answers[1].startswith("sponge"), out)
         assert "another model" not in err["note"], (answers, err["note"])
-    assert (fields["buckle_edge"], fields["ridge_flank"], fields["lens_support"]) == \
-        (0.5, 1.0, 0.0)
+    assert (fields["buckle_edge"], fields["ridge_flank"], fields["lens_support"],
+            fields["sponge_end"]) == (0.5, 1.0, 0.0, 0.0)
 
 
 def test_new_case_all_asks_every_field(tmp_path):

@@ -41,13 +41,14 @@ log = logging.getLogger(__name__)
 TISSUES = ("cornea", "limbus", "sclera", "ciliary_body", "choroid", "retina", "optic_nerve", "lens")
 
 LEVELS = {"coarse": (10, 4), "half": (11, 4), "medium": (14, 4), "default": (22, 6),
-          "fine": (32, 8), "finer": (44, 12), "finest": (54, 14),
+          "fine": (32, 8), "finer": (44, 12), "finest": (54, 14), "ultrafine": (70, 18),
           "graded_half": (15, 4), "graded": (30, 8), "graded_fine": (45, 12)}
 """Mesh density levels: (cubed-sphere elements per patch edge, lens elements per edge).
 
 These levels refine in-plane only: each keeps 4 element layers through the wall (retina,
-choroid, two of sclera); "half", "fine", "finer" and "finest" (about 73,000 hexahedra,
-run outside CI) serve the mesh convergence study (docs/convergence.md). "half", "default" and "finer" nest: each halves the last one's
+choroid, two of sclera); "half", "fine", "finer", "finest" (about 73,000 hexahedra) and
+"ultrafine" (about 122,000, run on a GPU machine) serve the mesh convergence study
+(docs/convergence.md); the last three run outside CI. "half", "default" and "finer" nest: each halves the last one's
 elements in-plane (ratio 2), so the wall's nodes of one are nodes of the next. The lens
 needs an even count (its equator holds the zonule's nodes). A level name with the suffix "x2" (``mediumx2``, ``defaultx2``...)
 splits every one of the 4 layers in two (8 through the wall), the same in-plane: the

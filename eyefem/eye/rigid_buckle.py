@@ -124,4 +124,5 @@ def buckle_term(parts: SurgeryParts, scale: float) -> BuckleContact:
                          sponge_length=SPONGE_LENGTH, modulus=6 * SEED_MATERIALS["sclera"],
                          extra_dof=parts.extra_dof, curved=b.kind == "sponge_radial",
                          smoothing=contact_smoothing(parts),
-                         quadrature=parts.p["contact_quadrature"])
+                         quadrature=parts.p["contact_quadrature"],
+                         end_width=parts.p["sponge_end"])

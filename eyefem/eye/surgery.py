@@ -155,6 +155,11 @@ SURGERY_FIELDS = [
           "width^2 per mm), mm: narrower edges are sharper than the scleral elements can "
           "follow, and the outcomes then grow with the mesh (docs/convergence.md, 'The flat "
           "tire's edges')", lambda v: 0.2 <= v <= 2.0, "0.2 to 2 mm"),
+    Field("sponge_end", float, 0.0, "length over which each end of a rigid sponge rounds "
+          "off, lifting 0.3 mm off the sclera (a cubic rise, twice differentiable), mm; 0: the "
+          "earlier model, a fade-out about 0.1 mm long beyond each end, once differentiable, "
+          "whose outcomes depend on where the ends sit among the nodes (docs/convergence.md, "
+          "'The sponge's ends')", lambda v: v == 0 or 0.2 <= v <= 2.0, "0 or 0.2 to 2 mm"),
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
     WALL_ELEMENT_FIELD,
@@ -265,7 +270,7 @@ def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
             "The study used rigid buckles; this run's buckle is deformable.")
     models = [{**STUDY_MODEL, **m} for m in err.get("model", {}).values()] or [STUDY_MODEL]
     rigid_only = ("buckle_edge", "ridge_flank",  # the rigid buckle's, unused otherwise
-                  "contact_quadrature")
+                  "contact_quadrature", "sponge_end")
     changed = [f"{k} = {p[k]!r}" for k in STUDY_MODEL
                if k in p and all(p[k] != m[k] for m in models)
                and not (k in rigid_only and p.get("buckle_body", "rigid") != "rigid")]
@@ -279,7 +284,7 @@ def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
 STUDY_MODEL = {f.name: f.default for f in SURGERY_FIELDS
                if f.name in ("buckle_edge", "ridge_flank", "lens_support",
                              "zonule_insertion_radius", "tissue_mixing", "wall_element",
-                             "contact_quadrature")}
+                             "contact_quadrature", "sponge_end")}
 """The model fields that change how outcomes move with the mesh, at their defaults: the
 mesh study's record (eyefem/eye/mesh_study.json) holds the values each studied case ran
 with ("model"; these defaults where it does not); a run whose value matches none of the
@@ -388,6 +393,10 @@ def check_parameters(p):
         raise ValueError(f"buckle_edge = {edge} mm: the edges of the {p['buckle']} "
                          f"({KINDS[p['buckle']][0]} mm wide) lift over less than half its "
                          f"width; set buckle_edge below {KINDS[p['buckle']][0] / 2} mm")
+    if p.get("sponge_end", 0.0) != 0 and not p["buckle"].startswith("sponge"):
+        raise ValueError(f"sponge_end = {p['sponge_end']} mm rounds a sponge's ends; the "
+                         f"{p['buckle']} is a ring: set sponge_end = 0 (its edges are "
+                         "buckle_edge)")
     if p.get("buckle_body", "rigid") == "deformable":
         _check_deformable(p)
         if p.get("wall_element", "q1p0") != "q1p0":
@@ -412,6 +421,10 @@ def _check_deformable(p):
         raise ValueError(f"buckle_edge = {p['buckle_edge']} mm shapes the rigid ring's edges; "
                          f"a deformable buckle has its own mesh: with buckle_body = "
                          f"'deformable' leave buckle_edge at {EDGE_WIDTH}")
+    if p.get("sponge_end", 0.0) != 0:
+        raise ValueError(f"sponge_end = {p['sponge_end']} mm rounds the rigid sponge's ends; "
+                         "a deformable sponge has its own mesh: with buckle_body = "
+                         "'deformable' leave sponge_end at 0")
     if p.get("contact_quadrature", 0) != 0:
         raise ValueError(f"contact_quadrature = {p['contact_quadrature']} integrates the rigid "
                          "buckle's contact over the scleral faces; a deformable buckle's "
@@ -570,7 +583,7 @@ ADVANCED_FIELDS = frozenset({
     "globe_torsion", "globe_rotation", "globe_translation", "globe_axial", "steps_pressurise",
     "steps_tighten", "steps_suture", "contact_smoothing", "contact_quadrature",
     "contact_normals", "n_segments",
-    "ridge_flank", "buckle_edge", "bite_length", "limbus_width", "zonule_insertion_radius",
+    "ridge_flank", "buckle_edge", "sponge_end", "bite_length", "limbus_width", "zonule_insertion_radius",
     "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
     "sclera_thickness_equator", "sclera_thickness_pole", "wall_element", "lens_support"})
@@ -590,14 +603,16 @@ field's own default, for case files that leave it out, stays the seed's, so that
 seed's cases 1-6 reproduce)."""
 
 
-CONVERGING_MODEL = {"lens_support": 0.343, "buckle_edge": 1.0, "ridge_flank": 1.5}
+CONVERGING_MODEL = {"lens_support": 0.343, "buckle_edge": 1.0, "ridge_flank": 1.5,
+                    "sponge_end": 1.0}
 """The model fields of the surgical case files, whose outcomes converge with the mesh
 (docs/convergence.md, "Results: the case files' model"), that ``new-case`` writes into a new
 case: the lens's springs in all (N/mm; on the default level the sum of the per-node
 springs), a rigid band's or tire's edges lifting over 1 mm (the 2.5 mm band is not in the
-study; its 0.5 mm edges are as sharp as the tires' were), the ridged tire's 1.5 mm flanks.
-The fields' own defaults, for case files that leave them out, stay the earlier model (0.5
-mm edges, 1 mm flanks, 1e-3 N/mm per lens node), which the recorded results and the
+study; its 0.5 mm edges are as sharp as the tires' were), the ridged tire's 1.5 mm flanks,
+a rigid sponge's ends rounding off over 1 mm. The fields' own defaults, for case files that
+leave them out, stay the earlier model (0.5 mm edges, 1 mm flanks, 1e-3 N/mm per lens
+node, the sponge's ends fading out over 0.1 mm beyond them), which the recorded results and the
 problems built without a case file use."""
 
 
@@ -615,7 +630,8 @@ def questions(values: dict) -> tuple[frozenset, dict]:
         skip.add("deformable_tightening")
     rigid = values["buckle_body"] == "rigid"
     applies = {"lens_support": True, "buckle_edge": rigid and values["buckle"] in RING_KINDS,
-               "ridge_flank": rigid and values["buckle"] == "tire_ridged"}
+               "ridge_flank": rigid and values["buckle"] == "tire_ridged",
+               "sponge_end": rigid and segmental}
     model = {k: v for k, v in CONVERGING_MODEL.items() if applies[k]}
     return frozenset(skip), {**NEW_CASE_DEFAULTS, **(SEGMENTAL_DEFAULTS if segmental else {}),
                              **model}

@@ -24,11 +24,17 @@ than the scleral elements follow) and d the radial tightening (the
 ring's circumference shortens by 2 pi d sin theta_b).
 
 Sponge: a cylinder (radius r_s, length L, axis t) whose axis passes through
-C = (R + r_s - d) n0 + s m0: g = |x - C - ((x - C) . t) t| - r_s + 10 max(|.t| - L/2, 0)^2.
+C = (R + r_s - d) n0 + s m0: g = |x - C - ((x - C) . t) t| - r_s + e(|(x - C) . t|), with
+the ends' term e(a) = 10 max(a - L/2, 0)^2 (``end_width`` = 0, the default: a fade-out
+about 0.1 mm long beyond each end, once differentiable) or, with ``end_width`` = w > 0,
+e(a) = 0.3 (max(a - (L/2 - w), 0) / w)^3: the ends round off, lifting 0.3 mm over their
+last w mm as a ring's edges do, twice differentiable (its curvature rises from 0 to
+1.8 / w^2 per mm), so the contact fades out over about a millimetre with w = 1 and a
+node passing under an end does not jump in stiffness.
 
 A radial sponge lies along the meridian and follows the globe's curvature (``curved``):
 its centre line is the arc of radius rho0 = R + r_s - d about the globe centre in the
-plane of n0 and m0, g = sqrt((rho - rho0)^2 + w^2) - r_s + 10 max(|psi| rho0 - L/2, 0)^2
+plane of n0 and m0, g = sqrt((rho - rho0)^2 + w^2) - r_s + e(|psi| rho0)
 with (rho, psi) the polar coordinates of x in that plane (psi from n0, shifted by
 s / rho0) and w its distance from the plane.
 
@@ -106,6 +112,16 @@ def face_points(nodes: np.ndarray, faces: np.ndarray, n: int):
             (w2 * J).ravel())
 
 
+def sponge_end_lift(a, length, end_width):
+    """The lift (mm) of a sponge's surface at a distance ``a`` (mm, >= 0) from its middle
+    along its axis: 10 max(a - length / 2, 0)^2 for ``end_width`` = 0 (a static Python
+    float: the earlier model), else 0.3 (max(a - (length / 2 - end_width), 0) /
+    end_width)^3 (rounded ends, twice differentiable)."""
+    if end_width == 0:
+        return 10.0 * jnp.maximum(a - length / 2, 0.0) ** 2
+    return 0.3 * (jnp.maximum(a - (length / 2 - end_width), 0.0) / end_width) ** 3
+
+
 def ring_profile(a, width, ridge, ridge_width, flank=RIDGE_FLANK, edge=EDGE_WIDTH):
     """Inner-surface offset of a ring above R (mm) at across-coordinates a (jax or numpy):
     -ridge on the ridge, 0 on the flat base, rising at the edges by 0.3 (|a| - (width / 2 -
@@ -140,6 +156,9 @@ class BuckleContact(Term):
       quadrature: 0 (default): one penalty per candidate node; n in 1..4: the penalty
         integrated over the candidate surface's faces (the face set named ``node_set``)
         with n x n Gauss points each (module docstring).
+      end_width: sponge only: 0 (default), its ends fade out over about 0.1 mm beyond them
+        (once differentiable); w > 0, mm: they round off over their last w mm (twice
+        differentiable; module docstring).
     """
 
     name: str
@@ -164,6 +183,7 @@ class BuckleContact(Term):
     extra_dof: int = -1
     curved: bool = False
     quadrature: int = 0
+    end_width: float = 0.0
 
     def __post_init__(self):
         if self.shape not in ("ring", "sponge"):
@@ -179,6 +199,11 @@ class BuckleContact(Term):
             raise ValueError(f"buckle contact '{self.name}': edge_width = {self.edge_width} mm; "
                              f"the edges of a ring {self.width} mm wide lift over 0 to "
                              f"{self.width / 2} mm (exclusive) of each side")
+        if self.shape == "sponge" and not 0 <= self.end_width < self.sponge_length / 2:
+            raise ValueError(f"buckle contact '{self.name}': end_width = {self.end_width} mm; "
+                             f"the ends of a sponge {self.sponge_length} mm long round off over "
+                             f"0 (the earlier 0.1 mm fade-out beyond them) to "
+                             f"{self.sponge_length / 2} mm (exclusive)")
         if not self.smoothing > 0:
             raise ValueError(f"buckle contact '{self.name}': smoothing {self.smoothing} mm; "
                              "must be > 0")
@@ -221,7 +246,8 @@ class BuckleContact(Term):
         return len(self.dofs)
 
     def static_key(self):
-        return (self.shape, self.extra_dof >= 0, self.curved, self.quadrature > 0)
+        return (self.shape, self.extra_dof >= 0, self.curved, self.quadrature > 0,
+                self.end_width)
 
     def gaps(self, q_loc, params, data):
         """Signed gaps (n,) of the contact points, mm (negative: penetration), from their
@@ -259,13 +285,13 @@ class BuckleContact(Term):
             rho = jnp.sqrt(u * u + v * v)
             psi = jnp.arctan2(v, u) - s / rho0
             dist = jnp.sqrt((rho - rho0) ** 2 + w * w + 1e-30)
-            return dist - rs + 10.0 * jnp.maximum(jnp.abs(psi) * rho0 - L / 2, 0.0) ** 2
+            return dist - rs + sponge_end_lift(jnp.abs(psi) * rho0, L, self.end_width)
         C = jnp.asarray(R + rs - d)[..., None] * n0 + s * m0
         v = x - C
         along = v @ t
         rad = v - along[:, None] * t
         dist = jnp.sqrt(jnp.sum(rad * rad, axis=1) + 1e-30)
-        return dist - rs + 10.0 * jnp.maximum(jnp.abs(along) - L / 2, 0.0) ** 2
+        return dist - rs + sponge_end_lift(jnp.abs(along), L, self.end_width)
 
     def local_energy(self, q_loc, params, data):
         p = smooth_penetration(self.gaps(q_loc, params, data), self.smoothing)

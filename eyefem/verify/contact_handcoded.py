@@ -120,24 +120,36 @@ def _penalty(g, dg, d2g, alpha, smoothing):
     return e1 * dg, e2 * np.outer(dg, dg) + e1 * d2g
 
 
-def sponge_residual_tangent(x, N, alpha, centre, axis, radius, smoothing):
+def sponge_residual_tangent(x, N, alpha, centre, axis, radius, smoothing, length=np.inf,
+                            end_width=0.0):
     """Residual (3m,) N and tangent (3m, 3m) N/mm of a straight rigid sponge's smoothed
     penalty (eyefem.fem.buckle_contact) at the contact points x_q = sum_a N[q, a] x_a of
     the m nodes x (m, 3) mm, each with penalty alpha[q] N/mm: a node (m = 1, N = [[1]]) or
-    a face's Gauss points (m = 4). Per point, within the sponge's length: v = x_q - centre,
-    r = P v with P = I - t t^T (t: the unit axis), g = |r| - radius, dg/dx_q = n = r / |r|,
-    d2g/dx_q^2 = (P - n n^T) / |r|; over the nodes dg = N_q (x) n and d2g = N_q N_q^T (x)
+    a face's Gauss points (m = 4). Per point: v = x_q - centre, r = P v with P = I - t t^T
+    (t: the unit axis), a = t . v, g = |r| - radius + e(|a|) with the ends' lift e of a
+    sponge ``length`` mm long whose ends round off over ``end_width`` mm (0.3 (max(|a| -
+    (length / 2 - end_width), 0) / end_width)^3; end_width 0: 10 max(|a| - length / 2,
+    0)^2), dg/dx_q = n + e'(|a|) sign(a) t with n = r / |r|, d2g/dx_q^2 = (P - n n^T) / |r|
+    + e''(|a|) t t^T; over the nodes dg = N_q (x) dg/dx_q and d2g = N_q N_q^T (x)
     d2g/dx_q^2."""
     m = len(x)
     P = np.eye(3) - np.outer(axis, axis)
     r_tot, K_tot = np.zeros(3 * m), np.zeros((3 * m, 3 * m))
     for Nq, aq in zip(N, alpha):
-        rv = P @ (Nq @ x - centre)
+        v = Nq @ x - centre
+        rv = P @ v
         rho = np.linalg.norm(rv)
         n = rv / rho
-        dg = np.kron(Nq, n)
-        d2g = np.kron(np.outer(Nq, Nq), (P - np.outer(n, n)) / rho)
-        r_q, K_q = _penalty(rho - radius, dg, d2g, aq, smoothing)
+        a = axis @ v
+        if end_width:
+            z = max(abs(a) - (length / 2 - end_width), 0.0) / end_width
+            e, e1, e2 = 0.3 * z**3, 0.9 * z**2 / end_width, 1.8 * z / end_width**2
+        else:
+            z = max(abs(a) - length / 2, 0.0)
+            e, e1, e2 = 10.0 * z**2, 20.0 * z, 20.0 * (z > 0)
+        dg = np.kron(Nq, n + e1 * np.sign(a) * axis)
+        d2g = np.kron(np.outer(Nq, Nq), (P - np.outer(n, n)) / rho + e2 * np.outer(axis, axis))
+        r_q, K_q = _penalty(rho - radius + e, dg, d2g, aq, smoothing)
         r_tot += r_q
         K_tot += K_q
     return r_tot, K_tot
@@ -146,10 +158,11 @@ def sponge_residual_tangent(x, N, alpha, centre, axis, radius, smoothing):
 # --- tangent-verification checks ----------------------------------------------------------------
 
 
-def _buckle_check(quadrature):
+def _buckle_check(quadrature, end_width=None):
     """A straight rigid sponge (axis y, radius 2.5 mm, 10 mm long) pressing a warped face:
     its four nodes (quadrature 0), or its 2 x 2 Gauss points (quadrature 2), a few
-    smoothing lengths deep."""
+    smoothing lengths deep; with ``end_width`` (mm) the face lies under one of the sponge's
+    ends, rounded off over that length."""
     def check(rng):
         import jax
         import jax.numpy as jnp
@@ -159,7 +172,11 @@ def _buckle_check(quadrature):
 
         R, rs, L, eps = 10.0, 2.5, 10.0, 0.02
         X = np.array([[10.0, -0.6, -0.5], [10.0, 0.6, -0.5], [10.0, 0.6, 0.5], [10.0, -0.6, 0.5]])
-        x = X + np.array([0.03, 0.0, 0.0]) + 0.02 * rng.standard_normal((4, 3))
+        depth = 0.03
+        if end_width is not None:  # under the rounded end (3.9 to 5.1 mm along the axis, its
+            X = X + np.array([0.0, 4.5, 0.0])  # Gauss points lifted by 0.001 and 0.18 mm):
+            depth = 0.2  # deeper, so that all are in contact
+        x = X + np.array([depth, 0.0, 0.0]) + 0.02 * rng.standard_normal((4, 3))
         alpha_node = 30.0
         if quadrature:
             _, N, wJ = face_points(X, np.arange(4)[None], quadrature)
@@ -173,7 +190,7 @@ def _buckle_check(quadrature):
         data.update({"alpha": alpha, "geo": geo, "frame": frame})
         term = BuckleContact.__new__(BuckleContact)  # the kernel only: no mesh needed
         for k, v in (("shape", "sponge"), ("curved", False), ("extra_dof", -1),
-                     ("smoothing", eps)):
+                     ("smoothing", eps), ("end_width", end_width or 0.0)):
             object.__setattr__(term, k, v)
         params = {k: jnp.zeros(1) for k in ("d", "s", "ridge", "dr", "rot")}
 
@@ -185,14 +202,17 @@ def _buckle_check(quadrature):
         grad = jax.jit(jax.grad(energy))
         u = (x - X).ravel()
         r_h, K_h = sponge_residual_tangent(x, N, alpha, np.array([R + rs, 0.0, 0.0]),
-                                           frame[2], rs, eps)
-        gaps = [np.linalg.norm((Nq @ x - [R + rs, 0, 0]) * [1, 0, 1]) - rs for Nq in N]
+                                           frame[2], rs, eps, L, end_width or 0.0)
+        gaps = np.asarray(term.gaps(
+            jnp.broadcast_to(jnp.asarray(u), (len(N), 12)) if quadrature
+            else jnp.asarray(u.reshape(4, 3)), params, data))
         return CheckData(np.asarray(grad(jnp.asarray(u))), r_h,
                          np.asarray(jax.hessian(energy)(jnp.asarray(u))), K_h,
                          lambda y: np.asarray(grad(jnp.asarray(y))), u,
                          f"sponge on a warped face, gaps {min(gaps):.3f}..{max(gaps):.3f} mm, "
                          + (f"{quadrature}x{quadrature} Gauss points" if quadrature
-                            else "its 4 nodes"))
+                            else "its 4 nodes")
+                         + (f", under an end rounded over {end_width} mm" if end_width else ""))
 
     return check
 
@@ -286,4 +306,5 @@ def contact_checks() -> dict:
         "surface_contact_nodal_normals": _surface_check("sliding", smoothing=0.02, nodal=True),
         "buckle_contact_nodes": _buckle_check(0),
         "buckle_contact_faces": _buckle_check(2),
+        "buckle_contact_sponge_end": _buckle_check(2, end_width=1.0),
     }
