@@ -532,7 +532,7 @@ def main(argv=None) -> int:
                    "3 eigenvalues nearest zero; summary.json 'stability'): each check costs "
                    "about 5-20 Newton iterations (coarse to medium eye)")
     p.add_argument("--mesh", help="override the case's eye mesh level (coarse, half, medium, "
-                   "default, fine, finer, finest; graded_half, graded, graded_fine, or "
+                   "default, fine, finer, finest, ultrafine; graded_half, graded, graded_fine, or "
                    "graded<N> with N elements per patch edge, 12-64: finer toward the band "
                    "zone; gradedc<N>: also finer in the cornea; the suffix x2: 8 wall layers)")
     p.add_argument("--materials", metavar="PRESET", choices=("seed", "physiological"),
