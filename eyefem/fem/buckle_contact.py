@@ -112,14 +112,21 @@ def face_points(nodes: np.ndarray, faces: np.ndarray, n: int):
             (w2 * J).ravel())
 
 
+def edge_lift(a, length, width):
+    """The lift (mm) of a buckle's surface at a distance ``a`` (mm, >= 0) from its middle
+    across a ring or along a sponge ``length`` mm long whose edges round off over their last
+    ``width`` mm: 0.3 (max(a - (length / 2 - width), 0) / width)^3, twice differentiable,
+    0.3 mm at the edge, its curvature rising from 0 to 1.8 / width^2 per mm there."""
+    return 0.3 * (jnp.maximum(a - (length / 2 - width), 0.0) / width) ** 3
+
+
 def sponge_end_lift(a, length, end_width):
     """The lift (mm) of a sponge's surface at a distance ``a`` (mm, >= 0) from its middle
     along its axis: 10 max(a - length / 2, 0)^2 for ``end_width`` = 0 (a static Python
-    float: the earlier model), else 0.3 (max(a - (length / 2 - end_width), 0) /
-    end_width)^3 (rounded ends, twice differentiable)."""
+    float: the earlier model), else :func:`edge_lift` (rounded ends)."""
     if end_width == 0:
         return 10.0 * jnp.maximum(a - length / 2, 0.0) ** 2
-    return 0.3 * (jnp.maximum(a - (length / 2 - end_width), 0.0) / end_width) ** 3
+    return edge_lift(a, length, end_width)
 
 
 def ring_profile(a, width, ridge, ridge_width, flank=RIDGE_FLANK, edge=EDGE_WIDTH):
@@ -130,8 +137,7 @@ def ring_profile(a, width, ridge, ridge_width, flank=RIDGE_FLANK, edge=EDGE_WIDT
     aa = jnp.abs(a)
     t = jnp.clip((aa - (ridge_width / 2 - flank)) / flank, 0.0, 1.0)
     bump = jnp.where(ridge_width > 0, 1.0 - t**3 * (10.0 - 15.0 * t + 6.0 * t**2), 0.0)
-    lift = 0.3 * (jnp.maximum(aa - (width / 2 - edge), 0.0) / edge) ** 3
-    return -ridge * bump + lift
+    return -ridge * bump + edge_lift(aa, width, edge)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
