@@ -583,8 +583,8 @@ ADVANCED_FIELDS = frozenset({
     "globe_torsion", "globe_rotation", "globe_translation", "globe_axial", "steps_pressurise",
     "steps_tighten", "steps_suture", "contact_smoothing", "contact_quadrature",
     "contact_normals", "n_segments",
-    "ridge_flank", "buckle_edge", "sponge_end", "bite_length", "limbus_width", "zonule_insertion_radius",
-    "tissue_mixing",
+    "ridge_flank", "buckle_edge", "sponge_end", "bite_length", "limbus_width",
+    "zonule_insertion_radius", "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
     "sclera_thickness_equator", "sclera_thickness_pole", "wall_element", "lens_support"})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all
@@ -612,8 +612,8 @@ springs), a rigid band's or tire's edges lifting over 1 mm (the 2.5 mm band is n
 study; its 0.5 mm edges are as sharp as the tires' were), the ridged tire's 1.5 mm flanks,
 a rigid sponge's ends rounding off over 1 mm. The fields' own defaults, for case files that
 leave them out, stay the earlier model (0.5 mm edges, 1 mm flanks, 1e-3 N/mm per lens
-node, the sponge's ends fading out over 0.1 mm beyond them), which the recorded results and the
-problems built without a case file use."""
+node, the sponge's ends fading out over 0.1 mm beyond them), which the recorded results
+and the problems built without a case file use."""
 
 
 def questions(values: dict) -> tuple[frozenset, dict]:
