@@ -352,8 +352,9 @@ def markdown(study: dict) -> str:
                 lines.append(f"| {OUTCOMES[k][0]} | {_fmt(t['p'], 3)} | {t['fit']} | "
                              f"{t['safety_factor']:g} | {_fmt(t['extrapolated'], 5)} | " +
                              " | ".join(_pct(r) for r in rel) + " |")
-        legend = ("(levels: c coarse, h half, m medium, D default, f fine, F finer, Ff finest, gh "
-                  "graded_half, G graded, gf graded_fine, c18 gradedc18 (c26, c36); "
+        legend = ("(levels: c coarse, h half, m medium, D default, f fine, F finer, Ff finest, "
+                  "U ultrafine, gh graded_half, G graded, gf graded_fine, c18 gradedc18 (c26, "
+                  "c36); "
                   "behaviour of "
                   "each triple, observed order p, Richardson value and GCI_fine of its "
                   "finest level; (!): p outside 0.5..4 or the extrapolation changes sign; "
@@ -539,9 +540,10 @@ def main(argv=None) -> int:
         ap.add_argument("--out", default="eyefem/eye/mesh_study.json")
         ap.add_argument("--update", action="store_true",
                         help="keep the levels of the record at --out that --runs lacks")
-        ap.add_argument("--levels", default="gradedc26",
+        ap.add_argument("--levels", default="gradedc26,ultrafine",
                         help="levels recorded outside the families, where run (default: "
-                        "gradedc26, the surgical cases' mesh before fine; '' for none)")
+                        "gradedc26, the surgical cases' mesh before fine, and ultrafine, the "
+                        "sixth uniform level; '' for none)")
         a = ap.parse_args(argv[1:])
         export(Path(a.runs), a.cases.split(","), [f.split(",") for f in a.families.split(";")],
                Path(a.case_dir), Path(a.out), update=a.update,
