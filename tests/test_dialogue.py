@@ -72,7 +72,8 @@ def _surgery_prompts(tmp_path, first_answers, ask_all=False):
         return next(answers, "")
 
     path = new_case("surgery", fields, tmp_path / "s.toml", ask=ask, say=lambda m: None,
-                    check=build.check, questions=build.questions, ask_all=ask_all)
+                    check=build.check, questions=build.questions, ask_all=ask_all,
+                    solver_settings=build.solver_settings)
     return prompts, load_case(path, SCHEMAS)
 
 
@@ -104,12 +105,15 @@ def test_a_new_case_gets_the_case_files_converging_model(tmp_path):
     # defaults are the earlier model, which a new case must not fall into
     fields = {f.name: f.default for f in PROBLEMS["surgery"][0]}
     out = {"iop_mmhg": 40.0, "indentation_mm": 1.0}
-    for answers, edge, flank, end in ((["coarse", "tire_ridged"], 1.0, 1.5, 0.0),
-                                      (["coarse", "tire_flat"], 1.0, 1.0, 0.0),
-                                      (["coarse", "band"], 1.0, 1.0, 0.0),
-                                      (["coarse", "sponge_radial"], 0.5, 1.0, 1.0),
-                                      (["coarse", "sponge_radial", "deformable"], 0.5, 1.0, 0.0),
-                                      (["coarse", "tire_flat", "deformable"], 0.5, 1.0, 0.0)):
+    # and, like the case files 2-6, a rigid buckle whose surface curves sharply under the
+    # nodes it presses (ridge shoulders, rounded sponge ends) gets contact_curvature = 1e-3
+    for answers, edge, flank, end, curv in (
+            (["coarse", "tire_ridged"], 1.0, 1.5, 0.0, 1e-3),
+            (["coarse", "tire_flat"], 1.0, 1.0, 0.0, 0.0),
+            (["coarse", "band"], 1.0, 1.0, 0.0, 0.0),
+            (["coarse", "sponge_radial"], 0.5, 1.0, 1.0, 1e-3),
+            (["coarse", "sponge_radial", "deformable"], 0.5, 1.0, 0.0, 0.0),
+            (["coarse", "tire_flat", "deformable"], 0.5, 1.0, 0.0, 0.0)):
         folder = tmp_path / "_".join(answers)
         folder.mkdir()
         _, case = _surgery_prompts(folder, answers)
@@ -117,6 +121,8 @@ def test_a_new_case_gets_the_case_files_converging_model(tmp_path):
         assert p["lens_support"] == 0.343, answers
         assert (p["buckle_edge"], p["ridge_flank"], p["sponge_end"]) == (edge, flank, end), \
             answers
+        assert case.solver.contact_curvature == curv, answers
+        assert ("[solver]" in (folder / "s.toml").read_text()) == bool(curv), answers
         err = run_mesh_error({**fields, **p, "mesh": "fine"},
                              not answers[1].startswith("sponge"), out)
         assert "another model" not in err["note"], (answers, err["note"])
@@ -127,6 +133,16 @@ def test_a_new_case_gets_the_case_files_converging_model(tmp_path):
 def test_new_case_all_asks_every_field(tmp_path):
     prompts, _ = _surgery_prompts(tmp_path, ["coarse", "tire_flat"], ask_all=True)
     assert prompts == [f.name for f in PROBLEMS["surgery"][0]]
+
+
+@pytest.mark.parametrize("buckle, body, curvature", [("sponge_radial", "rigid", 1e-3),
+                                                      ("tire_ridged", "deformable", 0.0)])
+def test_new_case_from_the_command_line_writes_the_solver_section(tmp_path, buckle, body,
+                                                                   curvature):
+    out = tmp_path / "c.toml"
+    assert cli_main(["-q", "new-case", "surgery", "-o", str(out), "--yes", "--set",
+                     f"buckle={buckle}", "--set", f"buckle_body={body}"]) == 0
+    assert load_case(out, SCHEMAS).solver.contact_curvature == curvature
 
 
 def test_a_mistyped_choice_gets_a_did_you_mean(tmp_path, capsys):

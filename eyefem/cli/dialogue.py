@@ -94,14 +94,18 @@ def ask_parameters(fields: list[Field], ask: Callable[[str], str], say: Callable
 
 
 def write_case(path: Path, problem: str, title: str, parameters: dict,
-               materials: dict | None = None, description: str = ""):
-    """Write a case file atomically (TOML)."""
+               materials: dict | None = None, description: str = "",
+               solver: dict | None = None):
+    """Write a case file atomically (TOML); ``solver``: its ``[solver]`` section (NewtonOptions
+    fields), left out when empty."""
     doc = {"case": {"problem": problem, "title": title or problem}}
     if description:
         doc["case"]["description"] = description
     doc["parameters"] = parameters
     if materials:
         doc["materials"] = materials
+    if solver:
+        doc["solver"] = solver
     write_text(Path(path), tomli_w.dumps(doc))
 
 
@@ -122,23 +126,27 @@ def check_target(path: Path, force: bool = False) -> Path:
 
 def new_case(problem: str, fields: list[Field], path: Path, *, ask=input, say=print,
              preset=None, accept_defaults=False, title="", materials=None,
-             check=None, force=False, questions=None, ask_all=False) -> Path:
+             check=None, force=False, questions=None, ask_all=False,
+             solver_settings=None) -> Path:
     """Ask for the parameters of ``problem`` and write the case file; returns its path.
 
     ``check(params)``: the problem's checks across fields (params with the defaults
-    filled in); its ValueError becomes a CaseError and nothing is written. An existing
+    filled in); its ValueError becomes a CaseError and nothing is written.
+    ``solver_settings(params)``: the ``[solver]`` section to write (a dict). An existing
     file at ``path`` is refused (CaseError) unless ``force``; a folder always.
     ``questions``, ``ask_all``: see :func:`ask_parameters`."""
     check_target(path, force)
     say(f"New '{problem}' case -> {path}  (Enter keeps the default)")
     params = ask_parameters(fields, ask, say, preset, accept_defaults,
                             questions=questions, ask_all=ask_all)
+    filled = {**{f.name: f.default for f in fields}, **params}
     if check is not None:
         try:
-            check({**{f.name: f.default for f in fields}, **params})
+            check(filled)
         except ValueError as exc:
             raise CaseError(f"{problem}: {exc}; nothing written to {path}") from None
-    write_case(path, problem, title, params, materials)
+    solver = solver_settings(filled) if solver_settings is not None else None
+    write_case(path, problem, title, params, materials, solver=solver)
     say(f"wrote {path}; run it with: eyefem run {path}")
     return Path(path)
 

@@ -347,7 +347,8 @@ def cmd_new_case(args) -> int:
         new_case(args.problem, fields, Path(args.output), preset=preset,
                  accept_defaults=args.yes, title=args.title or "",
                  check=getattr(build, "check", None), force=args.force,
-                 questions=getattr(build, "questions", None), ask_all=args.all)
+                 questions=getattr(build, "questions", None), ask_all=args.all,
+                 solver_settings=getattr(build, "solver_settings", None))
     except CaseError as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2

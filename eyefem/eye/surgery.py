@@ -417,19 +417,16 @@ def _check_deformable(p):
         if p[name] != 0:
             raise ValueError(f"{name} = {p[name]} {unit} applies to the rigid buckle only; with "
                              f"buckle_body = 'deformable' set {name} = 0")
-    if p.get("buckle_edge", EDGE_WIDTH) != EDGE_WIDTH:
-        raise ValueError(f"buckle_edge = {p['buckle_edge']} mm shapes the rigid ring's edges; "
-                         f"a deformable buckle has its own mesh: with buckle_body = "
-                         f"'deformable' leave buckle_edge at {EDGE_WIDTH}")
-    if p.get("sponge_end", 0.0) != 0:
-        raise ValueError(f"sponge_end = {p['sponge_end']} mm rounds the rigid sponge's ends; "
-                         "a deformable sponge has its own mesh: with buckle_body = "
-                         "'deformable' leave sponge_end at 0")
-    if p.get("contact_quadrature", 0) != 0:
-        raise ValueError(f"contact_quadrature = {p['contact_quadrature']} integrates the rigid "
-                         "buckle's contact over the scleral faces; a deformable buckle's "
-                         "contact is node to surface: with buckle_body = 'deformable' leave "
-                         "contact_quadrature at 0")
+    for name, default, unit, what, why in (
+            ("buckle_edge", EDGE_WIDTH, " mm", "shapes the rigid ring's edges",
+             "a deformable buckle has its own mesh"),
+            ("sponge_end", 0, " mm", "rounds the rigid sponge's ends",
+             "a deformable sponge has its own mesh"),
+            ("contact_quadrature", 0, "", "integrates the rigid buckle's contact over the "
+             "scleral faces", "a deformable buckle's contact is node to surface")):
+        if p.get(name, default) != default:
+            raise ValueError(f"{name} = {p[name]}{unit} {what}; {why}: with buckle_body = "
+                             f"'deformable' leave {name} at {default}")
     if p["buckle"] == "sponge_radial" and p["tightening"] != 0:
         raise ValueError(f"tightening = {p['tightening']} mm: a deformable sponge is pressed in "
                          "by its sutures alone (suture_tightening); set tightening = 0")
@@ -637,6 +634,27 @@ def questions(values: dict) -> tuple[frozenset, dict]:
                              **model}
 
 
+CURVED_CONTACT_SOLVER = {"contact_curvature": 1e-3}
+"""The ``[solver]`` settings of the case files whose rigid buckle's surface curves sharply
+under the nodes it presses (the ridged tire's shoulders, a sponge's rounded ends): the
+contact tangent without the surface's curvature while the step's residual is above 1e-3 of
+its first (``NewtonOptions.contact_curvature``); with the exact tangent that curvature, a
+negative tangential stiffness, can make the tangent singular (docs/convergence.md, "The
+sponge's ends")."""
+
+
+def solver_settings(values: dict) -> dict:
+    """The ``[solver]`` section ``eyefem new-case surgery`` writes for these parameters
+    (``values``: every field, defaults filled in): CURVED_CONTACT_SOLVER for a rigid ridged
+    tire and a rigid sponge with rounded ends, else nothing."""
+    if values["buckle_body"] != "rigid":
+        return {}
+    curved = (values["buckle"] == "tire_ridged"
+              or (values["buckle"].startswith("sponge") and values.get("sponge_end", 0) > 0))
+    return dict(CURVED_CONTACT_SOLVER) if curved else {}
+
+
 surgery.check = check_parameters
 surgery.questions = questions
+surgery.solver_settings = solver_settings
 PROBLEMS = {"surgery": (SURGERY_FIELDS, surgery)}
