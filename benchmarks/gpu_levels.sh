@@ -11,7 +11,11 @@
 # and peak memory); its summary.json is copied to OUTDIR/<case file's stem>_<level>.json:
 # put it in RUNS/<case>/<level>/summary.json to tabulate it with the others. Each run is
 # cut after EYEFEM_GPU_TIMEOUT seconds (default 540). Needs a CUDA jaxlib, CuPy and cuDSS
-# (pip install -e ".[gpu]"; EYEFEM_CUDSS_LIB names libcudss.so.0 elsewhere).
+# (pip install -e ".[gpu]"; EYEFEM_CUDSS_LIB names libcudss.so.0 elsewhere, with the
+# folder of the CUDA 13 wheels' libraries, site-packages/nvidia/cu13/lib, on
+# LD_LIBRARY_PATH so that it finds their cuBLAS). Measured on one H200 (docs/convergence.md,
+# "The sixth level"): case 5 on ultrafine 296 s, 12.4 GB host memory, about 8 s per Newton
+# iteration; a case that takes ~100 iterations there (case 1) needs a longer cut.
 set -u
 out=${1:?give an output folder}
 shift
