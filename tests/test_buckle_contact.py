@@ -120,6 +120,28 @@ def test_sponge_end_rounds_off_over_its_width(shell, end):
         BuckleContact("b", shell, "outer", "sponge", R, sponge_length=10.0, end_width=5.0)
 
 
+def test_report_counts_the_points_that_carry_the_contact(shell):
+    """With the smoothed penetration a pressed point can sit at a small positive gap and
+    still carry force: 'active' counts the gaps below the smoothing width eps (each point
+    there carries at least 24 % of its force at zero gap), 'penetrating' the negative
+    gaps; 'force_N' sums every point's force."""
+    t = BuckleContact("b", shell, "outer", "sponge", R, n0=(1.0, 0, 0), m0=(0, 0, -1.0),
+                      axis=(0, 0, -1.0), sponge_radius=2.5, sponge_length=8.0, modulus=0.5,
+                      smoothing=0.1)
+    # pressed 0.72 mm in: this coarse shell's nearest node 0.72 mm deep, the next two at
+    # +0.04 mm, within eps = 0.1 mm
+    params = {**t.params, "d": np.array([0.72]), "s": np.array([0.0])}
+    q = np.zeros(int(t.dofs.max()) + 1)
+    g = np.asarray(t.gaps(q[t.dofs], params, t.data))
+    rep = t.report(q, params)
+    assert rep["active"] == np.sum(g < 0.1) and rep["penetrating"] == np.sum(g < 0)
+    assert (rep["active"], rep["penetrating"]) == (3, 1)
+    assert rep["max_penetration_mm"] == pytest.approx(-g.min(), rel=1e-12)
+    assert rep["force_N"] == pytest.approx(t.contact_forces(g).sum(), rel=1e-12)
+    force = lambda gap: float(smooth_penetration(gap, 0.1)) / (1 + np.exp(gap / 0.1))  # noqa: E731
+    assert force(0.1) / force(0.0) == pytest.approx(0.2431, abs=1e-4)
+
+
 def test_ring_gap_is_invariant_under_rotation_about_the_axis(shell):
     t = _ring(shell)
     rng = np.random.default_rng(0)
