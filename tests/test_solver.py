@@ -594,6 +594,28 @@ def test_pardiso_runs_on_mkls_reproducible_branch():
         assert branch == 2
 
 
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
+def test_later_pardiso_instances_reuse_the_mkl_library_found_first(monkeypatch):
+    """pypardiso searches for MKL's runtime on every instance (find_library runs ldconfig
+    and the compiler; 0.3 s each); a later instance loads the library the first one found,
+    with the search disabled, and leaves no PYPARDISO_MKL_RT in the environment."""
+    import os
+
+    import pypardiso.pardiso_wrapper as wrapper
+
+    from eyefem.solve import linsolve
+
+    monkeypatch.delenv("PYPARDISO_MKL_RT", raising=False)
+    first = linsolve._new_pardiso(wrapper)
+    monkeypatch.setattr(wrapper, "find_library", lambda name: pytest.fail("searched again"))
+    monkeypatch.setattr(wrapper.glob, "glob", lambda *a, **k: pytest.fail("searched again"))
+    later = linsolve._new_pardiso(wrapper)
+    assert later.libmkl._name == first.libmkl._name
+    assert "PYPARDISO_MKL_RT" not in os.environ
+    f = linsolve.factorize(sp.identity(4, format="csr") * 2.0, "pardiso")
+    assert np.allclose(f.solve(np.ones(4)), 0.5)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class _Kink(Term):
     """c |q[a] - q[b] - e|: a residual that jumps by 2c where q[a] - q[b] = e, so that no

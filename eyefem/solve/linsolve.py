@@ -156,8 +156,27 @@ def _set_reproducible(lib) -> None:
                     "results may differ in the last digits from run to run", status)
 
 
+_MKL_RUNTIME: dict = {}
+
+
 def _new_pardiso(pypardiso):
-    solver = pypardiso.PyPardisoSolver(mtype=-2)
+    """A Pardiso instance with :data:`PARDISO_IPARM` on the reproducible branch.
+
+    pypardiso looks for MKL's runtime library afresh for every instance
+    (``ctypes.util.find_library``, which runs ldconfig and the C compiler, then a recursive
+    glob of the environment: 0.3 s an instance on the 2-core machine). The library the first
+    instance loaded is handed to the later ones through pypardiso's own setting
+    ``PYPARDISO_MKL_RT`` for the time of the call, unless the environment sets it."""
+    path = None if "PYPARDISO_MKL_RT" in os.environ else _MKL_RUNTIME.get("path")
+    if path is None:
+        solver = pypardiso.PyPardisoSolver(mtype=-2)
+        _MKL_RUNTIME.setdefault("path", solver.libmkl._name)
+    else:
+        os.environ["PYPARDISO_MKL_RT"] = path
+        try:
+            solver = pypardiso.PyPardisoSolver(mtype=-2)
+        finally:
+            del os.environ["PYPARDISO_MKL_RT"]
     _set_reproducible(solver.libmkl)
     for i, v in PARDISO_IPARM.items():
         solver.iparm[i - 1] = v
