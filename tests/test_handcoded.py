@@ -85,3 +85,40 @@ def test_q1p0_kernel_in_chunks_equals_the_kernel_at_once(monkeypatch):
         assert a.shape == b.shape and a.shape[0] == mesh.n_elem
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12,
                                    atol=1e-14 * float(np.abs(np.asarray(b)).max()))
+
+
+def test_closed_form_cofactor_and_determinant_of_the_q1p0_kernel():
+    """The tangent kernel's closed-form cof F = det(F) F^-T and det F (the 2 x 2 minors,
+    eyefem.fem.solid.cofactor / det3) equal LAPACK's determinant and inverse to round-off,
+    for general, nearly singular and inverted F, batched over leading axes; and the
+    kernel's blocks are those of autodiff of the element energy (the kernel's check)."""
+    import jax
+
+    from eyefem.fem import solid
+    from eyefem.fem.generators import box
+    from eyefem.fem.terms import Term
+
+    jax.config.update("jax_enable_x64", True)
+    rng = np.random.default_rng(3)
+    F = np.concatenate([np.eye(3) + 0.3 * rng.standard_normal((40, 3, 3)),
+                        np.diag([1.0, 1.0, 1e-6])[None],  # nearly singular
+                        np.diag([1.0, 1.0, -0.5])[None]])  # inverted
+    F = F.reshape(6, 7, 3, 3)
+    det, inv = np.linalg.det(F), np.linalg.inv(F)
+    cof = np.asarray(solid.cofactor(F))
+    np.testing.assert_allclose(cof, det[..., None, None] * np.swapaxes(inv, -1, -2),
+                               rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(solid.det3(F)), det, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(solid.det3(F, cof)), det, rtol=1e-12, atol=1e-15)
+    mesh = box(1.0, 1.0, 1.0, 2, 2, 1)
+    coeffs = MooneyRivlin.from_terms("m", {"c10": 0.1, "c01": 0.02, "c11": 0.01}).coeffs[None]
+    term = solid.SolidQ1P0("solid", mesh, coeffs, multiplier_offset=3 * mesh.n_nodes)
+    q = np.concatenate([0.1 * rng.standard_normal(3 * mesh.n_nodes),
+                        0.01 * rng.standard_normal(mesh.n_elem)])
+    q_loc = q[term.dofs]
+    g, H = term.local_grad_hess(q_loc, term.params, term.data)
+    g_ad, H_ad = Term.local_grad_hess(term, q_loc, term.params, term.data)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(g_ad), rtol=1e-11,
+                               atol=1e-13 * float(np.abs(g_ad).max()))
+    np.testing.assert_allclose(np.asarray(H), np.asarray(H_ad), rtol=1e-11,
+                               atol=1e-13 * float(np.abs(H_ad).max()))

@@ -26,6 +26,32 @@ from eyefem.fem.terms import Term, condense
 N_LOCAL = 25
 
 
+def cofactor(F):
+    """cof F = det(F) F^-T of matrices F (..., 3, 3), closed form (each entry a 2 x 2 minor).
+
+    Batched 3 x 3 determinants and inverses through ``jnp.linalg`` go through an LU
+    factorisation per matrix: on the CPU they took 0.028 s of the Q1P0 tangent kernel's
+    0.2 s for 96,000 Gauss points (12,000 hexahedra), the minors 0.008 s
+    (docs/performance.md, "The kernels' determinants and chunks")."""
+    rows = []
+    for i in range(3):
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        rows.append(jnp.stack([F[..., i1, (j + 1) % 3] * F[..., i2, (j + 2) % 3]
+                               - F[..., i1, (j + 2) % 3] * F[..., i2, (j + 1) % 3]
+                               for j in range(3)], axis=-1))
+    return jnp.stack(rows, axis=-2)
+
+
+def det3(F, cof=None):
+    """det F (...,) of matrices F (..., 3, 3): the expansion along the first row, with
+    ``cof`` = :func:`cofactor` (F) where the caller has it."""
+    if cof is not None:
+        return jnp.sum(F[..., 0, :] * cof[..., 0, :], axis=-1)
+    return (F[..., 0, 0] * (F[..., 1, 1] * F[..., 2, 2] - F[..., 1, 2] * F[..., 2, 1])
+            + F[..., 0, 1] * (F[..., 1, 2] * F[..., 2, 0] - F[..., 1, 0] * F[..., 2, 2])
+            + F[..., 0, 2] * (F[..., 1, 0] * F[..., 2, 1] - F[..., 1, 1] * F[..., 2, 0]))
+
+
 def reduced_invariants(F):
     """I1bar, I2bar and J of deformation gradients F (..., 3, 3)."""
     J = jnp.linalg.det(F)
@@ -70,11 +96,13 @@ def element_coeffs(coeffs, data):
     return coeffs[data["mat"]]
 
 
-KERNEL_CHUNK = {"cpu": 1000}
+KERNEL_CHUNK = {"cpu": 250}
 """Elements per chunk of the Q1P0 tangent kernel, per JAX backend (absent: one chunk). On
 the CPU the kernel's intermediates (per Gauss point: 8 x 24 x 24 and the like) of 12,000
-elements at once took about 300 MB more at the peak than chunks of 1,000 evaluated in turn
-(``jax.lax.map``), in no more time (docs/performance.md, "Where the memory goes")."""
+elements at once took about 300 MB more at the peak than chunks evaluated in turn
+(``jax.lax.map``); chunks of 250 elements, whose intermediates stay in the caches, took
+0.13-0.16 s on the default eye (11,862 hexahedra) where chunks of 1,000 took 0.20-0.26 s
+(docs/performance.md, "The kernels' determinants and chunks")."""
 
 
 def chunked(fn, data, dofs, chunk: int | None):
@@ -184,12 +212,12 @@ class SolidQ1P0(Term):
         C = jnp.swapaxes(F, -1, -2) @ F
         I1 = jnp.trace(C, axis1=-2, axis2=-1)
         I2 = 0.5 * (I1 * I1 - jnp.sum(C * C, axis=(-2, -1)))
-        J = jnp.linalg.det(F)
-        Finv = jnp.linalg.inv(F)
+        cof = cofactor(F)  # J F^-T
+        J = det3(F, cof)
+        Finv = jnp.swapaxes(cof, -1, -2) / J[..., None, None]
         dW, ddW = _inv_grad_hess(jnp.stack([I1, I2, J], axis=-1), lam, c)  # (n, 8, 3), (n, 8, 3, 3)
         W1, W2, WJ = dW[..., 0], dW[..., 1], dW[..., 2]
         FC = F @ C
-        cof = J[..., None, None] * jnp.swapaxes(Finv, -1, -2)
         P = (2.0 * W1 + 2.0 * W2 * I1)[..., None, None] * F - 2.0 * W2[..., None, None] * FC \
             + WJ[..., None, None] * cof
         gu = jnp.einsum("eg,egij,egaj->eai", dv, P, G).reshape(-1, 24)
@@ -234,7 +262,7 @@ def point_fields(F, lam, c):
     strain (n, 8, 3, 3) at the Gauss points from their deformation gradients F (n, 8, 3, 3),
     the elements' multipliers lam (n,) and coefficient tables c (n, 4, 4)."""
     P = _point_grad(F, lam, c)
-    J = jnp.linalg.det(F)
+    J = det3(F)
     sig = jnp.einsum("egij,egkj->egik", P, F) / J[..., None, None]
     E = 0.5 * (jnp.einsum("egki,egkj->egij", F, F) - jnp.eye(3))
     return sig, J, lam, E
