@@ -101,8 +101,9 @@ KERNEL_CHUNK = {"cpu": 250}
 the CPU the kernel's intermediates (per Gauss point: 8 x 24 x 24 and the like) of 12,000
 elements at once took about 300 MB more at the peak than chunks evaluated in turn
 (``jax.lax.map``); chunks of 250 elements, whose intermediates stay in the caches, took
-0.13-0.16 s on the default eye (11,862 hexahedra) where chunks of 1,000 took 0.20-0.26 s
-(docs/performance.md, "The kernels' determinants and chunks")."""
+0.13-0.19 s on the default eye (11,862 hexahedra) where chunks of 1,000 took 0.26-0.31 s
+(medians of three alternating runs; docs/performance.md, "The kernels' determinants and
+chunks")."""
 
 
 def chunked(fn, data, dofs, chunk: int | None):
