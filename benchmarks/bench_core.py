@@ -1,7 +1,8 @@
 """Benchmark of the core solver: a thin spherical shell inflated to 15 mmHg in 10 steps.
 
 Reports, per mesh size: compile time, the split of one Newton iteration into element
-kernels / assembly / linear solve (median of repeats at the converged state; the solve
+kernels / their scatter into the sparse system / linear solve / residual, each part timed
+on its own (median of repeats at the converged state; the solve
 with the Schur CG stopped where a Newton direction's is, ``NewtonOptions.cg_rtol``), Newton
 iterations, total wall time of the load path and peak memory (max RSS): of the process
 when the load path has been solved (import, compilation, the 10 steps: what a run of the
@@ -136,11 +137,10 @@ def bench(n_per_edge, n_thick, backend, repeats=5, extras=False, path=True, solv
     pres = np.zeros(model.n_dof, bool)
     pres[dofs] = True
     asm = Assembler(model, pres)
-    # the kernels the assembly calls: condensed blocks of static terms, plain ones otherwise
-    t_kernel = _median(lambda: [model.local_grad_hess(t, q, theta) if getattr(t, "dynamic", False)
-                                else model.local_grad_hess_condensed(t, q, theta, asm.beta)
-                                for t in model.terms], repeats)
-    t_asm_all = _median(lambda: asm.assemble(q, theta), repeats)
+    # the assembly's two parts, each timed on its own: the kernels, then the scatter
+    t_kernel = _median(lambda: asm.local_blocks(q, theta), repeats)
+    blocks = asm.local_blocks(q, theta)
+    t_scatter = _median(lambda: asm.scatter(model.n_dof, blocks), repeats)
     r, K, B, D, lr = asm.assemble(q, theta)
     t_grad = _median(lambda: model.gradient(q, theta), repeats)
 
@@ -156,9 +156,9 @@ def bench(n_per_edge, n_thick, backend, repeats=5, extras=False, path=True, solv
     return {**extra, 
         "n_elem": model.mesh.n_elem, "n_dof": model.n_dof, "backend": backend,
         "build_s": t_build, "compile_s": t_compile,
-        "kernel_s": t_kernel, "assembly_s": t_asm_all - t_kernel, "solve_s": t_solve,
+        "kernel_s": t_kernel, "scatter_s": t_scatter, "solve_s": t_solve,
         "schur_cg_iterations": cg[-1] if cg else None,
-        "residual_s": t_grad, "iteration_s": t_asm_all + t_solve + t_grad,
+        "residual_s": t_grad, "iteration_s": t_kernel + t_scatter + t_solve + t_grad,
         "newton_iterations": its, "steps": steps, "total_s": t_total,
         "device": jax.devices()[0].platform,
         "peak_rss_path_MB": rss_path,
@@ -178,7 +178,7 @@ def main():
     ap.add_argument("--no-path", dest="path", action="store_false",
                     help="skip the load path; time the iteration near the unloaded state")
     ap.add_argument("--no-solve", dest="solve", action="store_false",
-                    help="with --no-path: leave the linear solve out (kernels and assembly only)")
+                    help="with --no-path: leave the linear solve out (kernels and scatter only)")
     args = ap.parse_args()
     from eyefem.solve.device import select_device
     from eyefem.solve.heap import configure_heap

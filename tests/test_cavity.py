@@ -285,3 +285,26 @@ def test_closing_message_prints_numbers_not_arrays(closed_shell, caplog):
         close_cavity(model, q, theta, "cav", "iop")
     line = next(r.getMessage() for r in caplog.records if "closed at" in r.getMessage())
     assert "[" not in line and re.search(r"P = [-0-9.e+]+ mmHg, V = [0-9.e+]+ mm\^3$", line), line
+
+
+def test_kernels_then_scatter_give_the_exact_tangent_and_residual(closed_shell):
+    """The assembly's two parts apart (``Assembler.local_blocks``, then ``scatter``: what
+    benchmarks/bench_core.py times one by one) give the autodiff residual and the exact
+    saddle-point tangent (beta = 0: K, B and the liquid's rank-one part) to roundoff."""
+    model, q, theta, asm, _ = closed_shell
+    rng = np.random.default_rng(7)
+    q = q + 1e-3 * rng.standard_normal(model.n_dof)  # off equilibrium: a residual to compare
+    blocks = asm.local_blocks(q, theta, beta=0.0)
+    assert [b.term.name for b in blocks] == [t.name for t in model.terms]
+    r, K, B, D, lr = asm.scatter(model.n_dof, blocks)
+    np.testing.assert_allclose(r, model.gradient(q, theta), rtol=0, atol=1e-12 * abs(r).max())
+    assert np.all(D == 0.0) and len(lr) == 1
+    v = np.zeros(model.n_dof)
+    v[asm.free_primal] = rng.standard_normal(asm.n_p)
+    v[asm.mult] = rng.standard_normal(asm.n_m)
+    (al, w), = lr
+    x, y = v[asm.free_primal], v[asm.mult]
+    kv = model.hvp(q, v, theta)
+    np.testing.assert_allclose(K @ x + B @ y + al * w * (w @ x), kv[asm.free_primal], rtol=0,
+                               atol=1e-10 * abs(kv).max())
+    np.testing.assert_allclose(B.T @ x, kv[asm.mult], rtol=0, atol=1e-10 * abs(kv).max())

@@ -32,6 +32,23 @@ class _TermPattern:
     b_valid: np.ndarray | None
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class LocalBlocks:
+    """One term's local blocks at a state (host arrays, n items of k local dofs).
+
+    g (n, k) local gradients; H (n, k_p, k_p) primal Hessians with the multiplier condensed
+    (H_pp + d b b^T), or (n, k, k) for a dynamic term or a Gauss-Newton Hessian; b (n, k_p)
+    and d (n,) the multiplier column and its weight (None without multipliers); low_rank
+    the term's rank-one parts (alpha, v (n_p,)) on the free primal dofs."""
+
+    term: Term
+    g: np.ndarray
+    H: np.ndarray
+    b: np.ndarray | None
+    d: np.ndarray | None
+    low_rank: tuple
+
+
 def _pattern(rows, cols, n):
     """CSR pattern of the (rows, cols) pairs and the slot of each pair."""
     key = rows.astype(np.int64) * n + cols
@@ -129,40 +146,60 @@ class Assembler:
         products with the exact tangent free of the augmentation's cancellation);
         ``model`` assembles another model of the same layout than the one the assembler
         holds (a load path's stages share one assembler: the adjoint of an earlier stage).
+        The kernels' part is :meth:`local_blocks`, the rest :meth:`scatter` (one term's
+        blocks alive at a time).
 
         Returns: (r, K (n_p, n_p) CSR including the condensation, B (n_p, n_m) or None,
         D (n_m,) or None, low_rank list of (alpha, v (n_p,))).
         """
         model = self.model if model is None else model
-        r = np.zeros(model.n_dof)
+        return self.scatter(model.n_dof, self._blocks(model, q, theta, active, gauss_newton,
+                                                      beta), pressure_stiffness)
+
+    def local_blocks(self, q, theta, active=None, gauss_newton=False, beta=None,
+                     model: Model | None = None) -> list[LocalBlocks]:
+        """Every active term's local blocks at q (the element kernels of :meth:`assemble`,
+        evaluated on the host's arrays; arguments as there)."""
+        model = self.model if model is None else model
+        return list(self._blocks(model, q, theta, active, gauss_newton, beta))
+
+    def _blocks(self, model, q, theta, active, gauss_newton, beta):
+        for t in model._active(active):
+            b = d = None
+            if gauss_newton and t.grad_hess_gauss_newton is not None:
+                g, H = model.local_grad_hess_gauss_newton(t, q, theta)
+            elif getattr(t, "dynamic", False):
+                g, H = model.local_grad_hess(t, q, theta)
+            else:
+                g, H, b, d = model.local_grad_hess_condensed(
+                    t, q, theta, self.beta if beta is None else beta)
+            low_rank = tuple((al, np.asarray(v)[self.free_primal])
+                             for al, v in t.low_rank(q, theta[t.name], t.data, t.dofs))
+            yield LocalBlocks(t, g, H, b, d, low_rank)
+
+    def scatter(self, n_dof: int, blocks, pressure_stiffness=True):
+        """The residual and tangent pieces of :meth:`assemble` from the terms' local blocks
+        (an iterable of LocalBlocks, e.g. :meth:`local_blocks`)."""
+        r = np.zeros(n_dof)
         kdata = np.zeros(len(self.indices))
         bdata = np.zeros(self.B_pattern.nnz) if self.n_m else None
         D = np.zeros(self.n_m) if self.n_m else None
         extra = []
         low_rank = []
-        for t in model._active(active):
+        for blk in blocks:
+            t = blk.term
             if getattr(t, "dynamic", False):
-                if gauss_newton and t.grad_hess_gauss_newton is not None:
-                    g, H = model.local_grad_hess_gauss_newton(t, q, theta)
-                else:
-                    g, H = model.local_grad_hess(t, q, theta)
-                extra.append(self._coo(t, H))
+                extra.append(self._coo(t, blk.H))
             else:
-                if gauss_newton and t.grad_hess_gauss_newton is not None:
-                    g, Hpp = model.local_grad_hess_gauss_newton(t, q, theta)
-                    b = d = None
-                else:
-                    g, Hpp, b, d = model.local_grad_hess_condensed(
-                        t, q, theta, self.beta if beta is None else beta)
                 p = self.patterns[t.name]
                 if p.mult is not None:
-                    D[self.mred[t.dofs[:, p.mult]]] = d
-                    bdata += np.bincount(p.b_slots, b.ravel()[p.b_valid], minlength=len(bdata))
+                    D[self.mred[t.dofs[:, p.mult]]] = blk.d
+                    bdata += np.bincount(p.b_slots, blk.b.ravel()[p.b_valid],
+                                         minlength=len(bdata))
                 if pressure_stiffness or not t.pressure_stiffness:
-                    kdata += np.bincount(p.k_slots, Hpp.ravel(), minlength=len(kdata) + 1)[:-1]
-            r += np.bincount(t.dofs.ravel(), g.ravel(), minlength=model.n_dof)
-            for al, v in t.low_rank(q, theta[t.name], t.data, t.dofs):
-                low_rank.append((al, np.asarray(v)[self.free_primal]))
+                    kdata += np.bincount(p.k_slots, blk.H.ravel(), minlength=len(kdata) + 1)[:-1]
+            r += np.bincount(t.dofs.ravel(), blk.g.ravel(), minlength=n_dof)
+            low_rank.extend(blk.low_rank)
         K = sp.csr_matrix((kdata, self.indices, self.indptr), shape=(self.n_p, self.n_p))
         for e in extra:
             K = K + e
