@@ -87,6 +87,46 @@ def test_q1p0_kernel_in_chunks_equals_the_kernel_at_once(monkeypatch):
                                    atol=1e-14 * float(np.abs(np.asarray(b)).max()))
 
 
+def test_adjoint_kernels_in_chunks_equal_the_kernels_at_once(monkeypatch):
+    """The adjoint's kernels (k tangent-vector products, the residual's design derivative
+    along k columns: sums over the elements) accumulated over chunks of elements in turn
+    (eyefem.solve.model.SUM_CHUNK, eyefem.fem.solid.chunked_sum; with and without a
+    remainder) equal the kernels over all elements at once to round-off."""
+    import jax
+
+    from eyefem.fem import solid
+    from eyefem.fem.generators import box
+    from eyefem.solve import model as model_mod
+
+    jax.config.update("jax_enable_x64", True)
+    mesh = box(2.0, 1.0, 1.0, 5, 3, 3)  # 45 elements
+    coeffs = MooneyRivlin.from_terms("default", {"c10": 0.1, "c01": 0.02}).coeffs[None]
+    term = solid.SolidQ1P0("solid", mesh, coeffs, multiplier_offset=3 * mesh.n_nodes)
+    rng = np.random.default_rng(1)
+    n = 3 * mesh.n_nodes + mesh.n_elem
+    q = np.concatenate([0.05 * rng.standard_normal(3 * mesh.n_nodes),
+                        0.01 * rng.standard_normal(mesh.n_elem)])
+    V = rng.standard_normal((n, 3))
+    kernels = {
+        "hvp_many": jax.vmap(model_mod._hvp(term), in_axes=(None, 1, None, None, None),
+                             out_axes=1),
+        "params_vjp_many": jax.vmap(model_mod._params_vjp(term),
+                                    in_axes=(None, 1, None, None, None)),
+    }
+    backend = jax.default_backend()
+    for name, fn in kernels.items():
+        whole = jax.jit(fn)(q, V, term.params, term.data, term.dofs)
+        for chunk in (7, 9):  # 6 chunks and 3 left over; 5 chunks exactly
+            monkeypatch.setitem(model_mod.SUM_CHUNK, backend, chunk)
+            parts = jax.jit(model_mod._over_chunks(term, fn))(q, V, term.params, term.data,
+                                                              term.dofs)
+            for a, b in zip(jax.tree_util.tree_leaves(parts), jax.tree_util.tree_leaves(whole)):
+                b = np.asarray(b)
+                assert np.abs(b).max() > 0, name
+                np.testing.assert_allclose(np.asarray(a), b, rtol=0,
+                                           atol=1e-13 * float(np.abs(b).max()), err_msg=name)
+
+
 def test_closed_form_cofactor_and_determinant_of_the_q1p0_kernel():
     """The tangent kernel's closed-form cof F = det(F) F^-T and det F (the 2 x 2 minors,
     eyefem.fem.solid.cofactor / det3) equal LAPACK's determinant and inverse to round-off,

@@ -125,6 +125,36 @@ def chunked(fn, data, dofs, chunk: int | None):
     return jax.tree_util.tree_map(lambda a: a.reshape((m * chunk,) + a.shape[2:])[:n], out)
 
 
+def chunked_sum(fn, data, dofs, chunk: int | None):
+    """``fn(data, dofs)``, a sum over the items (a residual, a tangent-vector product, a
+    design derivative: any pytree), accumulated over chunks of ``chunk`` items in turn
+    (jax.lax.scan) and the remainder: the same value to roundoff, with the intermediates of
+    one chunk alive at a time. data: arrays with the items on their first axis; dofs (n, k)."""
+    n = dofs.shape[0]
+    if not chunk or n <= chunk:
+        return fn(data, dofs)
+    m = n // chunk
+    cut = m * chunk
+
+    def head(a):
+        return a[:cut].reshape((m, chunk) + a.shape[1:])
+
+    def tail(a):
+        return a[cut:]
+
+    shape = jax.eval_shape(fn, jax.tree_util.tree_map(lambda a: a[:chunk], data), dofs[:chunk])
+    zero = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shape)
+
+    def add(total, xs):
+        return jax.tree_util.tree_map(jnp.add, total, fn(*xs)), None
+
+    total, _ = jax.lax.scan(add, zero, (jax.tree_util.tree_map(head, data), head(dofs)))
+    if cut < n:
+        total = jax.tree_util.tree_map(jnp.add, total, fn(jax.tree_util.tree_map(tail, data),
+                                                          tail(dofs)))
+    return total
+
+
 _inv_grad_hess = jax.vmap(jax.vmap(
     lambda inv, lam, c: (jax.grad(invariant_energy)(inv, lam, c),
                          jax.hessian(invariant_energy)(inv, lam, c)), (0, None, None)), (0, 0, 0))
