@@ -5,7 +5,9 @@ Builds a surgery case (default: case 4 on its own mesh level), solves its first 
 as medians of repeats: the assembly, one numerical factorisation, back-solves with
 1 ... 200 right-hand sides at once (the cost of a Woodbury update of the contact
 look-ahead, one right-hand side per node) and the saddle-point solve (Schur CG
-iterations) for several augmentation strengths beta.
+iterations) for several augmentation strengths beta, and the same saddle point factorised
+whole instead (symmetric indefinite, the Schur CG's fallback: factorisation, one solve with
+0, 1 or 2 refinements and its residual).
 
     python benchmarks/bench_eye_linear.py                       # case 4, default mesh
     python benchmarks/bench_eye_linear.py --mesh coarse --repeats 3
@@ -94,6 +96,32 @@ def main(argv=None):
         x, y = s.solve(f, g)
         out["saddle_solve"][f"{beta:g}"] = {"s": t, "cg_iterations": s.iterations,
                                            "relative_residual": s._residual(f, g, x, y)[2]}
+    # the saddle point without the cavity's low-rank term, solved by the Schur CG and
+    # factorised whole (the CG's fallback, SaddlePointSolver._kkt_solve)
+    s = asm.solver(K, B, D, [])
+    whole = {"schur_solve_s": _median_time(lambda: s.solve(f, g), args.repeats),
+             "schur_cg_iterations": s.iterations,
+             "factorise_s": _median_time(
+                 lambda: (s.__dict__.pop("_kkt", None), s._kkt_solve(f, g)), args.repeats)}
+    out["whole_saddle_point"] = whole
+    s._kkt_solve(f, g)
+    kkt = s._kkt
+    n = len(f)
+    rhs = np.concatenate([f + B @ (D * g), g])
+    for refine in (0, 1, 2):
+        def solve_refined():
+            z = kkt.solve(rhs)
+            for _ in range(refine):
+                z = z + kkt.solve(rhs - np.concatenate([s.K_aug @ z[:n] + B @ z[n:], B.T @ z[:n]]))
+            return z
+        z = solve_refined()
+        whole[f"solve_{refine}_refinements"] = {
+            "s": _median_time(solve_refined, args.repeats),
+            "relative_residual": s._residual(f, g, z[:n], z[n:])[2]}
+    whole["factorise_s"] -= whole["solve_2_refinements"]["s"]  # _kkt_solve's own solve
+    if hasattr(kkt, "entry"):  # Pardiso: (positive, negative, perturbed) pivots
+        iparm = kkt.entry["solver"].iparm
+        whole["inertia"] = [int(iparm[21]), int(iparm[22]), int(iparm[13])]
     text = json.dumps(out, indent=2)
     print(text)
     if args.json:
