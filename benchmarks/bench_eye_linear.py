@@ -9,7 +9,7 @@ iterations) for several augmentation strengths beta, and the same saddle point f
 whole instead (symmetric indefinite, the Schur CG's fallback: factorisation, one solve with
 0, 1 or 2 refinements and its residual).
 
-    python benchmarks/bench_eye_linear.py                       # case 4, default mesh
+    python benchmarks/bench_eye_linear.py                       # case 4 on its level (fine)
     python benchmarks/bench_eye_linear.py --mesh coarse --repeats 3
     python benchmarks/bench_eye_linear.py --not-reproducible    # Pardiso without MKL's CNR
 """
