@@ -15,10 +15,24 @@ Named sets become eyefem's:
   ``GENERATE`` ranges, sets of sets and ``*INCLUDE`` are understood;
 - always: the node set "all", and the face set "boundary" (every boundary face).
 Hexahedra are needed: other volume cells (tetrahedra, wedges) are refused by name.
+
+Inputs stay inputs (docs/errors.md, "Mesh files"): the mesh file must be a regular file of
+at most MAX_MESH_BYTES (with its ``*INCLUDE`` files); an ``*INCLUDE`` must name a regular
+file below the including file's folder (or below a folder of ``allow_include`` /
+``EYEFEM_ALLOW_INCLUDE``), at most MAX_INCLUDE_DEPTH levels deep, each file once (no cycle,
+no fan-out); GENERATE ranges are checked against the nodes/elements defined before they
+are expanded; duplicate node and element numbers (Abaqus) or tags (gmsh) and non-finite
+coordinates are refused by file, line and number; gmsh files must be ASCII.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import errno
+import math
+import os
+import stat
+from array import array
 from pathlib import Path
 
 import numpy as np
@@ -34,18 +48,155 @@ class MeshFileError(ValueError):
     """A mesh file eyefem cannot use; the message names the file and what is wrong."""
 
 
-def read_hex_mesh(path: str | Path) -> Mesh:
-    """The Mesh of a hexahedral mesh file, with materials and named sets (module doc)."""
+MAX_INCLUDE_DEPTH = 16
+"""Most nested Abaqus ``*INCLUDE`` levels (raise: EYEFEM_MAX_INCLUDE_DEPTH or
+read_hex_mesh(..., max_include_depth=N))."""
+
+MAX_MESH_BYTES = 512 * 2**20
+"""Most bytes of a mesh file and its ``*INCLUDE`` files together, 512 MB (raise:
+EYEFEM_MAX_MESH_BYTES or read_hex_mesh(..., max_bytes=N))."""
+
+ENV_ALLOW_INCLUDE = "EYEFEM_ALLOW_INCLUDE"
+"""Folders (separated by os.pathsep) below which ``*INCLUDE`` may also read files."""
+ENV_MAX_INCLUDE_DEPTH = "EYEFEM_MAX_INCLUDE_DEPTH"
+ENV_MAX_MESH_BYTES = "EYEFEM_MAX_MESH_BYTES"
+
+MESH_SUFFIXES = (".msh", ".inp", ".vtu", ".vtk", ".xdmf", ".med")
+"""Suffixes listed when a folder is given as the mesh file."""
+
+
+MESH_FILE = "a mesh file (gmsh .msh, Abaqus .inp or VTU)"
+INCLUDED_FILE = "an Abaqus .inp text file below the including file's folder"
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshLimits:
+    """The bounds of reading a mesh file (module constants, environment, arguments)."""
+
+    allow_include: tuple[Path, ...] = ()
+    max_include_depth: int = MAX_INCLUDE_DEPTH
+    max_bytes: int = MAX_MESH_BYTES
+
+
+def _env_int(name: str, default: int) -> int:
+    raw = os.environ.get(name, "").strip()
+    if not raw:
+        return default
+    try:
+        value = int(raw.replace("_", ""))
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise MeshFileError(f"environment variable {name} = '{raw[:40]}' is not a positive "
+                            f"integer; unset it (default {default}) or give one, e.g. "
+                            f"{name}={default * 2}")
+    return value
+
+
+def mesh_limits(allow_include=(), max_include_depth: int | None = None,
+                max_bytes: int | None = None) -> MeshLimits:
+    """The MeshLimits of the arguments, else of the environment (EYEFEM_ALLOW_INCLUDE,
+    EYEFEM_MAX_INCLUDE_DEPTH, EYEFEM_MAX_MESH_BYTES), else of the module constants."""
+    dirs = [Path(d) for d in (allow_include or ())]
+    dirs += [Path(d) for d in os.environ.get(ENV_ALLOW_INCLUDE, "").split(os.pathsep) if d]
+    for d in dirs:
+        if not d.expanduser().is_dir():
+            raise MeshFileError(f"allowed include folder '{d}' ({ENV_ALLOW_INCLUDE} or "
+                                "allow_include) is not a folder; give an existing folder")
+    depth = max_include_depth if max_include_depth is not None else _env_int(
+        ENV_MAX_INCLUDE_DEPTH, MAX_INCLUDE_DEPTH)
+    size = max_bytes if max_bytes is not None else _env_int(ENV_MAX_MESH_BYTES, MAX_MESH_BYTES)
+    return MeshLimits(tuple(Path(os.path.realpath(d.expanduser())) for d in dirs),
+                      int(depth), int(size))
+
+
+def _file_kind(mode: int) -> str:
+    return ("a FIFO (named pipe)" if stat.S_ISFIFO(mode) else "a character device"
+            if stat.S_ISCHR(mode) else "a block device" if stat.S_ISBLK(mode) else
+            "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+
+
+def _stat_regular(path: Path, label: str, what: str) -> os.stat_result:
+    """The stat of ``path``, a regular file; else a MeshFileError '``label``: why; fix'
+    (``what``: what the file should be). Never opens anything."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise MeshFileError(f"{label}: a symbolic link loop ({exc.strerror}); point it at "
+                                f"{what}") from None
+        if exc.errno in (errno.ENOENT, errno.ENOTDIR):
+            raise MeshFileError(f"{label}: no such file ({path}); give {what}") from None
+        raise MeshFileError(f"{label}: cannot read it ({exc.strerror or exc}); give {what} "
+                            "you can read") from None
+    if stat.S_ISDIR(st.st_mode):
+        try:
+            held = sorted(p.name for p in Path(path).iterdir()
+                          if p.suffix.lower() in MESH_SUFFIXES)[:5]
+        except OSError:
+            held = []
+        hint = f" (it holds {', '.join(held)})" if held else ""
+        raise MeshFileError(f"{label}: is a directory{hint}; give {what}, not a folder")
+    if not stat.S_ISREG(st.st_mode):
+        raise MeshFileError(f"{label}: {_file_kind(st.st_mode)}, not a regular file; give "
+                            f"{what} (a regular file)")
+    return st
+
+
+def _too_big(label: str, limits: MeshLimits) -> MeshFileError:
+    n = limits.max_bytes
+    size = f"{n // 2**20} MB" if n % 2**20 == 0 else f"{n} bytes"
+    return MeshFileError(
+        f"{label}: the mesh file and its *INCLUDE files would exceed {size} "
+        "(MAX_MESH_BYTES, the bound on a mesh's files together); if the mesh is really this "
+        f"large, raise it with {ENV_MAX_MESH_BYTES}=BYTES (or read_hex_mesh(..., max_bytes=...))")
+
+
+def _read_regular(path: Path, label: str, what: str, budget: int, limits: MeshLimits) -> bytes:
+    """The bytes of the regular file ``path``, at most ``budget`` of them (else the size
+    bound's error); opened without blocking and checked again once open."""
+    st = _stat_regular(path, label, what)
+    if st.st_size > budget:
+        raise _too_big(label, limits)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as exc:
+        raise MeshFileError(f"{label}: cannot read it ({exc.strerror or exc}); give {what} "
+                            "you can read") from None
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise MeshFileError(f"{label}: not a regular file; give {what} (a regular file)")
+        data = f.read(budget + 1)
+    if len(data) > budget:
+        raise _too_big(label, limits)
+    return data
+
+
+def read_hex_mesh(path: str | Path, *, allow_include=(), max_include_depth: int | None = None,
+                  max_bytes: int | None = None) -> Mesh:
+    """The Mesh of a hexahedral mesh file, with materials and named sets (module doc).
+
+    ``allow_include``: folders below which an Abaqus ``*INCLUDE`` may also read (besides
+    the including file's folder; also EYEFEM_ALLOW_INCLUDE); ``max_include_depth``,
+    ``max_bytes``: raise MAX_INCLUDE_DEPTH, MAX_MESH_BYTES (also EYEFEM_MAX_INCLUDE_DEPTH,
+    EYEFEM_MAX_MESH_BYTES)."""
     import meshio
 
     path = Path(path)
+    limits = mesh_limits(allow_include, max_include_depth, max_bytes)
+    st = _stat_regular(path, str(path), MESH_FILE)
     if path.suffix.lower() == ".inp":
-        return _abaqus_mesh(path)
+        return _abaqus_mesh(path, limits)
+    if st.st_size > limits.max_bytes:
+        raise _too_big(str(path), limits)
+    if path.suffix.lower() == ".msh":
+        _check_gmsh(path)
     try:
         m = meshio.read(path)
     except Exception as exc:  # noqa: BLE001 - meshio raises many types for a bad file
-        raise MeshFileError(f"{path}: meshio cannot read it ({type(exc).__name__}: {exc}); "
-                            "give a gmsh .msh, Abaqus .inp or VTU hexahedral mesh") from None
+        raise MeshFileError(f"{path}: meshio cannot read it ({type(exc).__name__}: "
+                            f"{str(exc)[:200]}); give a gmsh .msh, Abaqus .inp or VTU "
+                            "hexahedral mesh") from None
     kinds = [c.type for c in m.cells]
     other = sorted({k for k in kinds if k in VOLUME_CELLS})
     if "hexahedron" not in kinds:
@@ -64,6 +215,12 @@ def read_hex_mesh(path: str | Path) -> Mesh:
     nodes = np.asarray(m.points, float)[used]
     if nodes.shape[1] == 2:
         raise MeshFileError(f"{path}: 2-D points; eyefem needs a 3-D hexahedral mesh")
+    finite = np.all(np.isfinite(nodes), axis=1)
+    if not finite.all():  # a .msh is checked by tag before; VTU points have no numbers
+        bad = used[~finite]
+        raise MeshFileError(f"{path}: point {int(bad[0])} (numbered from 0 in the file's "
+                            f"order; {len(bad)} such points) has a non-finite coordinate "
+                            f"{nodes[~finite][0].tolist()}; give finite coordinates")
     groups = _groups(m, hex_blocks)
     mat_names = [name for name, (dim, _) in groups.items() if dim == 3] or ["default"]
     material_ids = np.full(len(hexes), -1, np.int64)
@@ -92,6 +249,116 @@ def read_hex_mesh(path: str | Path) -> Mesh:
                 face_sets[name] = bfaces[inside[bfaces].all(axis=1)]
     return Mesh(nodes, hexes, material_ids, tuple(mat_names), node_sets=node_sets,
                 face_sets=face_sets)
+
+
+GMSH_ASCII_FIX = ("save it as ASCII in gmsh (File > Export > Gmsh MSH with 'Save in binary "
+                  "format' unticked, or Mesh.Binary = 0; e.g. gmsh -3 -format msh41 -bin 0 "
+                  "mesh.geo)")
+
+
+def _check_gmsh(path: Path) -> None:
+    """Refuse a .msh file that is not ASCII gmsh (2.x, 4.0, 4.1), or whose $Nodes or
+    $Elements repeat a tag or whose nodes have a non-finite coordinate (by line and tag);
+    meshio would let the last definition of a node win."""
+    with open(path, "rb") as f:
+        first = f.readline(64).strip()
+        while first == b"$Comments":
+            for line in f:
+                if line.strip() == b"$EndComments":
+                    break
+            first = f.readline(64).strip()
+        header = f.readline(64).split() if first == b"$MeshFormat" else []
+    if len(header) < 2 or header[1] not in (b"0", b"1"):
+        raise MeshFileError(f"{path}: not a gmsh .msh file (it does not begin with a "
+                            "$MeshFormat header); export the mesh from gmsh as an ASCII .msh "
+                            "(format 2.2 or 4.1)")
+    if header[1] == b"1":
+        raise MeshFileError(f"{path}: a binary gmsh file (eyefem checks the node and element "
+                            f"tags of ASCII .msh files only); {GMSH_ASCII_FIX}")
+    try:
+        version = float(header[0])
+    except ValueError:
+        version = 0.0
+    if not 2 <= version < 5:
+        raise MeshFileError(f"{path}: gmsh format '{header[0].decode(errors='replace')[:10]}' "
+                            "(eyefem reads 2.2, 4.0 and 4.1); export the mesh from gmsh as "
+                            "ASCII .msh format 2.2 or 4.1")
+    seen = {"Nodes": set(), "Elements": set()}
+    for section, k, tag, coords in _gmsh_entries(path, version):
+        kind = "node" if section == "Nodes" else "element"
+        if tag in seen[section]:
+            first = next(kk for sec, kk, t, _ in _gmsh_entries(path, version)
+                         if sec == section and t == tag)
+            raise MeshFileError(f"{path}:{k}: {kind} tag {tag} is defined twice (first at line "
+                                f"{first}); give each {kind} its own tag (meshio would keep "
+                                "the last definition)")
+        seen[section].add(tag)
+        for c in coords:
+            try:
+                x = float(c)
+            except ValueError:
+                raise MeshFileError(f"{path}:{k}: $Nodes: coordinate '{c[:20]}' of node {tag} "
+                                    "is not a number; give x y z") from None
+            if not math.isfinite(x):
+                raise MeshFileError(f"{path}:{k}: node {tag} has a non-finite coordinate "
+                                    f"{c[:20]}; give finite coordinates")
+
+
+def _gmsh_entries(path: Path, version: float):
+    """(section, line, tag, coordinates) of the nodes ("Nodes", x y z tokens) and
+    (section, line, tag, ()) of the elements ("Elements") of an ASCII gmsh file; the
+    counts of the file are trusted for nothing but to walk its blocks."""
+    v4, v41 = version >= 4, version >= 4.1
+    with open(path, encoding="utf-8", errors="replace") as f:
+        lines = enumerate(f, 1)
+
+        def take(section):
+            for k, line in lines:
+                tokens = line.split()
+                if tokens and tokens[0].startswith("$"):
+                    raise MeshFileError(f"{path}:{k}: ${section} ends early ({tokens[0][:20]} "
+                                        "before its last entry); export the mesh again from "
+                                        "gmsh")
+                if tokens:
+                    return k, tokens
+            raise MeshFileError(f"{path}: ${section} ends early (end of file); export the mesh "
+                                "again from gmsh")
+
+        def integer(k, tokens, i, section, what):
+            if len(tokens) <= i:
+                raise MeshFileError(f"{path}:{k}: ${section}: {len(tokens)} numbers where a "
+                                    f"{what} was expected; export the mesh again from gmsh")
+            try:
+                return int(tokens[i])
+            except ValueError:
+                raise MeshFileError(f"{path}:{k}: ${section}: {what} '{tokens[i][:20]}' is not "
+                                    "an integer; export the mesh again from gmsh") from None
+
+        for _, line in lines:
+            section = line.strip()[1:]
+            if section not in ("Nodes", "Elements"):
+                continue
+            k, head = take(section)
+            blocks = integer(k, head, 0, section, "count") if v4 else 1
+            for _ in range(blocks):
+                if v4:
+                    k, block = take(section)
+                    count = integer(k, block, 3, section, "block size")
+                else:
+                    count = integer(k, head, 0, section, "count")
+                if v41 and section == "Nodes":  # the tags, then the coordinates
+                    tags = []
+                    for _ in range(count):
+                        k, t = take(section)
+                        tags.append(integer(k, t, 0, section, "node tag"))
+                    for tag in tags:
+                        k, t = take(section)
+                        yield section, k, tag, t[:3]
+                    continue
+                for _ in range(count):
+                    k, t = take(section)
+                    tag = integer(k, t, 0, section, "tag")
+                    yield section, k, tag, (t[1:4] if section == "Nodes" else ())
 
 
 def _groups(m, hex_blocks) -> dict:
@@ -130,27 +397,62 @@ ABAQUS_HEX_FACES = np.array([[0, 1, 2, 3], [4, 7, 6, 5], [0, 4, 5, 1], [1, 5, 6,
 """Local nodes of the faces S1-S6 of an Abaqus C3D8 element (0-based)."""
 
 
-def _inp_lines(path: Path, seen=()):
+def _inp_lines(path: Path, limits: MeshLimits):
     """(file, line number, text) of the data and keyword lines of an .inp file, its
-    ``*INCLUDE, INPUT=...`` files inserted (relative to the including file)."""
-    if path.resolve() in seen:
-        raise MeshFileError(f"{path}: *INCLUDE of itself (a loop through {seen[-1]})")
-    try:
-        text = path.read_text(encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise MeshFileError(f"{path}: cannot read it ({exc.strerror or exc})") from None
-    for k, line in enumerate(text.splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("**"):
-            continue
-        if line.startswith("*"):
-            word, params = _inp_keyword(line)
-            if word == "INCLUDE":
-                if "INPUT" not in params:
-                    raise MeshFileError(f"{path}:{k}: *INCLUDE without INPUT=FILE")
-                yield from _inp_lines(path.parent / params["INPUT"], (*seen, path.resolve()))
+    ``*INCLUDE, INPUT=...`` files inserted (relative to the including file; module doc:
+    below its folder or an allowed one, regular files, MAX_INCLUDE_DEPTH levels, each file
+    once, MAX_MESH_BYTES in all). Nothing outside is opened: the checks come first."""
+    total = [0]
+    real = Path(os.path.realpath(path))
+    seen = {real: f"{path} (the mesh file)"}
+
+    def walk(shown: Path, real: Path, label: str, stack: tuple):
+        data = _read_regular(real, label, MESH_FILE if len(stack) == 1 else INCLUDED_FILE,
+                             limits.max_bytes - total[0], limits)
+        total[0] += len(data)
+        for k, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), 1):
+            line = line.strip()
+            if not line or line.startswith("**"):
                 continue
-        yield path, k, line
+            if line.startswith("*"):
+                word, params = _inp_keyword(line)
+                if word == "INCLUDE":
+                    yield from include(shown, real, k, params, stack)
+                    continue
+            yield shown, k, line
+
+    def include(shown, real, k, params, stack):
+        value = params.get("INPUT", "")
+        if not value:
+            raise MeshFileError(f"{shown}:{k}: *INCLUDE without INPUT=FILE; give the file to "
+                                "include, relative to this file's folder")
+        at = f"{shown}:{k}: *INCLUDE, INPUT={value[:200]}"
+        target = Path(os.path.realpath(real.parent / value))
+        roots = (real.parent, *limits.allow_include)
+        if not any(target == r or target.is_relative_to(r) for r in roots):
+            raise MeshFileError(
+                f"{at}: outside the folder of {shown.name} ({real.parent}); an *INCLUDE reads "
+                "files below the including file's folder only: copy the file there, or allow "
+                f"its folder with {ENV_ALLOW_INCLUDE}=DIR (or read_hex_mesh(..., "
+                "allow_include=[DIR]))")
+        if target in stack:
+            names = " -> ".join(p.name for p in stack[stack.index(target):])
+            raise MeshFileError(f"{at}: an include cycle ({names} -> {target.name}); remove "
+                                "the *INCLUDE that closes it")
+        if target in seen:
+            raise MeshFileError(f"{at}: {target.name} is already included (at {seen[target]}); "
+                                "each file is included once (a repeated *INCLUDE defines its "
+                                "nodes and elements again; many of them are an include "
+                                "bomb): remove the repeated *INCLUDE")
+        if len(stack) > limits.max_include_depth:
+            raise MeshFileError(
+                f"{at}: *INCLUDE nested more than {limits.max_include_depth} levels deep "
+                "(MAX_INCLUDE_DEPTH); flatten the includes, or raise the bound with "
+                f"{ENV_MAX_INCLUDE_DEPTH}=N (or read_hex_mesh(..., max_include_depth=N))")
+        seen[target] = f"{shown}:{k}"
+        yield from walk(shown.parent / value, target, at, (*stack, target))
+
+    yield from walk(path, real, str(path), (real,))
 
 
 def _inp_keyword(line: str) -> tuple[str, dict]:
@@ -164,10 +466,13 @@ def _inp_keyword(line: str) -> tuple[str, dict]:
     return " ".join(head.upper().split()), params
 
 
-def _abaqus_mesh(path: Path) -> Mesh:
+def _abaqus_mesh(path: Path, limits: MeshLimits = MeshLimits()) -> Mesh:
     """The Mesh of an Abaqus .inp file (module doc)."""
     nodes, node_index = [], {}  # node number -> row
     hexes, hex_index = [], {}  # element number -> hexahedron index (C3D8*)
+    files, file_no = [], {}  # the files read; file -> its index in files
+    node_at, hex_at = (array("q"), array("q")), (array("q"), array("q"))  # (file, line)
+    other_elements = 0  # data lines of *ELEMENT blocks of other types (for GENERATE)
     nsets, elsets, names = {}, {}, {}  # upper name -> numbers; upper name -> spelling
     sections, surfaces, refused, parts, block_sets = [], {}, set(), 0, []
     word, params, where, pending, block_start = "", {}, "", [], ""
@@ -187,7 +492,17 @@ def _abaqus_mesh(path: Path) -> Mesh:
     def numbers(line):
         return [t.strip() for t in line.split(",") if t.strip()]
 
-    for file, k, line in _inp_lines(path):
+    def first_at(at, row):
+        return f"{files[at[0][row]]}:{at[1][row]}"
+
+    def mark(at, file, k):
+        if file not in file_no:
+            file_no[file] = len(files)
+            files.append(file)
+        at[0].append(file_no[file])
+        at[1].append(k)
+
+    for file, k, line in _inp_lines(path, limits):
         where = f"{file}:{k}"
         if line.startswith("*"):
             if pending:
@@ -222,8 +537,19 @@ def _abaqus_mesh(path: Path) -> Mesh:
                 if len(v) != 4:
                     raise MeshFileError(f"{where}: node line '{line}'; eyefem needs 3-D "
                                         "nodes: number, x, y, z")
-                node_index[int(v[0])] = len(nodes)
-                nodes.append([float(x) for x in v[1:]])
+                number, xyz = int(v[0]), [float(x) for x in v[1:]]
+                if number in node_index:
+                    raise MeshFileError(
+                        f"{where}: node {number} is defined twice (first at "
+                        f"{first_at(node_at, node_index[number])}); give each node its own "
+                        "number (else the last definition would silently move the node)")
+                bad = next((t for t, x in zip(v[1:], xyz) if not math.isfinite(x)), None)
+                if bad is not None:
+                    raise MeshFileError(f"{where}: node {number} has a non-finite coordinate "
+                                        f"{bad[:20]}; give finite x, y, z")
+                node_index[number] = len(nodes)
+                mark(node_at, file, k)
+                nodes.append(xyz)
                 if "NSET" in params:
                     add_set(nsets, params["NSET"], [int(v[0])])
             elif word == "ELEMENT":
@@ -236,11 +562,18 @@ def _abaqus_mesh(path: Path) -> Mesh:
                     while len(pending) >= 9:
                         number, conn = pending[0], pending[1:9]
                         del pending[:9]
+                        if number in hex_index:
+                            raise MeshFileError(
+                                f"{where}: element {number} is defined twice (first at "
+                                f"{first_at(hex_at, hex_index[number])}); give each element "
+                                "its own number")
                         hex_index[number] = len(hexes)
+                        mark(hex_at, file, k)
                         hexes.append(conn)
                         if "ELSET" in params:
                             add_set(elsets, params["ELSET"], [number])
                 else:
+                    other_elements += 1
                     family = next((f for f in ABAQUS_REFUSED if etype.startswith(f)), None)
                     if family:
                         refused.add(f"{ABAQUS_REFUSED[family]} ({etype})")
@@ -248,8 +581,8 @@ def _abaqus_mesh(path: Path) -> Mesh:
                 table = nsets if word == "NSET" else elsets
                 tokens = numbers(line)
                 if "GENERATE" in params:
-                    a, b, *step = (int(t) for t in tokens)
-                    ids = list(range(a, b + 1, step[0] if step else 1))
+                    ids = _generate(tokens, where, word, len(nodes) if word == "NSET"
+                                    else len(hexes) + other_elements)
                 elif all(t.lstrip("-").isdigit() for t in tokens):
                     ids = [int(t) for t in tokens]
                 else:
@@ -341,6 +674,36 @@ def _abaqus_mesh(path: Path) -> Mesh:
                                                 sections, hex_index, resolve, elsets)
     return Mesh(points, hexes, material_ids, materials, node_sets=node_sets,
                 face_sets=face_sets, element_sets=element_sets)
+
+
+def _generate(tokens: list, where: str, word: str, defined: int) -> range:
+    """The numbers of a ``*NSET/*ELSET, GENERATE`` line 'FIRST, LAST[, STEP]', checked
+    before anything is allocated: a positive step, FIRST <= LAST, and no more numbers than
+    the nodes (elements) defined above the line."""
+    at = f"{where}: *{word}, GENERATE '{', '.join(t[:20] for t in tokens[:4])}'"
+    form = "FIRST, LAST[, STEP]"
+    if len(tokens) not in (2, 3):
+        raise MeshFileError(f"{at}: {len(tokens)} numbers; a GENERATE line is {form}")
+    try:
+        first, last, step = (*(int(t) for t in tokens[:2]),
+                             int(tokens[2]) if len(tokens) == 3 else 1)
+    except ValueError:
+        bad = next(t for t in tokens if not t.lstrip("+-").isdigit())
+        raise MeshFileError(f"{at}: '{bad[:20]}' is not an integer; a GENERATE line is "
+                            f"{form}") from None
+    if step < 1:
+        raise MeshFileError(f"{at}: step {step}; a GENERATE step must be at least 1 ({form})")
+    if last < first:
+        raise MeshFileError(f"{at}: a reversed range (LAST {last} below FIRST {first}); write "
+                            f"it as {last}, {first}" + (f", {step}" if len(tokens) == 3 else ""))
+    kind = "node" if word == "NSET" else "element"
+    count = (last - first) // step + 1
+    if count > defined:
+        raise MeshFileError(f"{at}: {count} {kind} numbers, more than the {defined} {kind}s "
+                            f"defined above this line; a GENERATE range names {kind}s defined "
+                            f"before it: correct the range (or put the set after its *"
+                            f"{'NODE' if kind == 'node' else 'ELEMENT'} lines)")
+    return range(first, last + 1, step)
 
 
 def _is_face_label(label: str) -> bool:
