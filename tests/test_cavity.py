@@ -109,11 +109,13 @@ def test_injected_volume_steps_converge_relative_to_the_load_they_carry():
     liquid is 4000 x stiffer than the wall). Measured against that first residual, the
     steps were accepted at ~1e-7 N and their pressures were 2e-7 off the tight solution,
     with rtol 1e-8 and with rtol 1e-10 alike; measured against the load the state carries
-    (NewtonOptions.rtol) the default tolerance gives the tight solution to 1e-11 (measured:
-    at most 7e-12)."""
+    (NewtonOptions.rtol, 1e-8) the default tolerance gives the tight solution to the order
+    of that tolerance (measured 1.1e-8, steps accepted at 1.0e-8 of their load; 7e-12
+    before the tangent predictor, whose steps end nearer the tolerance): at 5e-8, 4 times
+    inside the first-residual measure's error."""
     default, _ = _inflate_octant(8, 4)
     tight, _ = _inflate_octant(8, 4, options=NewtonOptions(rtol=1e-11, atol=1e-14))
-    np.testing.assert_allclose(np.array(default)[:, 0], np.array(tight)[:, 0], rtol=1e-9, atol=0)
+    np.testing.assert_allclose(np.array(default)[:, 0], np.array(tight)[:, 0], rtol=5e-8, atol=0)
 
 
 def test_thick_sphere_inflation_by_injected_volume():

@@ -331,7 +331,11 @@ def test_file_paths_of_the_base_case_stay_valid_in_the_runs(tmp_path):
 def test_coarse_surgery_sweep_equals_serial_runs(client, tmp_path):
     """A 2 x 2 coarse surgery sweep (case 1: tightening x suture width) on 2 workers
     against the same cases run one after the other with `eyefem run`: slow (8 coarse
-    surgery runs: 18 minutes on a shared 2-core machine)."""
+    surgery runs: 18 minutes on a shared 2-core machine). A worker and a serial run solve
+    on different thread counts, so their sums round differently and their states agree to
+    the force tolerance, not bit for bit (measured up to 1.4e-9 relative in an outcome):
+    they are compared at 1e-6, the tolerance of the recorded coarse outcomes
+    (tests/test_surgery_cases.py)."""
     from eyefem.cli.main import main
 
     sweep = load_sweep(ROOT / "cases/sweeps/case1_coarse.toml")
@@ -344,7 +348,7 @@ def test_coarse_surgery_sweep_equals_serial_runs(client, tmp_path):
                      "--no-vtu"]) == 0
         ref = json.loads((tmp_path / f"serial{r['index']}" / "summary.json").read_text())
         for o in sweep.outcomes:
-            assert math.isclose(r[o], ref[o], rel_tol=1e-9, abs_tol=1e-12), (o, r[o], ref[o])
+            assert math.isclose(r[o], ref[o], rel_tol=1e-6, abs_tol=1e-12), (o, r[o], ref[o])
 
 
 def test_progress_lines_at_most_every_interval():

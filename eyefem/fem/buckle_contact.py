@@ -167,6 +167,8 @@ class BuckleContact(Term):
         differentiable; module docstring).
     """
 
+    contact = True
+
     name: str
     mesh: Mesh
     node_set: str

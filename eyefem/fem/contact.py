@@ -215,6 +215,7 @@ class SurfaceContact(Term):
     smoothing: float | None = None
     normals: str = "facet"
     dynamic = True
+    contact = True
 
     def __post_init__(self):
         if self.normals not in ("facet", "nodal"):

@@ -39,6 +39,7 @@ class RigidContact(Term):
     search_gap: float | None = None
     max_initial_penetration: float | None = None
     dynamic = True
+    contact = True
 
     def __post_init__(self):
         nodes = self.mesh.node_set(self.node_set)

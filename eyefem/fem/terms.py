@@ -39,7 +39,7 @@ class Term(abc.ABC):
       data: dict of fixed arrays with leading axis n_items (or global).
       multiplier_slots: local positions (within k) that hold Lagrange multipliers
         (zero diagonal block; condensed by the saddle-point solver).
-      dynamic: see below.
+      dynamic, contact: see below.
 
     Terms whose energy is not a sum of independent local energies (a fluid cavity:
     the pressure depends on the whole enclosed volume) override ``energy`` and
@@ -54,6 +54,10 @@ class Term(abc.ABC):
     dynamic: bool = False
     """True if ``dofs`` change between Newton iterations (contact pairing): assembled
     without a precomputed pattern."""
+    contact: bool = False
+    """True for a contact term (penalty contact, analytic or re-paired): its force switches
+    on and off with the state, so a load step may not start from the previous step's
+    tangent (``NewtonOptions.tangent_predictor``)."""
     pressure_stiffness: bool = False
     """True if the Hessian is a follower pressure's load stiffness (-p d2V/dq2, a closed
     cavity or a pressure load): the Newton solver leaves it out of its tangent far from

@@ -122,6 +122,14 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
             model.term(name)
             theta_end[name] = {**theta[name], **p}
         t, dt, step, cuts, step_refs, prev = 0.0, 1.0 / stage.n_steps, 0, 0, [], None
+        tangent, previous = None, None  # the tangent predictor's factorisation, (theta, r)
+        # not where contact is active: its forces switch with the state, and the old
+        # tangent's step (blind to the contact the step makes) left coarse case 1's
+        # tightening steps 3-4 iterations longer and took coarse case 2's encircled globe
+        # to another, ovalised equilibrium (docs/formulation.md)
+        predicts = options.tangent_predictor and not any(
+            t.contact or t.dynamic for t in model.terms
+            if stage.active is None or t.name in stage.active)
         path = [(0.0, q)]  # (load factor, state) of the stage's start and converged steps
         while t < 1.0 - 1e-12:
             t_new = min(1.0, t + dt)
@@ -137,7 +145,9 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
                     dqp[dofs] = start_vals + t_new * (targets - start_vals) - q_start[dofs]
                     try:
                         done = newton(model, asm, q_start, th, dqp, options, stage.active, vref,
-                                      fscale, final=t_new >= 1.0 - 1e-12)
+                                      fscale, final=t_new >= 1.0 - 1e-12,
+                                      predictor=tangent if k + 1 == len(starts_q) else None,
+                                      previous=previous)
                         break
                     except StepFailed as exc:
                         if k + 1 == len(starts_q):
@@ -164,6 +174,9 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
             t, q, theta, model, its = t_new, done.q, th, done.model, done.iterations
             path.append((t, q))
             last_solver = done.solver
+            if predicts and done.solver is not None:
+                tangent = done.solver
+            previous = (th, done.r) if done.r is not None else None
             rec = StepRecord(stage.name, step, t, its, done.residual, time.perf_counter() - tic,
                              {} if done.status.balanced else
                              {ACCEPTED_FLAGS[done.status]: True, "unbalanced_N": done.unbalanced_N})

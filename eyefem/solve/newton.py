@@ -1,5 +1,6 @@
-"""Newton's method for one load step: the consistent linear predictor, the iterations
-with their convergence test, the contact strategy (eyefem.solve.contact_strategy), the
+"""Newton's method for one load step: the predictors (the tangent predictor on the
+previous step's factorisation, the consistent linear predictor), the iterations with
+their convergence test, the contact strategy (eyefem.solve.contact_strategy), the
 acceptance of a stalled step, and the globalised update (eyefem.solve.globalisation)."""
 
 from __future__ import annotations
@@ -7,11 +8,14 @@ from __future__ import annotations
 import dataclasses
 import logging
 
+import jax
 import numpy as np
 
 from eyefem.solve.assembly import Assembler
 from eyefem.solve.contact_strategy import has_contact, repaired, settle_pairing
-from eyefem.solve.globalisation import evaluate, globalised_update
+from eyefem.solve.globalisation import (Evaluated, Restoration, evaluate,
+                                        globalised_update, line_search, merit)
+from eyefem.solve.linsolve import LinearSolveError
 from eyefem.solve.model import Model
 from eyefem.solve.options import NewtonOptions
 from eyefem.solve.records import StepFailed, StepResult, StepStatus
@@ -20,6 +24,10 @@ log = logging.getLogger(__name__)
 
 PREDICTOR_SCALES = (1.0, 0.5, 0.25, 0.125, 0.0)
 """Fractions of the linear predictor's correction tried in turn (:func:`predicted`)."""
+
+PREDICTOR_ALPHAS = (1.0, 0.5, 0.25)
+"""Step lengths of a load-driven step's tangent predictor tried in turn (a line search on
+the merit, :func:`_tangent_predict`); none lowering it, the step starts at the last state."""
 
 
 def predicted(q_prescribed, correction, residual):
@@ -57,11 +65,17 @@ class _Iterate:
 
 
 def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOptions,
-           active=None, vref=1.0, fscale=0.0, final=True) -> StepResult:
+           active=None, vref=1.0, fscale=0.0, final=True, predictor=None,
+           previous=None) -> StepResult:
     """Solve one load step from q (n_dof,), the state at the previous step.
 
     dq_prescribed (n_dof,): the increment of the prescribed dofs (zero elsewhere), taken
-    with the consistent linear predictor. The force tolerance is relative to the load the
+    with the consistent linear predictor. ``predictor``: the last factorised tangent of
+    the stage's previous step (a SaddlePointSolver of ``asm``'s layout), or None; with it
+    the step starts from the tangent predictor on that factorisation
+    (:func:`_tangent_predict`), without an assembly. ``previous``: (theta, r (n_dof,)) of
+    the converged state q (its residual is not evaluated again where the load is the
+    same), or None. The force tolerance is relative to the load the
     iterate carries (:meth:`Model.gradient_and_load` on the free dofs, or the reactions if
     larger), so it means the same in every step: a step whose first residual is huge (a
     volume injected into a stiff cavity, a stiff band moved by its ends) is not accepted
@@ -75,7 +89,9 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
     free, mult = asm.free_primal, asm.mult
     s = _Iterate(model, q.copy(), fscale)
     asm.model = model  # after a failed try the assembler holds that try's contact pairing
-    if np.any(dq_prescribed):
+    if predictor is not None:
+        _tangent_predict(s, asm, theta, dq_prescribed, opts, active, predictor, vref, previous)
+    elif np.any(dq_prescribed):
         _predict(s, asm, theta, dq_prescribed, opts, active)
     for it in range(opts.max_iter + 1):
         paired_here = not s.frozen  # this iterate is re-paired at its own state
@@ -95,7 +111,7 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                   s.fref, nm, " (pairs frozen)" if s.frozen else "")
         if nf <= opts.rtol * s.load + opts.atol and nm <= opts.vtol:
             if not s.frozen:
-                return StepResult(s.model, s.q, it, nf, s.solver, s.fref, load_N=s.load)
+                return StepResult(s.model, s.q, it, nf, s.solver, s.fref, load_N=s.load, r=r)
             done, goes_on = settle_pairing(s.model, s.q, theta, active, asm, opts, s.fref,
                                            s.load, nf, it, s.flips, s.solver)
             if done is not None:
@@ -141,15 +157,81 @@ def _predict(s: _Iterate, asm: Assembler, theta, dq_prescribed, opts: NewtonOpti
     s.solver = asm.solver(K, B, D, lr, opts.backend, cg_rtol=opts.cg_rtol)
     rhs = r + hv
     x, y = s.solver.solve(-rhs[free], -rhs[mult])
+    s.q, s.evaluated = _prescribed_start(asm, model, q, theta, active, dq_prescribed,
+                                         asm.expand(x, y))
+    s.fref = np.linalg.norm(rhs[free])
+
+
+def _prescribed_start(asm, model, q, theta, active, dq_prescribed, correction):
+    """q + dq_prescribed plus the largest finite fraction of ``correction`` (n_dof,)
+    (:func:`predicted`), and its :class:`Evaluated` residual (None if not evaluated)."""
     tried = []
 
     def residual(z):
         tried.append(evaluate(model, z, theta, active, asm))
         return tried[-1].r if tried[-1] is not None else np.full(1, np.nan)
 
-    s.q = predicted(q + dq_prescribed, asm.expand(x, y), residual)
-    s.evaluated = tried[-1] if tried else None
-    s.fref = np.linalg.norm(rhs[free])
+    q_new = predicted(q + dq_prescribed, correction, residual)
+    return q_new, tried[-1] if tried else None
+
+
+def _tangent_predict(s: _Iterate, asm: Assembler, theta, dq_prescribed, opts: NewtonOptions,
+                     active, solver, vref, previous=None):
+    """The step's start from the tangent predictor on ``solver``, the factorised tangent K
+    of the stage's previous step: the implicit-function derivative of the path taken over
+    the increment, dq = -K^-1 (r(q, theta) + K_q dq_prescribed) (r at the new load, K_q dq
+    the exact tangent's product with the prescribed increment), one solve and no assembly.
+    A displacement-driven step takes it as :func:`_predict` takes its own (the largest
+    finite fraction); a load-driven one at the first of :data:`PREDICTOR_ALPHAS` that
+    lowers the merit (force and volume residual) of the last state at the new load, its
+    trials restored to the linearised cavity volumes (:class:`Restoration`, as a Newton
+    step's), else the iterations start at the last state. Falls back to :func:`_predict`
+    when the old factorisation does not solve. The reference force becomes at least the
+    predictor's right-hand side. ``previous`` (theta, r): the residual r at q under that
+    load, used where ``theta`` is the same (no state evaluated twice)."""
+    free, mult, model, q = asm.free_primal, asm.mult, s.model, s.q
+    prescribed = bool(np.any(dq_prescribed))
+    if prescribed and previous is not None and _same_load(previous[0], theta):
+        start = Evaluated(model, q, previous[1], 0.0)
+    else:
+        start = evaluate(model, q, theta, active, asm)
+    if start is None:  # the last state's residual at the new load is not finite
+        return _predict(s, asm, theta, dq_prescribed, opts, active) if prescribed else None
+    rhs = start.r + (model.hvp(q, dq_prescribed, theta, active) if prescribed else 0.0)
+    fref = float(np.linalg.norm(rhs[free]))
+    try:
+        x, y = solver.solve(-rhs[free], -rhs[mult])
+    except LinearSolveError as exc:
+        log.debug("  tangent predictor: the previous step's factorisation fails (%s)", exc)
+        if prescribed:
+            return _predict(s, asm, theta, dq_prescribed, opts, active)
+        s.evaluated = start
+        return None
+    s.fref = max(s.fref, fref)
+    dq = asm.expand(x, y)
+    if prescribed:
+        s.q, s.evaluated = _prescribed_start(asm, model, q, theta, active, dq_prescribed, dq)
+        return None
+    restore = Restoration(model, q, dq, theta, active, asm, solver) if opts.restore else None
+    try:
+        q_new, lowered, ev = line_search(model, q, dq, theta, active, asm,
+                                         merit(start, asm, fref, vref), fref, vref,
+                                         PREDICTOR_ALPHAS, restore)
+    except StepFailed:  # every trial inverts an element
+        lowered = False
+    if not lowered:
+        log.debug("  tangent predictor does not lower the residual: not taken")
+        s.q, s.evaluated = q, start
+        return None
+    s.q, s.evaluated = q_new, ev
+    return None
+
+
+def _same_load(a, b) -> bool:
+    """Whether the parameter pytrees a and b hold the same values."""
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    return ta == tb and all(np.array_equal(x, y) for x, y in zip(la, lb))
 
 
 def _stalled(history: list, k: int) -> bool:

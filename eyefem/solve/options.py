@@ -24,6 +24,11 @@ class NewtonOptions:
         after each step converged in at most this many iterations.
       extrapolate: start a step from the secant extrapolation of the two previous states of
         the stage (from the last state if that fails).
+      tangent_predictor: start a step (after the first of its stage; not in stages with
+        contact) from the tangent predictor on the last factorisation of the stage's
+        previous step: one solve, no assembly (eyefem.solve.newton); off: the first
+        iterate of a load-driven step is a fresh Newton step, that of a
+        displacement-driven one the consistent predictor on a fresh factorisation.
 
     Linear solves:
       backend: linear solver backend (None: the default, eyefem.solve.linsolve).
@@ -84,6 +89,7 @@ class NewtonOptions:
     contact_rtol: float = 1e-4
     contact_cycle_rtol: float = 1e-3
     extrapolate: bool = False
+    tangent_predictor: bool = True
     modified_newton: float = 1e-2
     pressure_stiffness: bool = False
     restore: bool = True

@@ -48,6 +48,8 @@ class StepResult:
         (its residual on a stall; re-paired, on a contact cycle), N; 0 when converged.
       load_N: the force the state carries, N (the largest of the terms' forces on the free
         dofs and the reactions): the tolerances are relative to it.
+      r: (n_dof,) the residual of ``model`` at q where the step converged (else None): the
+        next step's tangent predictor needs it when its load does not change.
     """
 
     model: Model
@@ -59,6 +61,7 @@ class StepResult:
     status: StepStatus = StepStatus.CONVERGED
     unbalanced_N: float = 0.0
     load_N: float = 0.0
+    r: Any = None
 
 
 ACCEPTED_FLAGS = {StepStatus.STALLED: "stalled", StepStatus.CONTACT_CYCLE: "contact_cycle"}
