@@ -95,7 +95,9 @@ def test_round_trip_gives_the_same_solution(round_trip):
     *_, native, imported = round_trip
     n_u = 3 * round_trip[3].n_nodes
     u0, u1 = native.q[:n_u], imported.q[:n_u]
-    assert np.max(np.abs(u0)) > 0.1  # mm: a real deformation (0.148 mm recorded)
+    # mm: a real deformation (0.0732 mm recorded; x1's open edges make its pressure a
+    # FollowerPressure on both sides)
+    assert np.max(np.abs(u0)) > 0.05
     assert np.max(np.abs(u1 - u0)) <= 1e-6
 
 

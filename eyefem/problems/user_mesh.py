@@ -2,8 +2,9 @@
 loaded by node sets held, moved or pressed: ``problem = "user_mesh"``.
 
 One stage of ``steps`` load steps ramps the prescribed displacements and the follower
-pressure from zero. Materials are named by the mesh's volume groups (or "default"), each
-given in the case file's ``[materials.NAME]``.
+pressure from zero (exact on an open face set too: eyefem.fem.surface.pressure_term).
+Materials are named by the mesh's volume groups (or "default"), each given in the case
+file's ``[materials.NAME]``.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import difflib
 
 import numpy as np
 
-from eyefem.fem.surface import PressureLoad
+from eyefem.fem.surface import pressure_term
 from eyefem.io.casefile import REQUIRED, Field, positive
 from eyefem.io.meshfile import read_hex_mesh
 from eyefem.io.runner import Setup
@@ -82,7 +83,7 @@ def user_mesh(p, materials):
     terms, params = (), {}
     if p["pressure_surface"]:
         _named(p["pressure_surface"], mesh.face_sets, "face set", p["mesh_file"])
-        terms = (PressureLoad("pressure", mesh, p["pressure_surface"], 0.0),)
+        terms = (pressure_term("pressure", mesh, p["pressure_surface"], 0.0),)
         params = {"pressure": {"p": p["pressure"]}}
     model = solid_model(mesh, mats, terms)
     n = mesh.n_nodes

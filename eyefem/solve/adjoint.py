@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from eyefem.solve.errors import LinearSolveError
-from eyefem.solve.model import Model
+from eyefem.solve.model import Model, non_potential
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +41,17 @@ the residual by 1e-4..1e-8 (the factorisation is the last Newton iteration's), s
 three sweeps reach ``tol``."""
 
 
+def check_potential(model: Model, active=None) -> None:
+    """ValueError if an active term is not a potential (a follower pressure on an open
+    surface): its tangent is not symmetric, and the adjoint (K lam = dJ/dq with K
+    symmetric) would be that of another problem."""
+    loads = non_potential(model._active(active))
+    if loads:
+        raise ValueError(f"adjoint gradients: {loads} are follower pressures on open surfaces "
+                         "(not potentials; their tangent is not symmetric), which the adjoint "
+                         "does not handle; take finite differences of full solves instead")
+
+
 def adjoint_solve(model: Model, solver, asm, q, theta, rhs, *, active=None, tol=1e-10,
                   max_refine=20):
     """Solve K lam = rhs on the free dofs with a (possibly slightly stale) factorisation.
@@ -53,10 +64,12 @@ def adjoint_solve(model: Model, solver, asm, q, theta, rhs, *, active=None, tol=
     residual check (``SaddlePointSolver.approximate_solve``): the sweep's residual against
     the exact tangent is that check. Returns lam like rhs, zero on prescribed dofs.
 
-    Raises LinearSolveError when a sweep's residual is not finite; stops with a warning
-    when a sweep lowers no column's residual (a singular or indefinite tangent) or after
-    ``max_refine`` sweeps.
+    Raises ValueError for a model with a term that is not a potential
+    (:func:`check_potential`), LinearSolveError when a sweep's residual is not finite;
+    stops with a warning when a sweep lowers no column's residual (a singular or
+    indefinite tangent) or after ``max_refine`` sweeps.
     """
+    check_potential(model, active)
     one = np.ndim(rhs) == 1
     rhs = np.asarray(rhs, float).reshape(model.n_dof, -1)
     free, mult = asm.free_primal, asm.mult
@@ -192,9 +205,10 @@ def values_and_grads(objectives: Callable[..., Any], solution, *, active=None, d
         log.warning("adjoint gradient at stage '%s' step %d (t = %.4g), accepted with %.3e N "
                     "out of balance: the gradient is that of the nearby converged pairing",
                     last.stage, last.step, last.t, last.info["unbalanced_N"])
+    active = solution.active if active is None else active
+    check_potential(solution.model, active)
     solution = solution.factorised()
     model, q, theta = solution.model, solution.q, solution.theta
-    active = solution.active if active is None else active
     theta_j = jax.tree_util.tree_map(jnp.asarray, theta)
     q_j = jnp.asarray(q)
     if data is None:

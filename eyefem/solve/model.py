@@ -98,7 +98,7 @@ class Model:
             elif kind == "energy":
                 ks[key] = jax.jit(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
             elif kind == "grad":
-                ks[key] = jax.jit(jax.grad(lambda q, p, d, dofs: term.energy(q, p, d, dofs)))
+                ks[key] = jax.jit(_residual(term))
             elif kind == "lookahead":
                 ks[key] = jax.jit(lambda q, dq, p, d, dofs: term.gap_linearisation(q[dofs], dq[dofs], p, d))
             elif kind == "hvp":
@@ -112,12 +112,18 @@ class Model:
         return ks[key]
 
     def energy(self, q, theta, active=None) -> float:
-        """Total potential energy (N mm) at q for the design theta."""
+        """Total potential energy (N mm) at q for the design theta; a ValueError if an
+        active term is not a potential (:func:`non_potential`)."""
+        loads = non_potential(self._active(active))
+        if loads:
+            raise ValueError(f"the model has no total energy: {loads} are follower loads "
+                             "that are not potentials (their residuals are exact)")
         return float(sum(self._kernel(t, "energy")(q, theta[t.name], t.data, t.dofs)
                          for t in self._active(active)))
 
     def gradient(self, q, theta, active=None) -> np.ndarray:
-        """Residual dPi/dq (n_dof,) (internal minus external forces; constraint values)."""
+        """Residual dPi/dq (n_dof,) (internal minus external forces; constraint values);
+        a term that is not a potential adds its own residual (:func:`non_potential`)."""
         return self.gradient_and_load(q, theta, None, active)[0]
 
     def gradient_and_load(self, q, theta, dofs, active=None) -> tuple[np.ndarray, float]:
@@ -231,9 +237,26 @@ def _norm(v) -> float:
     return m * float(np.linalg.norm(v / m)) if np.isfinite(m) and m > 0 else m
 
 
+def non_potential(terms) -> list[str]:
+    """Names of the terms that are not potentials (``potential`` False: a follower pressure
+    on an open surface, eyefem.fem.surface.FollowerPressure): their residual is their own
+    ``residual(q, params, data, dofs)``, not an energy's gradient, and their tangent is not
+    symmetric."""
+    return [t.name for t in terms if not getattr(t, "potential", True)]
+
+
+def _residual(term: Term):
+    """(q, params, data, dofs) -> the residual (n_dof,) of one term: the gradient of its
+    energy, or its own ``residual`` where it is not a potential (:func:`non_potential`)."""
+    if not getattr(term, "potential", True):
+        return term.residual
+    return jax.grad(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
+
+
 def _hvp(term: Term):
-    """(q, v, params, data, dofs) -> K v of one term, forward over reverse."""
-    g = jax.grad(lambda q, p, d, dofs: term.energy(q, p, d, dofs))
+    """(q, v, params, data, dofs) -> K v of one term (K = dR/dq, exact, also where it is
+    not symmetric), forward over reverse."""
+    g = _residual(term)
     return lambda q, v, p, d, dofs: jax.jvp(lambda x: g(x, p, d, dofs), (q,), (v,))[1]
 
 
@@ -260,10 +283,15 @@ def _over_chunks(term: Term, fn):
 
 
 def _params_vjp(term: Term):
-    """(q, l, params, data, dofs) -> d(l . dE/dq)/dparams of one term (reverse over
-    forward: the directional derivative of the energy along l, differentiated in params)."""
+    """(q, l, params, data, dofs) -> d(l . R)/dparams of one term, R its residual (reverse
+    over forward: the directional derivative of the energy along l, differentiated in
+    params; l . R itself where the term is not a potential)."""
+    potential = getattr(term, "potential", True)
+
     def f(q, lam, p, d, dofs):
         def along(pp):
+            if not potential:
+                return jnp.dot(lam, term.residual(q, pp, d, dofs))
             return jax.jvp(lambda x: term.energy(x, pp, d, dofs), (q,), (lam,))[1]
         _, vjp = jax.vjp(along, p)
         return vjp(jnp.ones(()))[0]
