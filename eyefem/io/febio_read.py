@@ -1,14 +1,23 @@
 """Reading FEBio 4 input decks of hexahedral Mooney-Rivlin solids back into eyefem (the
 mapping: eyefem.io.febio, docs/febio.md).
 
+Decks are checked like case files: ids and id ranges (bounded by the deck's node count
+before anything is allocated), finite numbers, the material constants against the case
+files' ranges (eyefem.io.casefile), the number of load steps (MAX_TIME_STEPS), the
+analysis type (static only). A pressure on an open surface is FEBio's follower load
+(eyefem.fem.surface.pressure_term).
+
 Length: one reader per deck section, each with the messages that name the file, the tag
-and the value it cannot read; about 440 lines.
+and the value it cannot read; about 560 lines.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
+import math
+import os
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -16,7 +25,8 @@ import numpy as np
 
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.mesh import Mesh, hex_geometry
-from eyefem.fem.surface import PressureLoad
+from eyefem.fem.surface import pressure_term
+from eyefem.io.casefile import material_c10_field, unit_slip
 from eyefem.io.febio import SPEC_VERSION, FebError
 from eyefem.io.runner import Setup
 from eyefem.solve.model import Model, node_dofs, solid_model
@@ -25,6 +35,25 @@ from eyefem.solve.solver import Stage
 log = logging.getLogger(__name__)
 
 _XYZ = "xyz"
+
+MAX_TIME_STEPS = 10_000
+"""Most load steps (``<time_steps>``) a deck may ask for: each is a Newton solve, and
+eyefem ramps a step's loads linearly, so tens of steps suffice. The environment
+variable EYEFEM_MAX_STEPS raises it."""
+
+MIN_SHEAR_MODULUS = 1e-6
+"""MPa (1 Pa): a material's initial shear modulus 2 (c1 + c2) below it is refused (no
+solid the reader solves is that soft; the tangent would be singular to roundoff)."""
+
+
+def max_time_steps() -> int:
+    """MAX_TIME_STEPS, or the environment's EYEFEM_MAX_STEPS where set (a whole number)."""
+    raw = os.environ.get("EYEFEM_MAX_STEPS", "").strip()
+    try:
+        return int(raw) if raw else MAX_TIME_STEPS
+    except ValueError:
+        raise FebError(f"EYEFEM_MAX_STEPS = '{raw}' is not a whole number; unset it or give "
+                       "the most load steps a deck may ask for, e.g. 100000") from None
 
 
 # --------------------------------------------------------------------------- reading
@@ -49,36 +78,79 @@ def _err(path, msg):
     return FebError(f"{path}: {msg}")
 
 
-def _floats(text, path, what) -> list[float]:
-    try:
-        return [float(v) for v in (text or "").replace(",", " ").split()]
-    except ValueError:
-        shown = (text or "").strip()[:60]
-        raise _err(path, f"{what}: '{shown}' is not a list of numbers") from None
-
-
-def _ints(text, path, what) -> list[int]:
-    """Comma-separated ids, with FEBio's 'a:b' ranges."""
+def _floats(text, path, what, hint="give a finite number") -> list[float]:
+    """The numbers of a tag's text (comma or space separated); FebError naming ``what``
+    and the token for text or a value that is not finite (``hint``: the fix)."""
     out = []
     for tok in (text or "").replace(",", " ").split():
         try:
-            if ":" in tok:
-                a, b = tok.split(":")[:2]
-                out.extend(range(int(a), int(b) + 1))
-            else:
-                out.append(int(tok))
+            v = float(tok)
         except ValueError:
-            raise _err(path, f"{what}: '{tok}' is not a node or element id") from None
+            raise _err(path, f"{what}: '{tok[:40]}' is not a number ({hint})") from None
+        if not math.isfinite(v):
+            raise _err(path, f"{what}: '{tok[:40]}' is not a finite number ({hint})")
+        out.append(v)
     return out
 
 
-def _child_float(el, tag, path, where, default=None) -> float:
+def _ints(text, path, what, limit: int) -> list[int]:
+    """Comma-separated ids with FEBio's 'a:b' (and 'a:b:step') ranges. A reversed range, a
+    range or a list longer than ``limit`` ids (the deck's node count: more cannot name
+    distinct nodes) is refused before any list is built."""
+    out, n = [], 0
+    for tok in (text or "").replace(",", " ").split():
+        try:
+            parts = [int(v) for v in tok.split(":")]
+        except ValueError:
+            parts = []
+        if not 1 <= len(parts) <= 3:
+            raise _err(path, f"{what}: '{tok[:40]}' is not a node or element id (a whole "
+                       "number, or a range first:last)")
+        if len(parts) == 1:
+            out.append(parts[0])
+            n += 1
+            if n > limit:
+                raise _err(path, f"{what}: more ids than the {limit} nodes in <Nodes>; give "
+                           "each id once")
+            continue
+        a, b, step = parts if len(parts) == 3 else (*parts, 1)
+        if step < 1:
+            raise _err(path, f"{what}: range '{tok}' has step {step}; the step of "
+                       "'first:last:step' must be >= 1")
+        if b < a:
+            raise _err(path, f"{what}: range '{tok}' is reversed (it names no id); write it "
+                       f"first:last, e.g. '{b}:{a}'")
+        count = (b - a) // step + 1
+        if n + count > limit:
+            raise _err(path, f"{what}: range '{tok}' makes {n + count} ids, more than the "
+                       f"{limit} nodes in <Nodes> (the bound of a set); give ids of nodes the "
+                       "deck defines")
+        out.extend(range(a, b + 1, step))
+        n += count
+    return out
+
+
+def _id(el, path, what) -> int:
+    """The whole-number ``id`` attribute of a tag; FebError naming the tag when it is
+    missing or not a whole number."""
+    raw = el.get("id")
+    if raw is None:
+        raise _err(path, f"{what}: a <{el.tag}> has no id attribute; give each "
+                   f"<{el.tag} id=\"N\"> a whole number")
+    try:
+        return int(raw)
+    except ValueError:
+        raise _err(path, f"{what}: <{el.tag} id=\"{raw[:40]}\">: the id is not a whole "
+                   f"number; give each <{el.tag}> a whole-number id") from None
+
+
+def _child_float(el, tag, path, where, default=None, hint="give a finite number") -> float:
     c = el.find(tag)
     if c is None:
         if default is not None:
             return default
         raise _err(path, f"{where}: <{tag}> is missing")
-    v = _floats(c.text, path, f"{where} <{tag}>")
+    v = _floats(c.text, path, f"{where} <{tag}>", hint)
     if len(v) != 1:
         raise _err(path, f"{where} <{tag}>: expected one number, got '{c.text}'")
     return v[0]
@@ -90,18 +162,32 @@ _IGNORED = {"Globals", "Output", "Module", "Control", "Material", "Mesh", "MeshD
 
 def read_feb(path) -> tuple[Mesh, dict, FebLoads]:
     """Read an FEBio 4 deck of hex8 Mooney-Rivlin solids with fixed / prescribed
-    displacements and surface pressures (one step, loads linear in time).
+    displacements and surface pressures (one static step, loads linear in time).
 
     Returns: the mesh (materials named as in the deck, face sets from the Surfaces, node
       sets from the NodeSets), the materials (name -> MooneyRivlin with c10 = c1,
       c01 = c2) and the loads (:class:`FebLoads`).
     Raises: FebError (a ValueError) naming the file and the tag, element or value it
       cannot read: another spec version, tetrahedra or shells, another material, contact,
-      more than one step, a load curve that is not linear over the step; OSError.
+      more than one step, a dynamic analysis, a load curve that is not linear over the
+      step, ids or id ranges that name no node, numbers that are not finite, material
+      constants outside the case files' ranges, more than MAX_TIME_STEPS steps; OSError.
     """
+    return read_feb_deck(path)[:3]
+
+
+def deck_sha256(path) -> str:
+    """The sha256 (hex) of a deck's bytes."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
+    """:func:`read_feb`'s mesh, materials and loads, and the sha256 (hex) of the bytes
+    read (the deck's identity for run records)."""
     path = Path(path)
+    data = path.read_bytes()
     try:
-        root = ET.parse(path).getroot()
+        root = ET.fromstring(data)
     except ET.ParseError as exc:
         raise _err(path, f"not valid XML ({exc})") from None
     if root.tag != "febio_spec":
@@ -119,10 +205,12 @@ def read_feb(path) -> tuple[Mesh, dict, FebLoads]:
     if module is not None and module.get("type", "solid") != "solid":
         raise _err(path, f"<Module type=\"{module.get('type')}\">; only 'solid' is supported")
     sections = {t: root.find(t) for t in ("Control", "Boundary", "Loads")}
+    _check_analysis(root.find("Control"), path)
     steps = root.find("Step")
     if steps is not None and len(steps):
         if len(steps) > 1:
             raise _err(path, f"<Step> has {len(steps)} steps; eyefem imports one step")
+        _check_analysis(steps[0].find("Control"), path)
         for t, top in list(sections.items()):
             inner = steps[0].find(t)
             if inner is not None:
@@ -149,7 +237,39 @@ def read_feb(path) -> tuple[Mesh, dict, FebLoads]:
     log.info("read %s: %d nodes, %d hex8, materials %s, %d prescribed dofs, %d pressure "
              "loads, %d steps", path, mesh.n_nodes, mesh.n_elem, list(used),
              len(prescribed[0]), len(pressures), n_steps)
-    return mesh, {m: materials[m] for m in used}, loads
+    return mesh, {m: materials[m] for m in used}, loads, hashlib.sha256(data).hexdigest()
+
+
+def _check_analysis(ctrl, path) -> None:
+    """FebError unless a <Control>'s <analysis> (FEBio 4: its text; 2.5: type="...") is
+    static: eyefem solves static equilibrium only, and never solves a dynamic deck as a
+    static one."""
+    el = None if ctrl is None else ctrl.find("analysis")
+    if el is None:
+        return
+    kind = ((el.text or "").strip() or el.get("type") or "").strip()
+    if kind.upper() != "STATIC":
+        raise _err(path, f"<Control><analysis> is '{kind}': eyefem solves static equilibrium "
+                   "only (no inertia, no time-dependent material); set <analysis>STATIC"
+                   "</analysis> for the static problem, or run the deck in FEBio")
+
+
+def _check_constant(value, tag, name, where, path) -> None:
+    """A Mooney-Rivlin constant (<c1> or <c2>, MPa) against the case files' ranges of c10
+    (eyefem.io.casefile.material_c10_field): FebError outside the impossible range, a
+    warning outside the plausible one, each naming the likely unit slip."""
+    f = material_c10_field(name)
+    for rng, refuse in ((f.refuse, True), (f.warn, False)):
+        if rng is None or rng[0] <= value <= rng[1]:
+            continue
+        slip = unit_slip(value, f.warn or rng, f.unit, f.slips)
+        msg = (f"{where} <{tag}> = {value:g} MPa is "
+               f"{'impossible' if refuse else 'outside the plausible range'} "
+               f"({rng[0]:g} to {rng[1]:g} MPa)" + (f": {slip}" if slip else ""))
+        if refuse:
+            raise _err(path, msg + f"; give <{tag}> in MPa")
+        log.warning("%s: %s; check the value and its unit", path, msg)
+        return
 
 
 def _read_materials(root, path):
@@ -165,9 +285,20 @@ def _read_materials(root, path):
         if (el.get("type") or "").lower() != "mooney-rivlin":
             raise _err(path, f"{where}: type '{el.get('type')}' is not supported; eyefem "
                        "reads type=\"Mooney-Rivlin\" (c1, c2, k) only")
-        c1 = _child_float(el, "c1", path, where)
-        c2 = _child_float(el, "c2", path, where, default=0.0)
-        k = _child_float(el, "k", path, where, default=0.0)
+        c1 = _child_float(el, "c1", path, where, hint="give c1 in MPa, e.g. <c1>0.1</c1>")
+        c2 = _child_float(el, "c2", path, where, default=0.0,
+                          hint="give c2 in MPa, e.g. <c2>0</c2>")
+        k = _child_float(el, "k", path, where, default=0.0,
+                         hint="give the bulk modulus in MPa, e.g. <k>1000</k>")
+        _check_constant(c1, "c1", name, where, path)
+        _check_constant(c2, "c2", name, where, path)
+        if 0 <= c1 and 0 <= c2 and 2 * (c1 + c2) < MIN_SHEAR_MODULUS:
+            raise _err(path, f"{where}: c1 = {c1:g} MPa, c2 = {c2:g} MPa: the shear modulus "
+                       f"2 (c1 + c2) = {2 * (c1 + c2):g} MPa is below {MIN_SHEAR_MODULUS:g} MPa "
+                       "(1 Pa: no solid eyefem solves is that soft); give c1 and c2 in MPa")
+        if k < 0:
+            raise _err(path, f"{where} <k> = {k:g} MPa: a bulk modulus must be >= 0; give it "
+                       "in MPa, e.g. <k>1000</k>")
         try:
             materials[name] = MooneyRivlin.from_terms(name, {"c10": c1, "c01": c2})
         except ValueError as exc:
@@ -187,17 +318,21 @@ def _read_nodes(root, path):
         raise _err(path, "no <Mesh> section")
     ids, xyz = [], []
     for block in mesh.findall("Nodes"):
+        where = f"<Nodes name=\"{block.get('name')}\">"
         for n in block.findall("node"):
-            x = _floats(n.text, path, f"node {n.get('id')}")
+            i = _id(n, path, where)
+            x = _floats(n.text, path, f"{where} node {i}", "give three finite coordinates, mm")
             if len(x) != 3:
-                raise _err(path, f"node {n.get('id')}: {len(x)} coordinates; expected 3")
-            ids.append(int(n.get("id")))
+                raise _err(path, f"{where} node {i}: {len(x)} coordinates; expected 3")
+            ids.append(i)
             xyz.append(x)
     if not ids:
         raise _err(path, "<Mesh> has no <Nodes>")
     index = {i: k for k, i in enumerate(ids)}
     if len(index) != len(ids):
-        raise _err(path, "a node id appears twice in <Nodes>")
+        seen = set()
+        dup = next(i for i in ids if i in seen or seen.add(i))
+        raise _err(path, f"node id {dup} appears twice in <Nodes>; give each node its own id")
     return np.array(xyz, np.float64), index
 
 
@@ -211,7 +346,7 @@ def _read_elements(root, path, node_index):
                        "(type=\"hex8\"); mesh the part with 8-node bricks")
         n = 0
         for e in block.findall("elem"):
-            conn = _ints(e.text, path, f"element {e.get('id')}")
+            conn = _ints(e.text, path, f"element {e.get('id')}", len(node_index))
             if len(conn) != 8:
                 raise _err(path, f"element {e.get('id')}: {len(conn)} nodes; hex8 needs 8")
             try:
@@ -280,12 +415,13 @@ def _read_sets(root, path, node_index):
                 if f.tag != "quad4":
                     raise _err(path, f"surface '{name}': <{f.tag}> faces are not supported; "
                                "quad4 faces of hexahedra are needed")
-                conn = _ints(f.text, path, f"surface '{name}' face {f.get('id')}")
+                conn = _ints(f.text, path, f"surface '{name}' face {f.get('id')}",
+                             len(node_index))
                 fs.append([nid(i, f"surface '{name}'") for i in conn])
             faces[name] = np.array(fs, np.int64).reshape(-1, 4)
         elif el.tag == "NodeSet":
-            ids = _ints(el.text, path, f"node set '{name}'") + [
-                int(n.get("id")) for n in el.findall("n")]
+            ids = _ints(el.text, path, f"node set '{name}'", len(node_index)) + [
+                _id(n, path, f"node set '{name}'") for n in el.findall("n")]
             nsets[name] = np.array([nid(i, f"node set '{name}'") for i in ids], np.int64)
         elif el.tag == "ElementSet":
             continue
@@ -298,10 +434,19 @@ def _read_sets(root, path, node_index):
 def _read_control(ctrl, path):
     if ctrl is None:
         raise _err(path, "no <Control> section (time_steps, step_size)")
-    n = int(_child_float(ctrl, "time_steps", path, "<Control>"))
-    dt = _child_float(ctrl, "step_size", path, "<Control>")
-    if n < 1 or not dt > 0:
-        raise _err(path, f"<Control>: time_steps = {n}, step_size = {dt}; both must be > 0")
+    steps = _child_float(ctrl, "time_steps", path, "<Control>",
+                         hint="give the number of load steps, e.g. <time_steps>10</time_steps>")
+    dt = _child_float(ctrl, "step_size", path, "<Control>",
+                      hint="give the step's time increment, e.g. <step_size>0.1</step_size>")
+    if steps != int(steps) or steps < 1 or not dt > 0:
+        raise _err(path, f"<Control>: time_steps = {steps:g}, step_size = {dt:g}; time_steps "
+                   "must be a whole number >= 1 and step_size > 0")
+    bound = max_time_steps()
+    if steps > bound:
+        raise _err(path, f"<Control> time_steps = {steps:g}: more than {bound} load steps (each "
+                   "is a Newton solve; eyefem ramps the loads linearly, so tens suffice); "
+                   "lower time_steps, or raise the bound with EYEFEM_MAX_STEPS")
+    n = int(steps)
     return n, n * dt
 
 
@@ -420,8 +565,10 @@ def _read_loads(sec, path, mesh, curves):
 
 
 def build_model(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, Stage]:
-    """The eyefem model (Q1P0 solid + a PressureLoad per pressure) and its one Stage."""
-    terms = tuple(PressureLoad(name, mesh, surf, p0) for name, surf, p0, _ in loads.pressures)
+    """The eyefem model (Q1P0 solid + FEBio's follower pressure per pressure load:
+    eyefem.fem.surface.pressure_term, a FollowerPressure on an open surface) and its one
+    Stage."""
+    terms = tuple(pressure_term(name, mesh, surf, p0) for name, surf, p0, _ in loads.pressures)
     model = solid_model(mesh, materials, terms)
     stage = Stage("load", loads.n_steps, loads.prescribed,
                   params={name: {"p": p1} for name, _, _, p1 in loads.pressures})
@@ -430,9 +577,10 @@ def build_model(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, St
 
 def feb_setup(path) -> Setup:
     """A Setup (for eyefem.io.runner.run_setup) of an FEBio deck: probe records the largest
-    nodal displacement (mm); the summary gives its final value and the deck's sizes."""
+    nodal displacement (mm); the summary gives its final value, the deck's sizes and the
+    sha256 of the deck read (``deck_sha256``)."""
     path = Path(path)
-    mesh, materials, loads = read_feb(path)
+    mesh, materials, loads, sha = read_feb_deck(path)
     model, stage = build_model(mesh, materials, loads)
     n = mesh.n_nodes
 
@@ -441,7 +589,7 @@ def feb_setup(path) -> Setup:
         return {"max_displacement_mm": float(np.max(np.linalg.norm(u, axis=1)))}
 
     def finish(rows, out_dir, plots):
-        return {"deck": str(path), "nodes": n, "elements": mesh.n_elem,
+        return {"deck": str(path), "deck_sha256": sha, "nodes": n, "elements": mesh.n_elem,
                 "max_displacement_mm": rows[-1]["max_displacement_mm"] if rows else 0.0}
 
     return Setup(path.stem, model, [stage], probe, finish)
