@@ -239,6 +239,11 @@ def _objectives_from_args(a) -> tuple[list, list]:
     return terms, cons
 
 
+TARGET_INDENTATION_MAX = 5.0
+"""The deepest indentation a target may ask, mm: scleral buckles indent the wall by about
+0.5 to 3 mm; beyond 5 mm no buckle of the catalogue reaches."""
+
+
 def _check_args(a) -> dict:
     """Validate the numeric options; returns the --bounds overrides name -> (low, high).
     Raises ValueError naming the option, the value and the fix."""
@@ -249,6 +254,30 @@ def _check_args(a) -> dict:
                          "iteration)")
     if not math.isfinite(a.tol) or a.tol < 0:
         raise ValueError(f"--tol {a.tol}: need a finite value >= 0")
+    limits = (("--target-indentation", a.target_indentation, 0.0, TARGET_INDENTATION_MAX, "mm"),
+              ("--iop-max", a.iop_max, 0.0, 200.0, "mmHg"),
+              ("--iop-min", a.iop_min, 0.0, 200.0, "mmHg"),
+              ("--axial-max", a.axial_max, 0.0, 5.0, "mm"),
+              ("--suture-force-max", a.suture_force_max, 0.0, 50.0, "N"))
+    for flag, v, lo, hi, unit in limits:
+        if v is None:
+            continue
+        if not math.isfinite(v):
+            raise ValueError(f"{flag} {v}: need a finite number of {unit}")
+        if not lo < v <= hi:
+            raise ValueError(f"{flag} {v:g} {unit} cannot be reached by a buckling surgery "
+                             f"(the planner takes {lo:g} < value <= {hi:g} {unit}); check the "
+                             "value and its unit")
+    if a.iop_min is not None and a.iop_max is not None and not a.iop_min < a.iop_max:
+        raise ValueError(f"--iop-min {a.iop_min:g} must be below --iop-max {a.iop_max:g} mmHg")
+    names = [v.strip() for v in a.vars.split(",")]
+    if not any(names) or not all(names):
+        raise ValueError(f"--vars '{a.vars}': give design variables separated by commas, e.g. "
+                         "--vars tightening,suture_width")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ValueError(f"--vars '{a.vars}': {', '.join(twice)} given twice; name each "
+                         "variable once")
     overrides = {}
     for item in a.bounds:
         name, sep, rng = item.partition("=")

@@ -409,7 +409,11 @@ def test_crafted_pickle_checkpoint_is_never_loaded(tmp_path, capsys):
             return (os.system, (f"touch {marker}",))
 
     (out / "checkpoint.pkl").write_bytes(pickle.dumps(Payload()))
-    rc, err = _run(capsys, "run", _write(tmp_path, U), "--out", out, "--resume")
+    case = _write(tmp_path, U)
+    rc, err = _run(capsys, "run", case, "--out", out, "--resume")
+    assert rc == 4 and "no eyefem run wrote it" in err  # no run.json: not eyefem's folder
+    manifest.write(out, {"program": "eyefem", "format": 1, "status": "interrupted"})
+    rc, err = _run(capsys, "run", case, "--out", out, "--resume")
     assert rc == 2 and "no checkpoint" in err and "never read" in err
     assert not marker.exists()
 
@@ -519,7 +523,13 @@ def test_reuse_needs_a_complete_manifest(tmp_path, old_results):
     (["--bounds", "tightening=5"], "expected NAME=LOW:HIGH"),
     (["--bounds", "tightening=9:2"], "LOW must be below HIGH"),
     (["--bounds", "tightness=1:2"], "unknown design variable(s) ['tightness']"),
-], ids=["zero iterations", "nan tolerance", "bounds syntax", "empty bounds", "unknown variable"])
+    (["--iop-max", "nan"], "--iop-max nan: need a finite number of mmHg"),
+    (["--target-indentation", "50"], "--target-indentation 50 mm cannot be reached"),
+    (["--iop-max", "21", "--iop-min", "25"], "--iop-min 25 must be below --iop-max 21"),
+    (["--vars", "tightening,tightening"], "tightening given twice"),
+    (["--vars", ","], "give design variables separated by commas"),
+], ids=["zero iterations", "nan tolerance", "bounds syntax", "empty bounds", "unknown variable",
+        "nan limit", "unreachable target", "crossed limits", "duplicate variable", "no variable"])
 def test_planner_argument_errors(tmp_path, capsys, args, words):
     from optimize.plan import main as plan_main
 
@@ -529,6 +539,25 @@ def test_planner_argument_errors(tmp_path, capsys, args, words):
     err = capsys.readouterr().err
     assert rc == 2 and words in err
     assert not (tmp_path / "p").exists()
+
+
+IMPOSSIBLE_SURGERIES = [  # (id, parameter line, words): refused before the first step, exit 2
+    ("drained more than a quarter of the cavity", "drain_volume = 10000.0",
+     "drain_volume = 10000 mm^3 (uL) is more than 25% of the vitreous cavity"),
+    ("sutures shortened beyond their span", "suture_tightening = 50.0",
+     "a suture loop cannot shorten by its whole span"),
+    ("more sutures than fit round the buckle", "n_sutures = 1000",
+     "n_sutures = 1000: at most 24 sutures fit round the globe's circumference"),
+]
+
+
+@pytest.mark.parametrize("line,words", [c[1:] for c in IMPOSSIBLE_SURGERIES],
+                         ids=[c[0] for c in IMPOSSIBLE_SURGERIES])
+def test_impossible_surgeries_are_refused_before_the_first_step(tmp_path, capsys, line, words):
+    out = tmp_path / "out"
+    rc, err = _run(capsys, "run", _write(tmp_path, SURGERY + line + "\n"), "--out", out)
+    assert rc == 2 and words in err and err.count("\n") == 1 and "Traceback" not in err
+    assert not out.exists()
 
 
 def test_planner_start_outside_its_bounds_is_refused(tmp_path, capsys):

@@ -290,3 +290,34 @@ def test_binary_and_junk_msh_are_refused_with_the_fix(tmp_path):
     (tmp_path / "junk.msh").write_bytes(bytes(range(256)) * 4)
     _refused(tmp_path / "junk.msh", "junk.msh: not a gmsh .msh file",
              "export the mesh from gmsh as an ASCII .msh")
+
+
+@pytest.mark.parametrize("kind", ["folder", "loop"])
+def test_a_folder_or_a_link_loop_as_mesh_file_through_the_cli(tmp_path, capsys, kind):
+    """The case file's own check of ``mesh_file`` names a folder as a folder and a link
+    loop as a loop, in one line, exit 2, and leaves no output folder."""
+    if kind == "folder":
+        (tmp_path / "meshes").mkdir()
+        name, words = "meshes", "is a folder"
+    else:
+        (tmp_path / "a.msh").symlink_to(tmp_path / "b.msh")
+        (tmp_path / "b.msh").symlink_to(tmp_path / "a.msh")
+        name, words = "a.msh", "a loop of symbolic links"
+    code, err = _run_case(tmp_path, name, capsys)
+    assert code == 2 and words in err and "mesh_file" in err and "Traceback" not in err
+    assert err.count("\n") == 1 and not (tmp_path / "out").exists()
+
+
+def test_allow_include_on_the_command_line(tmp_path, capsys, monkeypatch):
+    """``eyefem run --allow-include DIR``: the include refused without it is read with it."""
+    monkeypatch.setenv("EYEFEM_ALLOW_INCLUDE", "")  # restored after the test
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "lib" / "block.inp").write_text(_inp_text())
+    (tmp_path / "case").mkdir()
+    (tmp_path / "case" / "m.inp").write_text("*INCLUDE, INPUT=../lib/block.inp\n")
+    code, text = _run_case(tmp_path, "case/m.inp", capsys)
+    assert code == 2 and "outside the folder" in text
+    case = tmp_path / "c.toml"
+    code = cli_main(["-q", "run", str(case), "--out", str(tmp_path / "out"), "--no-vtu",
+                     "--allow-include", str(tmp_path / "lib")])
+    assert code == 0 and (tmp_path / "out" / "summary.json").exists()

@@ -9,7 +9,6 @@ this); an edited case is computed again.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -36,7 +35,7 @@ def run_case(path, out_dir, *, mesh=None, reuse=False, vtu=False) -> dict:
     from eyefem.catalog import problems, schemas
     from eyefem.io import manifest
     from eyefem.io.casefile import check_material_names, load_case
-    from eyefem.io.runner import run_setup
+    from eyefem.io.runner import claimed_folder, run_setup, write_summary
 
     case = load_case(path, schemas())
     params = dict(case.parameters)
@@ -49,13 +48,14 @@ def run_case(path, out_dir, *, mesh=None, reuse=False, vtu=False) -> dict:
         if s is not None:
             log.info("%s: reusing %s", case.path, out_dir / "summary.json")
             return s
-    manifest.check_writable(out_dir)
-    setup = problems()[case.problem][1](params, case.materials)
-    check_material_names(case, setup.model.mesh.materials)
-    res = run_setup(setup, out_dir, case.solver, vtu=vtu, plots=case.output["plots"], key=key)
-    summary = {"case": str(case.path), "title": case.title, "mesh": params.get("mesh"),
-               **res.summary}
-    write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    with claimed_folder(out_dir) as out_dir:  # claimed and locked before the model is built
+        setup = problems()[case.problem][1](params, case.materials)
+        check_material_names(case, setup.model.mesh.materials)
+        res = run_setup(setup, out_dir, case.solver, vtu=vtu, plots=case.output["plots"],
+                        key=key, locked=True)
+        summary = {"case": str(case.path), "title": case.title, "mesh": params.get("mesh"),
+                   **res.summary}
+        write_summary(res, summary)
     return summary
 
 

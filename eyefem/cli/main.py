@@ -11,6 +11,8 @@ logging (one line per load step); the library itself never prints.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import hashlib
 import json
 import logging
 import os
@@ -69,9 +71,13 @@ def with_material_preset(case, preset: str):
                                materials=kept)
 
 
-def _load_run_case(args):
-    """(case, setup, output folder) of the arguments of ``eyefem run`` or ``eyefem
-    stability`` (case, --out, --mesh, --materials), or an exit code after saying why."""
+def _load_run_case(args, claim: bool = False):
+    """(case, setup, output folder, release) of the arguments of ``eyefem run`` or ``eyefem
+    stability`` (case, --out, --mesh, --materials), or an exit code after saying why.
+
+    With ``claim`` the output folder is claimed (eyefem.io.manifest.claim: new, empty or an
+    eyefem run's; ``--force`` adopts another) and locked before the model is built;
+    ``release`` frees the lock (a no-op without ``claim``)."""
     from eyefem.catalog import problems, schemas
     from eyefem.io import manifest
     from eyefem.io.casefile import CaseError, check_material_names, load_case
@@ -88,43 +94,90 @@ def _load_run_case(args):
     except (CaseError, ValueError, KeyError) as exc:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
+    if getattr(args, "allow_include", None):  # read by eyefem.io.meshfile (and sweep workers)
+        from eyefem.io.meshfile import ENV_ALLOW_INCLUDE
+
+        os.environ[ENV_ALLOW_INCLUDE] = os.pathsep.join(
+            [str(Path(d).resolve()) for d in args.allow_include]
+            + [d for d in os.environ.get(ENV_ALLOW_INCLUDE, "").split(os.pathsep) if d])
+    release = lambda: None  # noqa: E731
     try:
+        if claim:  # before the model is built: a refused folder costs nothing
+            release = _claim_and_lock(out, getattr(args, "force", False))
         setup = problems()[case.problem][1](case.parameters, case.materials)
         check_material_names(case, setup.model.mesh.materials)
         manifest.check_writable(out)  # before solving; a rejected case leaves no folder
         _say_where(case.path, out)
     except manifest.OutputError as exc:
+        release()
         print(f"eyefem: {exc}", file=sys.stderr)
         return 4
     except CaseError as exc:
+        release()
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
     except (ValueError, KeyError) as exc:  # the builder rejected a parameter or material
+        release()
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"eyefem: {case.path} [parameters]/[materials]: {msg}", file=sys.stderr)
         return 2
-    return case, setup, out
+    except BaseException:
+        release()
+        raise
+    return case, setup, out, release
+
+
+def _claim_and_lock(out: Path, force: bool):
+    """Claim ``out`` (eyefem.io.manifest.claim) and take its lock; returns the function that
+    releases it, and removes the folder again if the claim created it and nothing was
+    written there (a case rejected afterwards leaves no folder behind)."""
+    from eyefem.io import manifest
+
+    created = not os.path.lexists(out)
+    manifest.claim(out, force=force)
+    unlock = manifest.acquire(out)
+
+    def release():
+        unlock()
+        if created:
+            with contextlib.suppress(OSError):
+                out.rmdir()  # only if empty
+
+    return release
+
+
+def _failed_record(out: Path) -> str:
+    """What the run's record says after a failure, as the messages quote it: its status,
+    or that no run.json could be written."""
+    from eyefem.io import manifest
+
+    m = manifest.read(out)
+    if m is None or m.get("status") in (None, "running"):
+        return f"no run record could be written in {out}"
+    return f"run.json says '{m.get('status')}'"
 
 
 def cmd_run(args) -> int:
     from eyefem.io import manifest
     from eyefem.io.checkpoint import CheckpointError
-    from eyefem.io.runner import run_setup
+    from eyefem.io.runner import run_setup, write_summary
     from eyefem.solve.solver import ConvergenceError
 
-    loaded = _load_run_case(args)
+    loaded = _load_run_case(args, claim=True)
     if isinstance(loaded, int):
         return loaded
-    case, setup, out = loaded
+    case, setup, out, release = loaded
     logging.getLogger(__name__).info("case %s (%s): %d elements, %d dofs -> %s", case.path,
                                      case.problem, setup.model.mesh.n_elem, setup.model.n_dof, out)
     try:
         res = run_setup(setup, out, case.solver, vtu=case.output["vtu"] and not args.no_vtu,
                         xdmf=case.output["xdmf"] or args.xdmf,
                         plots=case.output["plots"], resume=args.resume,
-                        stability=3 if args.stability else 0,
+                        stability=3 if args.stability else 0, locked=True,
                         key=manifest.case_key(case.problem, case.parameters, case.materials,
                                               case.solver))
+        summary = {"case": str(case.path), "title": case.title, **res.summary}
+        write_summary(res, summary)
     except ConvergenceError as exc:
         print(f"eyefem: {exc}\nOutputs of the converged steps are in {out}; after fixing the "
               "cause, --resume continues after the last completed stage", file=sys.stderr)
@@ -136,23 +189,16 @@ def cmd_run(args) -> int:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 4
     except KeyboardInterrupt:
-        print(f"eyefem: interrupted; {out} holds the converged steps (run.json says "
-              "'interrupted'); --resume continues after the last completed stage",
-              file=sys.stderr)
+        print(f"eyefem: interrupted; {out} holds the converged steps ({_failed_record(out)}); "
+              "--resume continues after the last completed stage", file=sys.stderr)
         return 130
     except OSError as exc:
-        print(f"eyefem: cannot write the results in {out}: {exc}; the run stopped (run.json "
-              "says 'failed'); free space or fix the folder, then run again (or --resume)",
-              file=sys.stderr)
+        print(f"eyefem: cannot write the results in {out}: {exc}; the run stopped "
+              f"({_failed_record(out)}); free space or fix the folder, then run again (or "
+              "--resume)", file=sys.stderr)
         return 4
-    summary = {"case": str(case.path), "title": case.title, **res.summary}
-    from eyefem.io.output import write_text
-
-    try:
-        write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
-    except OSError as exc:
-        print(f"eyefem: cannot write {out / 'summary.json'}: {exc}", file=sys.stderr)
-        return 4
+    finally:
+        release()
     print(f"\n{case.title}")
     for k, v in summary.items():
         if k not in ("case", "title", "mesh_error"):
@@ -186,7 +232,7 @@ def cmd_stability(args) -> int:
     loaded = _load_run_case(args)
     if isinstance(loaded, int):
         return loaded
-    case, setup, out = loaded
+    case, setup, out, _ = loaded
     names = [s.name for s in setup.stages]
     index = None
     if args.stage is not None:
@@ -396,8 +442,7 @@ def cmd_export_feb(args) -> int:
 def cmd_import_feb(args) -> int:
     from eyefem.io import manifest
     from eyefem.io.febio_read import feb_setup
-    from eyefem.io.output import write_text
-    from eyefem.io.runner import run_setup
+    from eyefem.io.runner import run_setup, write_summary
     from eyefem.solve.solver import ConvergenceError
 
     try:
@@ -409,10 +454,12 @@ def cmd_import_feb(args) -> int:
         print(f"eyefem import-feb: {exc}", file=sys.stderr)
         return 2
     out = Path(args.output or Path("results") / Path(args.deck).stem)
-    try:
-        res = run_setup(setup, out, vtu=not args.no_vtu, plots=False)
+    try:  # the case hash of a deck: its bytes (an edited deck is another case)
+        key = json.dumps({"feb_sha256": hashlib.sha256(Path(args.deck).read_bytes()).hexdigest()})
+        res = run_setup(setup, out, vtu=not args.no_vtu, plots=False, key=key,
+                        force=args.force)
         summary = {"deck": str(args.deck), **res.summary}
-        write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+        write_summary(res, summary)
     except ConvergenceError as exc:
         print(f"eyefem import-feb: {exc}\nOutputs of the converged steps are in {out}",
               file=sys.stderr)
@@ -528,6 +575,13 @@ def main(argv=None) -> int:
                    "(<name>.xdmf; HDF5 arrays when h5py is installed)")
     p.add_argument("--resume", action="store_true",
                    help="continue after the last completed stage (checkpoint in the output dir)")
+    p.add_argument("--allow-include", metavar="DIR", action="append", default=[],
+                   help="a folder an Abaqus *INCLUDE of the case's mesh may read besides the "
+                   "including file's own (repeatable; also EYEFEM_ALLOW_INCLUDE)")
+    p.add_argument("--force", action="store_true",
+                   help="adopt an output folder that no eyefem run wrote (its files of "
+                   "eyefem's names are listed, then removed); without it such a folder is "
+                   "refused")
     p.add_argument("--stability", action="store_true",
                    help="check that every stage ends in a stable equilibrium (the tangent's "
                    "3 eigenvalues nearest zero; summary.json 'stability'): each check costs "
@@ -590,6 +644,8 @@ def main(argv=None) -> int:
     p.add_argument("deck", help="the .feb file")
     p.add_argument("-o", "--output", help="output directory (default results/<deck name>)")
     p.add_argument("--no-vtu", action="store_true", help="skip the VTU series")
+    p.add_argument("--force", action="store_true",
+                   help="adopt an output folder that no eyefem run wrote (as eyefem run)")
     p.set_defaults(fn=cmd_import_feb)
     p = sub.add_parser("sweep", help="run a parameter sweep (sweep file) on a Dask cluster")
     p.add_argument("sweep", help="sweep file (docs/sweep.md)")
@@ -611,6 +667,15 @@ def main(argv=None) -> int:
     except DeviceError as exc:
         print(f"eyefem {args.cmd}: {exc}", file=sys.stderr)
         return 2
+    import signal
+
+    def terminated(signum, frame):  # SIGTERM as Ctrl-C: status 'interrupted', lock freed
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    try:
+        previous = signal.signal(signal.SIGTERM, terminated)
+    except ValueError:  # not the main thread (a caller's worker): its own handling stays
+        previous = None
     try:
         return args.fn(args)
     except KeyboardInterrupt:
@@ -619,6 +684,9 @@ def main(argv=None) -> int:
     except OSError as exc:
         print(f"eyefem {args.cmd}: {exc}", file=sys.stderr)
         return 4
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

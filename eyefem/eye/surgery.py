@@ -28,7 +28,7 @@ import numpy as np
 from eyefem.eye.biometry import BIOMETRY_FIELDS, eye_geometry
 from eyefem.eye.bodies import BASE_TERMS, LoadPath, buckle_body
 from eyefem.eye.buckle_meshes import BAND_C10, RING_KINDS, SPONGE_C10, TIRE_C10
-from eyefem.eye.buckles import KINDS, Buckle, suture_anchor_frame
+from eyefem.eye.buckles import KINDS, SPONGE_LENGTH, Buckle, suture_anchor_frame
 from eyefem.eye.eyemodel import LEVEL_EXPECTED, LEVEL_HELP, SURGICAL_LEVEL, build_eye, is_level
 from eyefem.eye.mesh_error import mesh_error
 from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
@@ -387,6 +387,7 @@ def check_parameters(p):
                              f"width 2 x bite_radius = {2 * p['bite_radius']} mm: bite_length is "
                              "the full length along the buckle's edge and bite_radius the "
                              "half-width across it; lengthen bite_length or narrow bite_radius")
+    _check_feasible(p)
     edge = p.get("buckle_edge", EDGE_WIDTH)
     if p["buckle"] in KINDS and not p["buckle"].startswith("sponge") \
             and not edge < KINDS[p["buckle"]][0] / 2:
@@ -403,6 +404,56 @@ def check_parameters(p):
             raise ValueError(f"wall_element = '{p['wall_element']}' is implemented with the "
                              "rigid buckle only (a deformable band's model replaces the solid); "
                              "set buckle_body = 'rigid' or wall_element = 'q1p0'")
+
+
+DRAIN_FRACTION_MAX = 0.25
+"""The largest drained volume, as a fraction of the vitreous cavity's (about 4.7 mL on the
+default eye): beyond it the closed cavity collapses before the buckle is placed."""
+
+
+SPONGE_SUTURE_GAP = 0.5
+"""The least distance between two sutures of a sponge, mm."""
+
+
+def _check_feasible(p):
+    """Clear errors for surgical inputs no eye or buckle can carry out (the run would grind
+    for minutes and fail, or end in a meaningless state): a drained volume beyond a
+    quarter of the cavity, sutures shortened by more than the span they cross, more sutures
+    than fit round the buckle."""
+    g = eye_geometry(p)
+    inner = g.scleral_radius - g.sclera_equator - g.choroid_thickness - g.retina_thickness
+    cavity = 4.0 / 3.0 * np.pi * inner**3  # the vitreous sphere, mm^3 (the lens left in)
+    drained = p.get("drain_volume", 0.0)
+    if drained > DRAIN_FRACTION_MAX * cavity:
+        raise ValueError(f"drain_volume = {drained:g} mm^3 (uL) is more than "
+                         f"{DRAIN_FRACTION_MAX:.0%} of the vitreous cavity (about {cavity:.0f} "
+                         f"mm^3 on this eye): the globe would collapse; drainage removes "
+                         f"tens to a few hundred uL: give at most "
+                         f"{DRAIN_FRACTION_MAX * cavity:.0f} mm^3")
+    span = p.get("suture_width", 9.0)
+    short = p.get("suture_tightening", 0.0)
+    if short >= span:
+        raise ValueError(f"suture_tightening = {short:g} mm: a suture loop cannot shorten by "
+                         f"its whole span across the buckle (suture_width = {span:g} mm); "
+                         "tied sutures shorten by tenths of a mm to about 1.5 mm: give less "
+                         "than suture_width")
+    n = p.get("n_sutures", 8)
+    if p["buckle"].startswith("sponge"):  # spread over its central 60%; the bites may overlap
+        room, gap = 0.6 * SPONGE_LENGTH, SPONGE_SUTURE_GAP
+        fits = int(room // gap) + 1
+        if n > fits:
+            raise ValueError(f"n_sutures = {n}: a sponge's sutures are spread over its central "
+                             f"{room:g} mm, and at most {fits} fit there {gap:g} mm apart; "
+                             f"give n_sutures <= {fits} (cases 5 and 6 use 2)")
+        return
+    bite = max(2.0 * p.get("bite_radius", 0.0), 1.0)  # a bite's patch across, mm
+    room = 2 * np.pi * g.scleral_radius
+    fits = int(room // bite)
+    if n > fits:
+        raise ValueError(f"n_sutures = {n}: at most {fits} sutures fit round the globe's "
+                         f"circumference ({room:.0f} mm) with bites {bite:g} mm across "
+                         f"(bite_radius = {p.get('bite_radius', 0.0):g} mm); give n_sutures "
+                         f"<= {fits}")
 
 
 def _check_deformable(p):

@@ -29,9 +29,12 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import errno
 import logging
 import math
+import os
 import re
+import stat
 import tomllib
 from pathlib import Path
 from typing import Any, Callable
@@ -214,11 +217,21 @@ def load_case(path: str | Path, schemas: dict[str, list[Field]]) -> Case:
         if f.path and params.get(f.name):
             given = Path(params[f.name]).expanduser()
             found = given if given.is_absolute() else (path.parent / given)
-            if not found.is_file():
-                raise CaseError(f"{path} [parameters]: field '{f.name}' = '{params[f.name]}': "
-                                f"no such file ({found.resolve()}); paths are relative to the "
-                                "case file")
-            params[f.name] = str(found.resolve())
+            where = f"{path} [parameters]: field '{f.name}' = '{params[f.name]}'"
+            try:
+                st = os.stat(found)
+            except OSError as exc:
+                what = ("a loop of symbolic links" if exc.errno == errno.ELOOP
+                        else "no such file")
+                raise CaseError(f"{where}: {what} ({os.path.abspath(found)}); paths are "
+                                "relative to the case file") from None
+            if stat.S_ISDIR(st.st_mode):
+                raise CaseError(f"{where}: is a folder ({os.path.abspath(found)}); give the "
+                                "mesh file in it (paths are relative to the case file)")
+            if not stat.S_ISREG(st.st_mode):
+                raise CaseError(f"{where}: not a regular file ({os.path.abspath(found)}); "
+                                "give a mesh file")
+            params[f.name] = os.path.realpath(found)
     mats = {}
     for name, terms in raw.get("materials", {}).items():
         if not isinstance(terms, dict):

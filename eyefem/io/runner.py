@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -56,12 +57,14 @@ class Setup:
 
 @dataclasses.dataclass
 class RunResult:
-    """Outcome of a run: summary, per-step rows, solution and output directory."""
+    """Outcome of a run: summary, per-step rows, solution, output directory and the record
+    of the files written (eyefem.io.manifest.FileRecord)."""
 
     summary: dict
     rows: list[dict]
     solution: Solution
     out_dir: Path
+    record: Any = None
 
 
 def cell_and_point_fields(model: Model, q, theta, active=None, prescribed=None):
@@ -219,7 +222,8 @@ def stage_stability(model, q, theta, stage: Stage, options: NewtonOptions, k: in
 
 def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOptions(), *,
               vtu: bool = True, plots: bool = True, key: str = "", resume: bool = False,
-              xdmf: bool = False, stability: int = 0) -> RunResult:
+              xdmf: bool = False, stability: int = 0, force: bool = False,
+              inputs: tuple[str, ...] = (), locked: bool = False) -> RunResult:
     """Solve a setup, writing outputs after each converged step (atomically).
 
     ``vtu`` writes the ParaView series ``<name>.pvd`` (vtu/*.vtu); ``xdmf`` the same
@@ -233,8 +237,12 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     stability (:func:`stage_stability`, k eigenvalues) and summary.json gets
     "stability": {stage name: record}.
     """
-    out_dir = manifest.check_writable(Path(out_dir))  # before any solving
-    release = manifest.acquire(out_dir)  # a second run into out_dir is refused
+    if locked:  # the caller claimed out_dir and holds its lock (:func:`claimed_folder`)
+        out_dir, release = Path(out_dir), (lambda: None)
+    else:
+        out_dir = manifest.claim(Path(out_dir), force=force, inputs=inputs)
+        release = manifest.acquire(out_dir)  # a second run into out_dir is refused
+    since_ns = time.time_ns()
     rows: list[dict] = []
     writer = SeriesWriter(out_dir, setup.name)
     xwriter = XdmfSeriesWriter(out_dir, setup.name) if xdmf else None
@@ -244,7 +252,14 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     key = checkpoint_key(setup, key)
     q0, theta0, completed = setup.q0, None, ()
     try:
+        previous = manifest.read(out_dir)
         if resume:
+            changed = manifest.changed_files(out_dir, previous)
+            if changed:
+                raise checkpoint.CheckpointError(
+                    f"{out_dir}: {len(changed)} files of the interrupted run changed since it "
+                    f"wrote them ({', '.join(changed[:3])}: sha256 differs from run.json or "
+                    "missing); run without --resume to compute the case again")
             ck = checkpoint.load(out_dir, key)
             rows[:] = ck["rows"]
             writer.entries = list(ck["vtu_entries"])
@@ -256,11 +271,15 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
             log.info("resuming %s after stage %d ('%s') from %s", setup.name, ck["stage"] + 1,
                      setup.stages[ck["stage"]].name, out_dir / checkpoint.FILENAME)
         else:
-            manifest.clear_outputs(out_dir)
+            manifest.clear_outputs(out_dir, previous if manifest.is_eyefem_run(previous)
+                                   else None)
             for old in (f"{setup.name}.xdmf", f"{setup.name}.h5"):  # an older run's XDMF
                 (out_dir / old).unlink(missing_ok=True)
         mesh = setup.model.mesh
+        record = manifest.FileRecord(out_dir, since_ns,
+                                     kept=(previous or {}).get("files") if resume else None)
         run = manifest.write(out_dir, {
+            "program": manifest.PROGRAM,
             "format": manifest.FORMAT, "code_version": manifest.code_version(),
             "case_hash": case_hash, "name": setup.name, "resumed": bool(resume),
             "mesh": {"nodes": mesh.n_nodes, "elements": mesh.n_elem,
@@ -297,6 +316,8 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     def on_stage_end(i, model, q, theta, starts):
         checkpoint.save(out_dir, key=key, stage=i, q=q, theta=theta, starts=starts, rows=rows,
                         vtu_entries=writer.entries)
+        nonlocal run
+        run = manifest.updated(out_dir, run, files=record.files())
         if stability:
             checks[setup.stages[i].name] = stage_stability(model, q, theta, setup.stages[i],
                                                            options, stability)
@@ -308,12 +329,16 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
         if not sol.history:  # resumed after the last stage: nothing left to solve
             setup.probe(sol.model, sol.q, sol.theta)
         summary = setup.finish(rows, out_dir, plots)
-        manifest.updated(out_dir, run, status="complete", finished=manifest.now())
+        run = manifest.updated(out_dir, run, status="complete", finished=manifest.now(),
+                               files=record.files())
     except BaseException as exc:
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-        with contextlib.suppress(OSError):  # the folder may be what failed
+        try:  # the folder may be what failed
             manifest.updated(out_dir, run, status=status, finished=manifest.now(),
+                             files=record.files(),
                              reason=f"{type(exc).__name__}: {exc}"[:2000])
+        except OSError:
+            exc.add_note(f"{out_dir / manifest.FILENAME} could not be updated either")
         raise
     finally:
         progress.close()
@@ -328,7 +353,29 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     summary["unbalanced_steps"] = unbalanced_steps(rows)
     if stability:
         summary["stability"] = checks
-    return RunResult(summary, rows, sol, out_dir)
+    return RunResult(summary, rows, sol, out_dir, record)
+
+
+def write_summary(res: RunResult, summary: dict) -> Path:
+    """Write ``summary.json`` of a finished run and list it (with its sha256) in the run's
+    manifest, so that a reuse checks it too. Returns its path; raises OSError."""
+    from eyefem.io.output import write_text
+
+    path = res.out_dir / "summary.json"
+    write_text(path, json.dumps(summary, indent=2) + "\n")
+    m = manifest.read(res.out_dir)
+    if m is not None and res.record is not None:
+        manifest.updated(res.out_dir, m, files=res.record.files())
+    return path
+
+
+@contextlib.contextmanager
+def claimed_folder(out_dir: Path, force: bool = False, inputs: tuple[str, ...] = ()):
+    """Claim ``out_dir`` (eyefem.io.manifest.claim) and hold its lock while the block runs,
+    before the model is built; pass ``locked=True`` to :func:`run_setup` inside it."""
+    out_dir = manifest.claim(Path(out_dir), force=force, inputs=inputs)
+    with manifest.locked(out_dir):
+        yield out_dir
 
 
 def unbalanced_steps(rows: list[dict]) -> dict:

@@ -83,7 +83,8 @@ def solve_case(case, out: Path, setup=None):
     check_material_names(case, setup.model.mesh.materials)
     return run_setup(setup, out, case.solver, vtu=case.output["vtu"], plots=case.output["plots"],
                      key=manifest.case_key(case.problem, case.parameters, case.materials,
-                                           case.solver))
+                                           case.solver),
+                     inputs=(CASE_FILE, ROW_FILE))  # a sweep run's own inputs, kept
 
 
 def outcomes_of(case, out: Path) -> dict:
