@@ -33,11 +33,18 @@ edges on those planes; pass ``symmetry_planes`` and hold the plane nodes in thei
 planes. The cone volumes through x0 of the plane parts are zero, so V is the volume
 of the modelled part (1/8 of the whole for an octant) and the law holds unchanged.
 
+Volume regulation (optional, ``regulation``, issue 74): aqueous production and outflow
+(Goldmann's law), a choroidal blood compartment, paracentesis and drainage over time, by
+backward Euler; the pressure is then the condensed root of the step's volume balance
+(eyefem.fem.regulation, whose docstring states the laws, the incremental potential and
+the sources). The term advances its history (produced and outflowed volumes, the clock)
+after each converged step (:meth:`FluidCavity.advance`) and reports the balance.
+
 Several cavities: one term holds any number (one per entry of ``face_sets``) with
 vector params, one compiled kernel and one rank-one vector per cavity.
 
 Length: the cavity term, its low-rank tangent, closing and the pressure report share
-the volume kernel; about 420 lines.
+the volume kernel; about 500 lines.
 """
 
 from __future__ import annotations
@@ -53,6 +60,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from eyefem.fem.mesh import Mesh, face_edges, open_edges
+from eyefem.fem.regulation import HISTORY_KEYS, Regulation, balance, regulated_state
 from eyefem.fem.surface import face_cone_volume, face_dofs
 from eyefem.fem.terms import Term
 from eyefem.fem.units import MMHG
@@ -80,7 +88,11 @@ def _volumes(q_loc, data):
 
 
 def _law(V, params):
-    """Pressure P (n_cav,) MPa, energy Pi (n_cav,) N mm and K_eff / V_ini (n_cav,) 1/mm^3."""
+    """Pressure P (n_cav,) MPa, energy Pi (n_cav,) N mm and -dP/dV (n_cav,) MPa/mm^3
+    (K_eff / V_ini without regulation)."""
+    if "facility" in params:  # a regulated cavity (the params' keys are static under jit)
+        s = regulated_state(V, params)
+        return s["P"], s["Pi"], s["alpha"]
     n = V.shape[0]
     p0, v0, k, dv, c = (jnp.broadcast_to(jnp.asarray(params[key], V.dtype), (n,))
                         for key in PARAM_KEYS)
@@ -214,11 +226,19 @@ class FluidCavity(Term):
       outflow_compliance: C_out, mm^3/MPa (0: no outflow).
       symmetry_planes: subset of ("x", "y", "z"): planes through ``origin`` on which the
         cavity surface may be open (symmetric models).
+      regulation: eyefem.fem.regulation.Regulation (facility, episcleral venous pressure,
+        production, choroidal blood), or None (default): no volume regulation, the seed's
+        law.
       origin: (3,) apex of the cone volumes for symmetric cavities, mm; closed cavities
         use their reference centroid.
 
     params: {"p_ini" MPa, "v_ini" mm^3, "bulk" MPa, "dv" mm^3, "c_out" mm^3/MPa}, floats
-    for one cavity, (n_cav,) arrays for several (a scalar target is broadcast).
+    for one cavity, (n_cav,) arrays for several (a scalar target is broadcast). With
+    regulation also "facility" mm^3/(min MPa), "p_ev" MPa, "production" mm^3/min,
+    "blood_max" mm^3, "blood_scale" MPa, "paracentesis" and "drainage" mm^3 (removed,
+    cumulative, ramped by stages), the history "aq_produced", "aq_outflow" mm^3 and
+    "time" min (set by :meth:`advance`), and the step's duration "dt" min (set by the
+    load path); "time" and "dt" are scalars.
     """
 
     name: str
@@ -230,6 +250,7 @@ class FluidCavity(Term):
     outflow_compliance: float | Sequence[float] = 0.0
     symmetry_planes: tuple[str, ...] = ()
     origin: tuple = (0.0, 0.0, 0.0)
+    regulation: Regulation | None = None
 
     pressure_stiffness = True
 
@@ -271,8 +292,12 @@ class FluidCavity(Term):
              "c_out": vec(self.outflow_compliance, "outflow_compliance", "mm^3/MPa", 0.0)}
         if np.any(p["v_ini"] <= 0):
             raise ValueError(f"cavity '{self.name}': v_ini = {p['v_ini'].tolist()} mm^3; must be > 0")
+        if self.regulation is not None:
+            p.update(self.regulation.params(n, self.name))
         if single:
             p = {k: float(v[0]) for k, v in p.items()}
+        if self.regulation is not None:
+            p.update(dt=0.0, time=0.0)
         object.__setattr__(self, "dofs", face_dofs(faces))
         object.__setattr__(self, "params", p)
         object.__setattr__(self, "data", {"X": self.mesh.nodes[faces],
@@ -288,6 +313,31 @@ class FluidCavity(Term):
     @property
     def n_cavities(self) -> int:
         return len(self.cavity_labels)
+
+    @property
+    def history_keys(self) -> tuple[str, ...]:
+        """Params holding the state of the last converged step (the load path carries them
+        from step to step instead of ramping them): the regulation's, or none."""
+        return HISTORY_KEYS if self.regulation is not None else ()
+
+    def static_key(self) -> tuple:
+        return ("regulated",) if self.regulation is not None else ()
+
+    def advance(self, q, params) -> dict:
+        """The params after a converged step of ``params["dt"]`` minutes at q: the produced
+        and outflowed volumes and the clock moved on, dt back to 0 (the state q is in
+        equilibrium with both: the pressure is unchanged)."""
+        if self.regulation is None:
+            return params
+        P, V = self.pressures(q, params)
+        dt = float(params["dt"])
+        new = {**params, "dt": 0.0, "time": float(params["time"]) + dt,
+               "aq_produced": self._shape(np.asarray(params["aq_produced"])
+                                          + dt * np.asarray(params["production"])),
+               "aq_outflow": self._shape(np.asarray(params["aq_outflow"])
+                                         + dt * np.asarray(params["facility"])
+                                         * (P - np.asarray(params["p_ev"])))}
+        return new
 
     # --- energy and derivatives (kernels: everything from q, params, data, dofs) ----------
     def local_energy(self, q_loc, params, data):
@@ -349,8 +399,15 @@ class FluidCavity(Term):
 
     def report(self, q, params) -> dict:
         """Per cavity: pressure_MPa, pressure_mmHg, volume_mm3, injected_mm3 (dV),
-        outflow_mm3 (C_out (P - P_ini)); keys prefixed '<face set>/' for several cavities."""
+        outflow_mm3 (C_out (P - P_ini), the linear reservoir); keys prefixed '<face set>/'
+        for several cavities. With regulation also (volumes since the closing, mm^3)
+        produced_mm3, aqueous_outflow_mm3 (Goldmann), blood_expelled_mm3,
+        paracentesis_mm3, drainage_mm3, drained_mm3 (their sum), compressed_mm3 (the
+        liquid's compression), balance_mm3 (V - V_ini minus the sum of the flows: zero to
+        roundoff), the rates outflow_rate_ul_min and production_ul_min, and time_min."""
         P, V = self.pressures(q, params)
+        if self.regulation is not None:
+            return self._regulated_report(V, params)
         n = self.n_cavities
         dv = np.broadcast_to(np.asarray(params["dv"], np.float64), (n,))
         c = np.broadcast_to(np.asarray(params["c_out"], np.float64), (n,))
@@ -361,6 +418,36 @@ class FluidCavity(Term):
             out.update({f"{pre}pressure_MPa": float(P[i]), f"{pre}pressure_mmHg": float(P[i] / MMHG),
                         f"{pre}volume_mm3": float(V[i]), f"{pre}injected_mm3": float(dv[i]),
                         f"{pre}outflow_mm3": float(c[i] * (P[i] - p0[i]))})
+        return out
+
+    def _regulated_report(self, V, params) -> dict:
+        s = {k: np.asarray(v) for k, v in
+             regulated_state(jnp.asarray(V), jax.tree_util.tree_map(jnp.asarray, params)).items()}
+        n = self.n_cavities
+        res = balance(V, s, np.broadcast_to(np.asarray(params["v_ini"], float), (n,)))
+        p_ev = np.broadcast_to(np.asarray(params["p_ev"], float), (n,))
+        fac = np.broadcast_to(np.asarray(params["facility"], float), (n,))
+        prod = np.broadcast_to(np.asarray(params["production"], float), (n,))
+        para = np.broadcast_to(np.asarray(params["paracentesis"], float), (n,))
+        drain = np.broadcast_to(np.asarray(params["drainage"], float), (n,))
+        out = {}
+        for i, label in enumerate(self.cavity_labels):
+            pre = "" if self.single else f"{label}/"
+            P = float(s["P"][i])
+            out.update({
+                f"{pre}pressure_MPa": P, f"{pre}pressure_mmHg": P / MMHG,
+                f"{pre}volume_mm3": float(V[i]), f"{pre}injected_mm3": float(s["injected"][i]),
+                f"{pre}outflow_mm3": float(s["reservoir"][i]),
+                f"{pre}produced_mm3": float(s["produced"][i]),
+                f"{pre}aqueous_outflow_mm3": float(s["outflow"][i]),
+                f"{pre}blood_expelled_mm3": float(s["blood"][i]),
+                f"{pre}paracentesis_mm3": float(para[i]), f"{pre}drainage_mm3": float(drain[i]),
+                f"{pre}drained_mm3": float(s["drained"][i]),
+                f"{pre}compressed_mm3": float(s["compressed"][i]),
+                f"{pre}balance_mm3": float(res[i]),
+                f"{pre}outflow_rate_ul_min": float(fac[i] * (P - p_ev[i])),
+                f"{pre}production_ul_min": float(prod[i])})
+        out["time_min"] = float(params["time"]) + float(params["dt"])
         return out
 
     def point_fields(self, q, params, n_nodes) -> dict:
@@ -379,7 +466,8 @@ def close_cavity(model, q, theta, cavity: str, pressure_term: str | None = None,
     through :func:`closing_hook` or ``functools.partial``.
 
     Sets P_ini = the pressure p of the PressureLoad ``pressure_term`` (or, without one, the
-    cavity's own current pressure), V_ini = the current enclosed volume, dV = 0, and the
+    cavity's own current pressure), V_ini = the current enclosed volume, dV = 0 (and, with
+    regulation, the removed, produced and outflowed volumes; the clock runs on), and the
     bulk modulus to ``bulk`` if given (MPa; e.g. after a pressure-controlled stage with
     bulk 0). With ``release_load`` the pressure term's p is set to 0, so that the liquid
     replaces the surface load and the state stays in equilibrium whether or not that term
@@ -397,6 +485,9 @@ def close_cavity(model, q, theta, cavity: str, pressure_term: str | None = None,
             raise ValueError(f"close_cavity: term '{pressure_term}' has no pressure param 'p'")
         P = np.full_like(V, float(theta[pressure_term]["p"]))
     new = {**theta[cavity], "p_ini": term._shape(P), "v_ini": term._shape(V), "dv": term._shape(0.0)}
+    if term.regulation is not None:  # the balance restarts from the closed state
+        new.update({k: term._shape(0.0) for k in ("paracentesis", "drainage", "aq_produced",
+                                                  "aq_outflow")})
     if bulk is not None:
         if np.any(np.asarray(bulk) < 0):
             raise ValueError(f"close_cavity: bulk = {bulk} MPa; must be >= 0")

@@ -47,6 +47,15 @@ class Stage:
       active: names of the terms in the energy (None: all).
       before: optional host-side hook ``f(model, q, theta) -> (model, q, theta)`` run at
         the stage start (closing a cavity, switching contact on...).
+      duration: minutes the stage lasts (None: no time passes), for the terms that evolve
+        in time (a cavity's volume regulation): each step lasts its share of it.
+      times: step end times, minutes from the stage start (increasing, n_steps of them,
+        the last one the duration): the steps land on them (a cut step is subdivided);
+        None: n_steps equal steps.
+
+    Terms with ``history_keys`` (a regulated FluidCavity) get each step's duration as
+    their param ``dt`` (minutes), keep those keys from the last converged step instead of
+    ramping them, and update them after it (``term.advance(q, params)``).
     """
 
     name: str
@@ -55,10 +64,24 @@ class Stage:
     params: dict = dataclasses.field(default_factory=dict)
     active: tuple[str, ...] | None = None
     before: Callable | None = None
+    duration: float | None = None
+    times: tuple[float, ...] | None = None
 
     def __post_init__(self):
         if self.n_steps < 1:
             raise ValueError(f"stage '{self.name}': n_steps = {self.n_steps}; must be >= 1")
+        if self.duration is not None and not (np.isfinite(self.duration) and self.duration >= 0):
+            raise ValueError(f"stage '{self.name}': duration = {self.duration} min; must be >= 0")
+        if self.times is not None:
+            ts = np.asarray(self.times, np.float64).ravel()
+            end = ts[-1] if len(ts) and self.duration is None else self.duration
+            if (len(ts) != self.n_steps or not np.all(np.diff(np.r_[0.0, ts]) > 0)
+                    or abs(ts[-1] - end) > 1e-12 * max(end, 1.0)):
+                raise ValueError(f"stage '{self.name}': times = {ts.tolist()} min; expected "
+                                 f"n_steps = {self.n_steps} increasing times > 0 ending at the "
+                                 f"duration ({self.duration} min)")
+            object.__setattr__(self, "times", tuple(ts.tolist()))
+            object.__setattr__(self, "duration", float(ts[-1]))
         d, v = self.prescribed
         d = np.asarray(d, np.int64).ravel()
         v = np.broadcast_to(np.asarray(v, np.float64), d.shape).copy()
@@ -70,6 +93,35 @@ class Stage:
 def interpolate(a, b, t):
     """The pytree (1 - t) a + t b (numpy leaves)."""
     return jax.tree_util.tree_map(lambda x, y: (1.0 - t) * np.asarray(x) + t * np.asarray(y), a, b)
+
+
+def _timed(model: Model, th, theta, dt_min: float, active):
+    """The step's theta: the history keys of the (active) time-dependent terms taken from
+    the last converged theta (not ramped) and their step duration ``dt`` (minutes)."""
+    for term in model.terms:
+        keys = getattr(term, "history_keys", ())
+        if keys and (active is None or term.name in active):
+            th = {**th, term.name: {**th[term.name], **{k: theta[term.name][k] for k in keys},
+                                    "dt": dt_min}}
+    return th
+
+
+def _advanced(model: Model, q, th, active):
+    """theta after a converged step: each (active) time-dependent term's history moved on."""
+    for term in model.terms:
+        if getattr(term, "history_keys", ()) and (active is None or term.name in active):
+            th = {**th, term.name: term.advance(q, th[term.name])}
+    return th
+
+
+def _with_history(model: Model, theta_end, theta):
+    """A stage's end theta with the history keys of the time-dependent terms from theta."""
+    for term in model.terms:
+        keys = getattr(term, "history_keys", ())
+        if keys:
+            theta_end = {**theta_end, term.name: {**theta_end[term.name],
+                                                  **{k: theta[term.name][k] for k in keys}}}
+    return theta_end
 
 
 def replay_hooks(model: Model, stages: Sequence[Stage], starts) -> Model:
@@ -90,8 +142,9 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
     """Run a load path from q0 (default zero) with design theta (default model.theta0()).
 
     ``on_step(record, model, q, theta)`` is called after every converged step (outputs,
-    progress); ``on_stage_end(index, model, q, theta, starts)`` after every completed
-    stage, with ``starts`` the (q, theta) at the start of every stage so far (what a
+    progress; theta is the step's own: a time-dependent term's ``dt`` and the history it
+    started from, see :class:`Stage`); ``on_stage_end(index, model, q, theta, starts)``
+    after every completed stage, with ``starts`` the (q, theta) at the start of every stage so far (what a
     checkpoint needs). To resume, pass ``completed`` = those starts of the stages already
     done and q0/theta = the state at their end: their ``before`` hooks are replayed on
     the model (not re-solved) and the load path goes on with the next stage. Raises
@@ -121,7 +174,15 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
         for name, p in stage.params.items():
             model.term(name)
             theta_end[name] = {**theta[name], **p}
-        t, dt, step, cuts, step_refs, prev = 0.0, 1.0 / stage.n_steps, 0, 0, [], None
+        marks = None if stage.times is None else np.asarray(stage.times) / stage.times[-1]
+
+        def nominal(t):  # the nominal increment at load factor t
+            if marks is None:
+                return 1.0 / stage.n_steps
+            k = int(np.searchsorted(marks, t + 1e-12))
+            return marks[k] - (marks[k - 1] if k else 0.0)
+
+        t, dt, step, cuts, step_refs, prev = 0.0, nominal(0.0), 0, 0, [], None
         tangent, previous = None, None  # the tangent predictor's factorisation, (theta, r)
         # not where contact is active: its forces switch with the state, and the old
         # tangent's step (blind to the contact the step makes) left coarse case 1's
@@ -133,7 +194,10 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
         path = [(0.0, q)]  # (load factor, state) of the stage's start and converged steps
         while t < 1.0 - 1e-12:
             t_new = min(1.0, t + dt)
+            if marks is not None:  # land on the stage's step times
+                t_new = min(t_new, float(marks[np.searchsorted(marks, t + 1e-12)]))
             th = interpolate(theta_start, theta_end, t_new)
+            th = _timed(model, th, theta, (t_new - t) * (stage.duration or 0.0), stage.active)
             tic = time.perf_counter()
             fscale = float(np.median(step_refs)) if step_refs else 0.0
             starts_q = [q]
@@ -163,7 +227,8 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
                     msg = " ".join([msg + "."] + _diagnosis(model, q, theta_start, theta_end, t,
                                                             prescribed, stage, path, exc))
                     log.error(msg)
-                    raise ConvergenceError(msg, q, interpolate(theta_start, theta_end, t), history) from None
+                    raise ConvergenceError(msg, q, _with_history(
+                        model, interpolate(theta_start, theta_end, t), theta), history) from None
                 dt *= 0.5
                 log.warning("stage '%s': step to t = %.4g failed (%s); cutting the increment to %.3g",
                             stage.name, t_new, exc, dt)
@@ -171,7 +236,8 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
             step += 1
             step_refs.append(done.fref)
             prev = (q, t)
-            t, q, theta, model, its = t_new, done.q, th, done.model, done.iterations
+            t, q, model, its = t_new, done.q, done.model, done.iterations
+            theta = _advanced(model, q, th, stage.active)
             path.append((t, q))
             last_solver = done.solver
             if predicts and done.solver is not None:
@@ -184,11 +250,13 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
             log.info("stage %-12s step %3d  t = %.4f  iterations %2d  |r| = %.2e N of %.2e N "
                      "(%.2f s)", stage.name, step, t, its, done.residual, done.load_N, rec.wall)
             if on_step is not None:
-                on_step(rec, model, q, theta)
+                on_step(rec, model, q, th)
             if cuts and its <= options.grow_iterations:
-                dt = min(1.0 / stage.n_steps, dt * 2.0)
+                dt = min(nominal(t), dt * 2.0)
                 cuts = max(cuts - 1, 0)
-        theta = theta_end
+            elif not cuts and marks is not None and t < 1.0 - 1e-12:
+                dt = nominal(t)
+        theta = _with_history(model, theta_end, theta)
         if on_stage_end is not None:
             on_stage_end(i_stage, model, q, theta, starts)
     if asm is not None:
