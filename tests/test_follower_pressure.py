@@ -195,6 +195,29 @@ def test_pressure_load_keeps_the_potential_only_where_it_is_exact(caplog):
     assert type(pressure_term("g", box, "boundary")) is PressureLoad
 
 
+def test_cone_potential_differs_only_in_the_reactions_normal_to_symmetry_planes():
+    """An octant's inner surface, its open edges in the planes x, y, z = 0 and its state
+    admissible (those nodes kept in their planes): the cone potential's gradient equals
+    the follower load everywhere but in the plane-normal components of the open edges'
+    nodes (held dofs: reactions), where the line terms 1/3 p (x - x0) x dx sit."""
+    m = generators.spherical_shell(5.0, 0.5, 4, 1, octant=True, material="m")
+    c = PressureLoad("c", m, "inner", 0.3)
+    f = FollowerPressure("f", m, "inner", 0.3)
+    assert type(c) is PressureLoad
+    model = solid_model(m, {"m": mooney_rivlin("m", 1.0, 0.0)}, (c, f))
+    on_plane = np.abs(m.nodes) < 1e-9  # (n, 3): node in plane i = 0, held along i
+    u = 0.05 * np.random.default_rng(5).standard_normal(m.nodes.shape)
+    u[on_plane] = 0.0
+    q = np.zeros(model.n_dof)
+    q[: model.n_u] = u.ravel()
+    th = model.theta0()
+    d = (model.gradient(q, th, ("c",)) - model.gradient(q, th, ("f",)))[: model.n_u]
+    d = d.reshape(-1, 3)
+    assert np.abs(d[~on_plane]).max() < 1e-14  # every free dof: the same force
+    rim = np.unique(open_edges(m.face_set("inner")))
+    assert np.abs(d[rim][on_plane[rim]]).max() > 0.1  # N: the reactions differ
+
+
 def _solve_cube(term_cls, n=4, p=0.2, steps=4):
     mesh = generators.box(1.0, 1.0, 1.0, n, n, n, material="m")
     term = term_cls("p", mesh, "x1", 0.0)
