@@ -224,3 +224,24 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path):
     assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err
     assert manifest.read(out)["status"] == "interrupted"
     assert not (out / manifest.LOCK).exists()
+
+
+@pytest.mark.parametrize("edit,words", [
+    (lambda ck: ck.update(stage=99), "stage = 99, but the case has stages 0 to 0"),
+    (lambda ck: ck["tree"].update(q=ck["tree"]["starts"][0][1]), "its state q has shape"),
+], ids=["stage 99", "q of the wrong shape"])
+def test_a_checkpoint_that_does_not_fit_the_case_is_one_line(tmp_path, capsys, world, edit,
+                                                             words):
+    """A checkpoint edited together with its hash in run.json (the hashes do not stop its
+    owner): refused by what it holds, exit 2, no traceback."""
+    out = tmp_path / "out"
+    case = world[0]
+    assert _run(capsys, "run", case, "--out", out)[0] == 0
+    ck = json.loads((out / "checkpoint.json").read_text())
+    edit(ck)
+    (out / "checkpoint.json").write_text(json.dumps(ck))
+    m = manifest.read(out)
+    digest = hashlib.sha256((out / "checkpoint.json").read_bytes()).hexdigest()
+    manifest.write(out, {**m, "files": {**m["files"], "checkpoint.json": digest}})
+    rc, err = _run(capsys, "run", case, "--out", out, "--resume")
+    assert rc == 2 and words in err and "without --resume" in err and "Traceback" not in err

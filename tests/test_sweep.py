@@ -177,6 +177,13 @@ def test_restart_skips_completed_runs_and_redoes_changed_ones(client, tmp_path):
     part = run_sweep(load_sweep(f), client=client)
     assert (part.computed, part.skipped) == (1, 1)
     assert rows_files[0].stat().st_mtime_ns == stamps[0]
+    # an edited row.json (its numbers no longer its run's summary) is computed again
+    row = json.loads(rows_files[0].read_text())
+    row["summary"]["force_N"] = 1e6
+    rows_files[0].write_text(json.dumps(row))
+    edited = run_sweep(load_sweep(f), client=client)
+    assert (edited.computed, edited.skipped) == (1, 1)
+    assert edited.rows[0]["force_N"] == pytest.approx(first.rows[0]["force_N"], rel=1e-6)
     # a changed base case changes every run's hash: all recomputed, with new numbers
     f = write_sweep(tmp_path / "s", body, c01=6.0)
     changed = run_sweep(load_sweep(f), client=client)
@@ -274,6 +281,11 @@ def test_cli_on_an_existing_scheduler(client, tmp_path, capsys):
      "'solver.rtol' is a solver option"),
     ('fd_step = 0.5\n[grid]\nparameters.stretch = [1.2]\n', "fd_step = 0.5; give the relative"),
     ("", "nothing to vary"),
+    ("[grid]\nparameters.stretch = [" + ", ".join(["1.2"] * 1000) + "]\n"
+     "materials.rubber.c10 = [" + ", ".join(["1.0"] * 1000) + "]\n",
+     "1,000,000 runs, more than the 10,000 a sweep may make"),
+    ("[samples]\nn = 100000\nseed = 1\nparameters.stretch = { dist = \"uniform\", low = 1.2, "
+     "high = 1.5 }\n", "100,000 runs, more than the 10,000"),
 ])
 def test_sweep_file_errors_name_the_fix(tmp_path, body, message):
     f = write_sweep(tmp_path, body)
@@ -494,3 +506,14 @@ def test_biometry_is_propagated_by_central_differences(monkeypatch, tmp_path):
         assert fo["gradient"][o]["parameters.axial_length"] == pytest.approx(dl, rel=1e-9)
         assert fo["gradient"][o]["c10_sclera"] == pytest.approx(-40.0, rel=1e-12)
         assert fo["std"][o] == pytest.approx(math.hypot(dl * 1.0, 40.0 * 0.0125), rel=1e-9)
+
+
+@pytest.mark.parametrize("address", ["garbage://x", "results.csv", "tcp://localhost"])
+def test_a_scheduler_address_dask_cannot_dial_is_one_line(tmp_path, capsys, address):
+    from eyefem.cli.main import main
+
+    f = write_sweep(tmp_path, "[grid]\nparameters.stretch = [1.2]\n")
+    assert main(["-q", "sweep", str(f), "--scheduler", address]) == 2
+    err = capsys.readouterr().err
+    assert f"--scheduler '{address}' is not a Dask scheduler address" in err
+    assert "tcp://HOST:8786" in err and "Traceback" not in err

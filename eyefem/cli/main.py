@@ -497,6 +497,21 @@ def cmd_sweep(args) -> int:
         print(f"eyefem: {exc}", file=sys.stderr)
         return 2
     quiet_dask_logs()
+    if args.scheduler:  # an address Dask can dial, before any run is planned
+        from distributed.comm.addressing import parse_address, parse_host_port
+        from distributed.comm.registry import get_backend
+
+        try:
+            scheme, where = parse_address(args.scheduler)
+            get_backend(scheme)
+            if scheme in ("tcp", "tls", "ws", "wss"):
+                parse_host_port(where)
+        except ValueError as exc:
+            print(f"eyefem sweep: --scheduler '{args.scheduler}' is not a Dask scheduler "
+                  f"address ({exc}); give one like tcp://HOST:8786 (the address "
+                  "'dask scheduler' prints), or leave --scheduler out for a local cluster",
+                  file=sys.stderr)
+            return 2
     if args.workers is not None and args.workers < 1:
         print(f"eyefem sweep: --workers {args.workers}; give at least 1", file=sys.stderr)
         return 2

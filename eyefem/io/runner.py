@@ -171,6 +171,27 @@ def checkpoint_key(setup: Setup, key: str = "") -> str:
     return checkpoint.fingerprint(key, setup.name, setup.model.n_dof, len(setup.stages))
 
 
+def _checked(ck: dict, setup: Setup, out_dir: Path) -> dict:
+    """The checkpoint ``ck`` of ``setup``'s run, its stage index and arrays checked against
+    the model (CheckpointError naming the field and the fix, never a traceback later)."""
+    path = Path(out_dir) / checkpoint.FILENAME
+    again = "run without --resume (or use another --out)"
+    n, last = setup.model.n_dof, len(setup.stages) - 1
+    stage = ck["stage"]
+    if not 0 <= stage <= last:
+        raise checkpoint.CheckpointError(f"{path}: stage = {stage}, but the case has stages "
+                                         f"0 to {last}; {again}")
+    if np.shape(ck["q"]) != (n,) or len(ck["starts"]) != stage + 1 or any(
+            np.shape(a) != (n,) for a, _ in ck["starts"]):
+        raise checkpoint.CheckpointError(
+            f"{path}: its state q has shape {np.shape(ck['q'])} and {len(ck['starts'])} stage "
+            f"starts, the model has {n} dofs and completed stage {stage} needs {stage + 1}; "
+            f"{again}")
+    if not np.all(np.isfinite(ck["q"])):
+        raise checkpoint.CheckpointError(f"{path}: its state q is not finite; {again}")
+    return ck
+
+
 def completed_state(setup: Setup, out_dir: Path, key: str = "", stage: int | None = None):
     """The model and state at the end of a completed stage of the run in ``out_dir``.
 
@@ -178,7 +199,7 @@ def completed_state(setup: Setup, out_dir: Path, key: str = "", stage: int | Non
     it is missing or of another case) and replays the ``before`` hooks of the stages up to
     ``stage`` (default: the last completed one) on ``setup.model``. Returns (model, q
     (n_dof,), theta, stage index)."""
-    ck = checkpoint.load(Path(out_dir), checkpoint_key(setup, key))
+    ck = _checked(checkpoint.load(Path(out_dir), checkpoint_key(setup, key)), setup, out_dir)
     last = int(ck["stage"])
     i = last if stage is None else int(stage)
     if not 0 <= i <= last:
@@ -260,7 +281,7 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
                     f"{out_dir}: {len(changed)} files of the interrupted run changed since it "
                     f"wrote them ({', '.join(changed[:3])}: sha256 differs from run.json or "
                     "missing); run without --resume to compute the case again")
-            ck = checkpoint.load(out_dir, key)
+            ck = _checked(checkpoint.load(out_dir, key), setup, out_dir)
             rows[:] = ck["rows"]
             writer.entries = list(ck["vtu_entries"])
             q0, theta0, completed = ck["q"], ck["theta"], ck["starts"]

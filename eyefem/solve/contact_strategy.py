@@ -131,7 +131,8 @@ def lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4, end_
     iteration. The solver sets it with the Gauss-Newton contact tangent
     (``NewtonOptions.contact_curvature``): with the exact tangent those nodes' stiffness
     alpha |G|^2 happened to hold the soft sliding modes beside the tire, and without
-    them default case 4 took more iterations (docs/performance.md, thirteenth session).
+    them default case 4 took more iterations (docs/performance.md, "The contact tangent without
+    the buckle's curvature").
     Returns (x, y, solver of the last solve, number of look-ahead nodes)."""
     members = {}
     la_solver = None

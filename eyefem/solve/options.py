@@ -8,7 +8,7 @@ import dataclasses
 @dataclasses.dataclass(frozen=True)
 class NewtonOptions:
     """Settings of the Newton solver, by what they do (why the defaults are what they are:
-    docs/formulation.md and CHANGELOG.md).
+    docs/formulation.md and the git log).
 
     Convergence:
       rtol: force residual tolerance, relative to the load the state carries (the largest

@@ -34,6 +34,7 @@ import difflib
 import itertools
 import json
 import math
+import os
 import re
 import tempfile
 import tomllib
@@ -426,6 +427,7 @@ def load_sweep(path: str | Path) -> Sweep:
         if not isinstance(v, list) or not v:
             raise SweepError(f"{path} [grid]: '{p}' = {v!r}; give a non-empty list of values")
     if grid:
+        _check_count(math.prod(len(v) for v in grid.values()), f"{path} [grid]")
         blocks.append([dict(zip(grid, combo)) for combo in itertools.product(*grid.values())])
     rows_in = raw.get("list", [])
     if rows_in:
@@ -448,6 +450,7 @@ def load_sweep(path: str | Path) -> Sweep:
         if isinstance(seed, bool) or not isinstance(seed, int):
             raise SweepError(f"{path} [samples]: seed = {seed!r}; give an integer seed so "
                              "that the samples can be drawn again")
+        _check_count(n, f"{path} [samples]")
         method = ctl.get("method", "lhs")
         if method not in METHODS:
             raise SweepError(f"{path} [samples]: method = {method!r}{_suggest(method, METHODS)}; "
@@ -476,12 +479,30 @@ def load_sweep(path: str | Path) -> Sweep:
     for p in varied:
         if p in fixed:
             raise SweepError(f"{path}: '{p}' is both fixed in [set] and varied; keep one")
+    _check_count(math.prod(len(b) for b in blocks), str(path))
     rows = [dict(itertools.chain.from_iterable(r.items() for r in combo))
             for combo in itertools.product(*blocks)]
     best = _best(raw.get("best", {}), outcomes, f"{path} [best]")
     return Sweep(path, case_path, base, head.get("title", path.stem), outcomes, gradients,
                  Path(output), head.get("vtu", False), head.get("plots", False), fixed, rows,
                  tuple(varied), dists, best, float(step))
+
+
+MAX_RUNS = 10_000
+"""The most runs a sweep file may make (``EYEFEM_MAX_RUNS`` raises it): a sweep's runs are
+listed before any starts, and 10,000 coarse surgeries already take days on a workstation."""
+
+
+def _check_count(n: int, where: str):
+    """SweepError when a sweep would make more than MAX_RUNS (or EYEFEM_MAX_RUNS) runs."""
+    try:
+        bound = int(os.environ.get("EYEFEM_MAX_RUNS", MAX_RUNS))
+    except ValueError:
+        bound = MAX_RUNS
+    if n > bound:
+        raise SweepError(f"{where}: {n:,} runs, more than the {bound:,} a sweep may make; "
+                         "vary fewer values (a coarse grid first, then a finer one where it "
+                         "matters), or raise the bound with EYEFEM_MAX_RUNS=N")
 
 
 def head_fixed_body(raw: dict, base: Case) -> str:

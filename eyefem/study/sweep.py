@@ -27,7 +27,7 @@ from pathlib import Path
 from eyefem.io import manifest
 from eyefem.study import table
 from eyefem.study.spec import PlannedRun, Sweep, plan
-from eyefem.study.task import read_record, run_case
+from eyefem.study.task import reused_record, run_case
 
 log = logging.getLogger(__name__)
 
@@ -178,8 +178,8 @@ def run_sweep(sweep: Sweep, *, out: str | Path | None = None, client=None,
                       "wall_s": 0.0, "run_hash": "", "run_dir": ""}
     todo: list[PlannedRun] = []
     for r in runs:
-        prev = read_record(out_dir / "runs" / r.folder)
-        if prev and prev.get("run_hash") == r.run_hash and prev.get("status") in SKIP_STATUSES:
+        prev = reused_record(out_dir / "runs" / r.folder, r.run_hash, SKIP_STATUSES)
+        if prev is not None:
             records[r.index] = prev
         else:
             todo.append(r)

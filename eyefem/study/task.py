@@ -170,6 +170,7 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
     from eyefem.io import manifest
     from eyefem.io.casefile import load_case
     from eyefem.io.output import write_text
+    from eyefem.io.runner import write_summary
     from eyefem.solve.solver import ConvergenceError
 
     out = Path(run_dir)
@@ -188,7 +189,7 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
         setup = problems()[case.problem][1](case.parameters, case.materials)
         res = solve_case(case, out, setup)
         summary = {"case": str(case.path), "title": case.title, **res.summary}
-        write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+        write_summary(res, summary)  # listed with its hash in run.json (reused_record)
         rec["summary"] = _numbers(res.summary)
         rec["last_step"] = _numbers(res.rows[-1]) if res.rows else {}
         if gradients:
@@ -205,6 +206,30 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
         write_text(out / ROW_FILE, json.dumps(rec, indent=1) + "\n")
     except OSError as exc:
         rec.update(status="failed", error=f"cannot write {out / ROW_FILE}: {exc}")
+    return rec
+
+
+def reused_record(run_dir: Path, run_hash: str, statuses) -> dict | None:
+    """The row.json of a run folder when a restarted sweep may keep it: of this run hash,
+    with a status of ``statuses``, its run's record (run.json) finished with every listed
+    file unchanged, and, for a run that completed, its numbers those of its summary.json
+    (an accident to row.json or to the run's files means the run is computed again)."""
+    from eyefem.io import manifest
+
+    rec = read_record(run_dir)
+    if not rec or rec.get("run_hash") != run_hash or rec.get("status") not in statuses:
+        return None
+    m = manifest.read(run_dir)
+    if m is None or m.get("status") not in ("complete", "failed") \
+            or manifest.changed_files(run_dir, m):
+        return None
+    if rec["status"] == "ok":
+        try:
+            summary = json.loads((Path(run_dir) / "summary.json").read_text())
+        except (OSError, ValueError):
+            return None
+        if "summary.json" not in m.get("files", {}) or _numbers(summary) != rec.get("summary"):
+            return None
     return rec
 
 
