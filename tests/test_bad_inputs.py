@@ -57,6 +57,8 @@ CASE_FILE_ERRORS = [  # (id, case text, words of the message); exit code 2, noth
     ("inf material coefficient", _edit(U, "c01 = 5.0", "c01 = inf"), "non-finite"),
     ("impossible c10 (kPa slip)", _edit(U, "c10 = 25.0", "c10 = 25000.0"),
      "did you give kPa? 25 MPa = 25000 kPa"),
+    ("vanishing c10", _edit(_edit(U, "c10 = 25.0", "c10 = 1e-300"), "c01 = 5.0", "c01 = 0.0"),
+     "initial shear modulus 2 (c10 + c01) = 2e-300 MPa is below 1e-06 MPa"),
     ("c10 given as text", _edit(U, "c10 = 25.0", 'c10 = "stiff"'),
      "coefficient 'c10' = 'stiff' is not a number"),
     ("unknown coefficient", _edit(U, "c01 = 5.0", "c99 = 5.0"), "[materials.rubber]"),

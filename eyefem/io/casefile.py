@@ -247,6 +247,11 @@ def load_case(path: str | Path, schemas: dict[str, list[Field]]) -> Case:
         c10 = terms.get("c10")
         if isinstance(c10, (int, float)) and not isinstance(c10, bool):
             plausibility(float(c10), material_c10_field(name), f"{path} [materials.{name}]")
+        mu = 2.0 * (float(terms.get("c10", 0.0)) + float(terms.get("c01", 0.0)))
+        if 0.0 < mu < MIN_SHEAR_MODULUS:
+            raise CaseError(f"{path} [materials.{name}]: initial shear modulus 2 (c10 + c01) = "
+                            f"{mu:.3g} MPa is below {MIN_SHEAR_MODULUS:g} MPa (1 Pa: no tissue "
+                            "eyefem models is that soft); give the coefficients in MPa")
     solver = parse_section(raw.get("solver", {}), SOLVER_FIELDS, f"{path} [solver]")
     solver["backend"] = solver["backend"] or None
     try:
@@ -267,6 +272,10 @@ MATERIAL_C10_MPA = {  # name -> (warn, refuse) ranges of c10, MPa
 }
 """Plausible Mooney-Rivlin c10 of the eye's tissues (sclera ~0.08 MPa); any other
 material is refused above 1e4 MPa only (no rubber-like solid is that stiff)."""
+
+
+MIN_SHEAR_MODULUS = 1e-6
+"""MPa (1 Pa): a material whose initial shear modulus is below it is refused."""
 
 
 def material_c10_field(name: str) -> Field:

@@ -275,7 +275,9 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     try:
         previous = manifest.read(out_dir)
         if resume:
-            changed = manifest.changed_files(out_dir, previous)
+            listed = (previous or {}).get("files") or {}
+            changed = manifest.changed_files(  # what the resume reads: the checkpoint
+                out_dir, previous, names={n for n in listed if n.startswith("checkpoint")})
             if changed:
                 raise checkpoint.CheckpointError(
                     f"{out_dir}: {len(changed)} files of the interrupted run changed since it "
@@ -335,8 +337,9 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     checks: dict[str, dict] = {}
 
     def on_stage_end(i, model, q, theta, starts):
+        record.files()  # hash the stage's frames first: the checkpoint's own listing follows
         checkpoint.save(out_dir, key=key, stage=i, q=q, theta=theta, starts=starts, rows=rows,
-                        vtu_entries=writer.entries)
+                        vtu_entries=writer.entries)  # its hashes are then listed at once
         nonlocal run
         run = manifest.updated(out_dir, run, files=record.files())
         if stability:
