@@ -60,7 +60,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from eyefem.fem.mesh import Mesh, face_edges, open_edges
-from eyefem.fem.regulation import HISTORY_KEYS, Regulation, balance, regulated_state
+from eyefem.fem.regulation import (HISTORY_KEYS, Regulation, advanced_history, balance,
+                                   regulated_state)
 from eyefem.fem.surface import face_cone_volume, face_dofs
 from eyefem.fem.terms import Term
 from eyefem.fem.units import MMHG
@@ -329,15 +330,18 @@ class FluidCavity(Term):
         equilibrium with both: the pressure is unchanged)."""
         if self.regulation is None:
             return params
-        P, V = self.pressures(q, params)
-        dt = float(params["dt"])
-        new = {**params, "dt": 0.0, "time": float(params["time"]) + dt,
-               "aq_produced": self._shape(np.asarray(params["aq_produced"])
-                                          + dt * np.asarray(params["production"])),
-               "aq_outflow": self._shape(np.asarray(params["aq_outflow"])
-                                         + dt * np.asarray(params["facility"])
-                                         * (P - np.asarray(params["p_ev"])))}
-        return new
+        P, _ = self.pressures(q, params)
+        new = advanced_history(P if not self.single else float(P[0]),
+                               {k: np.asarray(v) for k, v in params.items()})
+        return {**params, "dt": 0.0, "time": float(new["time"]),
+                "aq_produced": self._shape(new["aq_produced"]),
+                "aq_outflow": self._shape(new["aq_outflow"])}
+
+    def history_after(self, q, params) -> dict:
+        """:meth:`advance`'s new history values as JAX values of (q, params), differentiable
+        (the gradient through time, eyefem.solve.transient)."""
+        P = cavity_pressures(q, params, self.data, self.dofs)[0]
+        return advanced_history(P[0] if self.single else P, params)
 
     # --- energy and derivatives (kernels: everything from q, params, data, dofs) ----------
     def local_energy(self, q_loc, params, data):

@@ -271,6 +271,16 @@ def regulated_state(V, params) -> dict:
             "reservoir": g["c_out"] * x}
 
 
+def advanced_history(P, params) -> dict:
+    """The history after a converged step of ``params["dt"]`` minutes ending at the
+    pressure P (numpy or JAX, one value per cavity): the clock, the produced and the
+    outflowed volumes moved on by backward Euler."""
+    dt = params["dt"]
+    return {"time": params["time"] + dt,
+            "aq_produced": params["aq_produced"] + dt * params["production"],
+            "aq_outflow": params["aq_outflow"] + dt * params["facility"] * (P - params["p_ev"])}
+
+
 def balance(V, state, v_ini) -> np.ndarray:
     """The volume balance's residual (n_cav,), mm^3: V - V_ini - (injected - drained +
     produced - outflow - blood - compressed - reservoir); zero at every converged step
