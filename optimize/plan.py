@@ -383,6 +383,10 @@ def main(argv=None) -> int:
     except (CaseError, ValueError) as exc:
         print(f"plan: {exc}", file=sys.stderr)
         return 2
+    except ConvergenceError as exc:  # the case itself (its pre-operative eye) did not solve
+        print(f"plan: {a.case}: the case does not converge before planning starts: {exc}",
+              file=sys.stderr)
+        return 3
     out = Path(a.out)
     rows = []
 

@@ -598,3 +598,22 @@ def test_device_gpu_without_a_gpu_is_a_message(tmp_path, capsys):
     assert rc == 2
     assert "JAX finds no GPU" in err and "jax[cuda12]" in err and "--device cpu" in err
     assert "Traceback" not in err
+
+
+def test_planned_case_that_does_not_converge_exits_3(tmp_path, capsys, monkeypatch):
+    """A case whose own solve fails before the plan starts: exit 3 (did not converge) with
+    one line, not a traceback."""
+    import eyefem.eye.design as design
+    import optimize.plan as plan_mod
+    from eyefem.solve.solver import ConvergenceError
+
+    def failing(*a, **kw):
+        raise ConvergenceError("stage 'pressurise': step to t = 1 failed after 8 cuts")
+
+    monkeypatch.setattr(design, "SurgerySimulator", failing)
+    case = _write(tmp_path, SURGERY)
+    rc = plan_mod.main([str(case), "--target-indentation", "1.0", "--vars", "tightening",
+                        "--out", str(tmp_path / "p")])
+    err = capsys.readouterr().err
+    assert rc == 3 and "does not converge before planning starts" in err
+    assert "Traceback" not in err
