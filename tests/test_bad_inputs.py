@@ -608,7 +608,8 @@ def test_planned_case_that_does_not_converge_exits_3(tmp_path, capsys, monkeypat
     from eyefem.solve.solver import ConvergenceError
 
     def failing(*a, **kw):
-        raise ConvergenceError("stage 'pressurise': step to t = 1 failed after 8 cuts")
+        raise ConvergenceError("stage 'pressurise': step to t = 1 failed after 8 cuts", None,
+                               None, [])
 
     monkeypatch.setattr(design, "SurgerySimulator", failing)
     case = _write(tmp_path, SURGERY)
