@@ -389,7 +389,7 @@ def test_volume_balance_closes_at_every_step(timeline):
     """At every step the enclosed volume's change equals the step's flows recomputed from
     the reported pressure alone: dt F produced, dt C (P - P_ev) out, the removed volumes,
     the blood expelled E(P) - E(P_prev) and the liquid's compression, to 1e-9 of the
-    largest of them (measured: 1e-13); the cumulative volumes are the sums of the steps'."""
+    largest of them (measured 1e-14); the cumulative volumes are the sums of the steps'."""
     reg, rows, sol = timeline
     F, C, p_ev = reg.production, reg.facility, reg.p_ev
     P_ini, V_ini = sol.theta["cav"]["p_ini"], sol.theta["cav"]["v_ini"]

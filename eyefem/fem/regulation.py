@@ -59,19 +59,22 @@ Parameter sources (clinical units; :data:`AQUEOUS` holds them in the model's):
   Schiotz tonography), 56 healthy eyes aged 41-68: Kazemi et al., Invest Ophthalmol Vis
   Sci 58:204 (2017);
 - episcleral venous pressure P_ev = 6.3 +- 2.8 mmHg, computerised venomanometry, 10
-  healthy eyes: Sit et al., Exp Eye Res 92:537 (2011) (earlier methods, about 8 mmHg:
-  Sit and McLaren, Exp Eye Res 93:291, 2011);
-- production F = 2.5 uL/min, the mean aqueous flow of the normal human eye measured by
-  fluorophotometry (Toris, "Aqueous humor dynamics", in Ocular Pharmacology, 2014),
-  here net of uveoscleral outflow. With these C, P_ev and F Goldmann's steady state is
-  P_ev + F / C = 16.7 mmHg;
+  eyes of 5 healthy volunteers: Sit et al., Exp Eye Res 92:537 (2011); a population
+  mean of about 8 mmHg is quoted in Exp Eye Res 92:318 (2011),
+  doi:10.1016/j.exer.2011.03.011 (methods and reported values reviewed by Sit and
+  McLaren, Exp Eye Res 93:291, 2011);
+- production F = 2.5 uL/min, the average rate at which aqueous enters the normal human
+  anterior chamber (Toris, "Aqueous humor dynamics", book chapter, CRC Press,
+  doi:10.1201/b16796-3), here net of uveoscleral outflow. With these C, P_ev and F
+  Goldmann's steady state is P_ev + F / C = 16.7 mmHg;
 - choroidal blood: the choroid thickens 3.4 um per mmHg of IOP lowering (17 eyes after
-  trabeculectomy: Saeedi et al., Br J Ophthalmol 98:976, 2014), its vessel lumen
-  1.5 um per mmHg (95 % CI 0.8-2.1) of it (30 eyes after glaucoma surgery,
-  PMC5493330); over the sclera's 16.3 cm^2 (Olsen et al., Am J Ophthalmol 125:237,
-  1998) the vessel part is c_b = 1.5e-3 mm x 1630 mm^2 = 2.4 uL/mmHg, the upper bound of
-  the blood's compliance (the choroid covers less than the whole sclera, and these are
-  changes over days). Living eyes stiffen to the dead eye's rigidity once the IOP passes
+  trabeculectomy: "Change in choroidal thickness and axial length with change in
+  intraocular pressure after trabeculectomy", Br J Ophthalmol 98:976, 2014), its vessel
+  lumen 1.5 um per mmHg (95 % CI 0.8-2.1) of that (30 eyes after glaucoma procedures:
+  Zhang et al., Invest Ophthalmol Vis Sci 58:3278, 2017); over the sclera's 16.3 cm^2
+  (Olsen et al., Am J Ophthalmol 125:237, 1998) the vessel part is c_b = 1.5e-3 mm x
+  1630 mm^2 = 2.4 uL/mmHg, an upper bound of the blood's compliance (the choroid covers
+  less than the whole sclera, and these are changes over days). Living eyes stiffen to the dead eye's rigidity once the IOP passes
   the blood pressure (rabbits: Eisenlohr and Langham, Invest Ophthalmol 1:63, 1962): the
   content is exhausted by about 3 p_b above the closing pressure, p_b = 25 mmHg for an
   exhaustion near 90 mmHg, so E_max = c_b p_b = 60 uL (:data:`CHOROID_ESTIMATE`, an
@@ -80,7 +83,7 @@ Parameter sources (clinical units; :data:`AQUEOUS` holds them in the model's):
   pressed out during the injection: the compartment on that wall counts it twice.
 
 Length: the laws, the condensed pressure and its implicit derivative, the report's
-volumes and the time helpers; about 300 lines.
+volumes and the time helpers; about 320 lines.
 """
 
 from __future__ import annotations
