@@ -497,7 +497,9 @@ def test_gradient_of_a_later_pressure_through_time_against_central_differences()
 def test_stage_times_are_checked_and_the_defaults_keep_the_load_factors():
     """A Stage's times must be n_steps increasing times ending at its duration; a stage
     without time-dependent terms solves the same states with or without a duration, and
-    with times its steps end at times / duration."""
+    with times its steps end at times / duration, cut steps included."""
+    from eyefem.solve.solver import NewtonOptions
+
     fix = (np.array([0]), np.zeros(1))
     with pytest.raises(ValueError, match="times"):
         Stage("s", 2, fix, times=(1.0, 0.5))
@@ -525,6 +527,16 @@ def test_stage_times_are_checked_and_the_defaults_keep_the_load_factors():
     np.testing.assert_array_equal(runs["plain"][1], runs["duration"][1])
     np.testing.assert_allclose(runs["times"][0], [0.1, 0.3, 1.0], rtol=1e-14)
     np.testing.assert_allclose(runs["times"][1], runs["plain"][1], rtol=0, atol=1e-9)
+    # steps cut (Newton limited to 3 iterations, 70 % compression) still land on the times
+    m = generators.box(1.0, 1.0, 1.0, 2, 2, 2)
+    model = solid_model(m, {"default": neo_hookean("default", 0.1)})
+    z0, top = node_dofs(m.node_set("z0")), node_dofs(m.node_set("z1"), "z")
+    d = np.concatenate([z0, top])
+    v = np.concatenate([np.zeros(len(z0)), np.full(len(top), -0.7)])
+    ts = []
+    solve(model, [Stage("squeeze", 2, (d, v), times=(9.0, 10.0))],
+          options=NewtonOptions(max_iter=3), on_step=lambda rec, *a: ts.append(float(rec.t)))
+    assert len(ts) > 2 and ts[-2:] == [0.9, 1.0] and np.all(np.diff(ts) > 0)
 
 
 def test_step_times_land_on_the_named_times():

@@ -179,7 +179,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
         def nominal(t):  # the nominal increment at load factor t
             if marks is None:
                 return 1.0 / stage.n_steps
-            k = int(np.searchsorted(marks, t + 1e-12))
+            k = min(int(np.searchsorted(marks, t + 1e-12)), len(marks) - 1)
             return marks[k] - (marks[k - 1] if k else 0.0)
 
         t, dt, step, cuts, step_refs, prev = 0.0, nominal(0.0), 0, 0, [], None
