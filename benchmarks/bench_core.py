@@ -14,6 +14,13 @@ problem takes) and at the end (the timings' second assembler and kernels include
     python benchmarks/bench_core.py --sizes 32:2 --extras   # + cost of a cavity, of contact
     python benchmarks/bench_core.py --sizes 20:5 --device gpu --no-path   # kernels on a GPU
     python benchmarks/bench_core.py --sizes 20:5 --no-tangent-predictor  # steps as before it
+    python benchmarks/bench_core.py --sizes 20:5 --quasi-newton off,bfgs  # full Newton, then BFGS
+
+``--quasi-newton`` (NewtonOptions.quasi_newton; a comma-separated list solves the load path
+once per setting in one process, in that order, after one warm-up compilation) adds
+the numeric factorisations of the load path (``factorisations``, counted on the backend:
+deterministic, like ``newton_iterations``); the per-iteration timings are those of a
+full Newton iteration whatever the setting.
 
 ``--device gpu`` runs the element kernels on a GPU (a CUDA jaxlib); ``--backend cudss``
 the factorisation and back-solves there too (eyefem.solve.cudss). ``--no-path`` skips the 10-step load path and times the iteration at
@@ -111,8 +118,40 @@ def _dilated_state(model):
     return q, model.theta0()
 
 
+class _FactorisationCounter:
+    """Counts numeric factorisations (Pardiso's phase 22, SuperLU's and cuDSS's factor
+    objects) while active: the deterministic cost measure of a load path."""
+
+    def __init__(self):
+        from eyefem.solve import linsolve
+
+        self.n, self.linsolve = 0, linsolve
+        self.originals = {}
+
+    def __enter__(self):
+        ls = self.linsolve
+        self.originals = {"p": ls._Pardiso._factorize, "f": ls.factorize}
+        counter = self
+
+        def pardiso_factorize(obj):
+            counter.n += 1
+            return counter.originals["p"](obj)
+
+        def factorize(A, backend=None):
+            if (backend or ls.default_backend()) != "pardiso":
+                counter.n += 1
+            return counter.originals["f"](A, backend)
+
+        ls._Pardiso._factorize, ls.factorize = pardiso_factorize, factorize
+        return self
+
+    def __exit__(self, *exc):
+        self.linsolve._Pardiso._factorize = self.originals["p"]
+        self.linsolve.factorize = self.originals["f"]
+
+
 def bench(n_per_edge, n_thick, backend, repeats=5, extras=False, path=True, solve_too=True,
-          tangent_predictor=True):
+          tangent_predictor=True, quasi_newton=("off",)):
     p = {f.name: f.default for f in SHELL_FIELDS}
     p.update(n_per_edge=n_per_edge, n_thick=n_thick)
     tic = time.perf_counter()
@@ -127,16 +166,25 @@ def bench(n_per_edge, n_thick, backend, repeats=5, extras=False, path=True, solv
     model.gradient(q, theta)
     model.hvp(q, q, theta)
     t_compile = time.perf_counter() - tic
-    tic = time.perf_counter()
-    if path:
-        sol = solve(model, setup.stages, options=NewtonOptions(
-            backend=backend, tangent_predictor=tangent_predictor))
-        its, steps = sum(r.iterations for r in sol.history), len(sol.history)
-        q, theta = sol.q, sol.theta
-    else:
-        (q, theta), its, steps = _dilated_state(model), 0, 0
-    t_total = time.perf_counter() - tic
-    rss_path = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    paths = {}
+    for qn in (quasi_newton if path else ("off",)):
+        tic = time.perf_counter()
+        if path:
+            with _FactorisationCounter() as fc:
+                sol = solve(model, setup.stages, options=NewtonOptions(
+                    backend=backend, tangent_predictor=tangent_predictor, quasi_newton=qn))
+            its, steps = sum(r.iterations for r in sol.history), len(sol.history)
+            q, theta, n_fact = sol.q, sol.theta, fc.n
+            del sol
+        else:
+            (q, theta), its, steps, n_fact = _dilated_state(model), 0, 0, 0
+        paths[qn] = {"quasi_newton": qn, "newton_iterations": its, "factorisations": n_fact,
+                     "steps": steps, "total_s": time.perf_counter() - tic,
+                     "peak_rss_path_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+        if len(paths) > 1:
+            paths[qn]["state_rel_diff"] = float(np.abs(q - q_first).max() / np.abs(q_first).max())
+        else:
+            q_first = q
     dofs, _ = setup.stages[0].prescribed
     pres = np.zeros(model.n_dof, bool)
     pres[dofs] = True
@@ -160,17 +208,16 @@ def bench(n_per_edge, n_thick, backend, repeats=5, extras=False, path=True, solv
 
     t_solve = _median(lin, max(2, repeats // 2)) if solve_too else float("nan")
     extra = _extras(model, q, theta, pres, backend, repeats) if extras else {}
-    return {**extra, 
+    common = {**extra,
         "n_elem": model.mesh.n_elem, "n_dof": model.n_dof, "backend": backend,
         "build_s": t_build, "compile_s": t_compile,
         "kernel_s": t_kernel, "scatter_s": t_scatter, "solve_s": t_solve,
         "schur_cg_iterations": cg[-1] if cg else None,
         "residual_s": t_grad, "iteration_s": t_kernel + t_scatter + t_solve + t_grad,
-        "newton_iterations": its, "steps": steps, "total_s": t_total,
         "device": jax.devices()[0].platform,
-        "peak_rss_path_MB": rss_path,
         "peak_rss_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
+    return [{**common, **p} for p in paths.values()]
 
 
 def main():
@@ -188,6 +235,9 @@ def main():
                     help="with --no-path: leave the linear solve out (kernels and scatter only)")
     ap.add_argument("--no-tangent-predictor", dest="tangent_predictor", action="store_false",
                     help="load steps start without the tangent predictor (the code before it)")
+    ap.add_argument("--quasi-newton", default="off",
+                    help="NewtonOptions.quasi_newton of the load path: off, bfgs, or a list "
+                         "(off,bfgs) solved in turn in one process")
     args = ap.parse_args()
     from eyefem.solve.device import select_device
     from eyefem.solve.heap import configure_heap
@@ -197,16 +247,16 @@ def main():
     rows = []
     for s in args.sizes.split(","):
         a, b = (int(x) for x in s.split(":"))
-        rows.append(bench(a, b, args.backend, args.repeats, args.extras, args.path,
-                          args.solve, args.tangent_predictor))
+        rows.extend(bench(a, b, args.backend, args.repeats, args.extras, args.path,
+                          args.solve, args.tangent_predictor, args.quasi_newton.split(",")))
     print(f"machine: {platform.processor() or platform.machine()}, "
           f"{__import__('os').cpu_count()} cores, jax {jax.__version__}, kernels on {where}")
-    keys = list(rows[0])
+    keys = list(dict.fromkeys(k for r in rows for k in r))
     print("| " + " | ".join(keys) + " |")
     print("|" + "---|" * len(keys))
     for r in rows:
-        print("| " + " | ".join(f"{r[k]:.3g}" if isinstance(r[k], float) else str(r[k])
-                                for k in keys) + " |")
+        print("| " + " | ".join("" if k not in r else f"{r[k]:.3g}" if isinstance(r[k], float)
+                                else str(r[k]) for k in keys) + " |")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=2)

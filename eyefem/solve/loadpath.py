@@ -239,7 +239,9 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
             t, q, model, its = t_new, done.q, done.model, done.iterations
             theta = _advanced(model, q, th, stage.active)
             path.append((t, q))
-            last_solver = done.solver
+            # a factorisation that quasi-Newton steps moved away from (NewtonOptions.
+            # quasi_newton) is no adjoint's: Solution.factorised takes the converged state's
+            last_solver = None if getattr(done.solver, "stale", False) else done.solver
             if predicts and done.solver is not None:
                 tangent = done.solver
             previous = (th, done.r) if done.r is not None else None

@@ -18,6 +18,7 @@ from eyefem.solve.globalisation import (Evaluated, Restoration, evaluate,
 from eyefem.solve.linsolve import LinearSolveError
 from eyefem.solve.model import Model
 from eyefem.solve.options import NewtonOptions
+from eyefem.solve.quasi_newton import QuasiNewton, quasi_newton_stage, quasi_newton_step
 from eyefem.solve.records import StepFailed, StepResult, StepStatus
 
 log = logging.getLogger(__name__)
@@ -62,6 +63,7 @@ class _Iterate:
     best: tuple | None = None  # (force residual, q, model, paired earlier, load) of the best
     flips: list = dataclasses.field(default_factory=list)  # forces left by re-pairings
     evaluated: object = None  # the line search's residual at q (globalisation.Evaluated)
+    qn: object = None  # quasi-Newton updates on the last factorisation (QuasiNewton)
 
 
 def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOptions,
@@ -85,14 +87,22 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
     are re-paired every iteration until frozen (NewtonOptions.contact_freeze). A step that
     stalls below ``stall_rtol`` x the load is accepted unless it is ``final`` (it ends a
     stage). The returned model carries the step's pairing. Raises StepFailed (the load path
-    cuts the step)."""
+    cuts the step). With ``NewtonOptions.quasi_newton`` (a stage without contact)
+    iterations reuse the last factorisation (the predictor's too) with BFGS updates until
+    the reformation rule asks for a new one (eyefem.solve.quasi_newton)."""
     free, mult = asm.free_primal, asm.mult
     s = _Iterate(model, q.copy(), fscale)
     asm.model = model  # after a failed try the assembler holds that try's contact pairing
+    qn_on = opts.quasi_newton != "off" and quasi_newton_stage(model, active)
     if predictor is not None:
         _tangent_predict(s, asm, theta, dq_prescribed, opts, active, predictor, vref, previous)
+        if qn_on and s.solver is None:  # (not a fresh one where it fell back)
+            s.solver = predictor
+            predictor.stale = True  # not the adjoint's at this step's state (loadpath)
     elif np.any(dq_prescribed):
         _predict(s, asm, theta, dq_prescribed, opts, active)
+    if qn_on and s.solver is not None:
+        s.qn = QuasiNewton(s.solver, asm)
     for it in range(opts.max_iter + 1):
         paired_here = not s.frozen  # this iterate is re-paired at its own state
         if paired_here:
@@ -141,9 +151,20 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
                              f"residual {nm:.2e}) after {it} iterations")
         if it == opts.max_iter:
             break
-        s.solver = None  # its K, B and Pardiso copy: not kept alive through the next assembly
+        if s.qn is not None:
+            stepped = quasi_newton_step(s.qn, s.model, asm, s.q, theta, active, opts, r, nf, nm,
+                                        s.fref, vref)
+            if stepped is not None:
+                s.q, s.evaluated = stepped
+                s.solver.stale = True  # the state moved on: no adjoint's factorisation
+                continue
+        s.solver = s.qn = None  # its K, B and Pardiso copy: not kept alive through the next assembly
+        q_old = s.q
         s.q, s.solver, s.evaluated = globalised_update(s.model, asm, s.q, theta, active, opts,
                                                        rf, rm, nf, nm, s.fref, vref, s.frozen)
+        if qn_on:  # the Newton step is the first pair of the new factorisation's updates
+            s.qn = QuasiNewton(s.solver, asm)
+            s.qn.record(s.q - q_old, s.qn.reduce(r))
     raise StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
                      f"load {s.load:.3e} N, volume residual {nm:.2e})")
 

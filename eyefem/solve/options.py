@@ -5,6 +5,10 @@ from __future__ import annotations
 import dataclasses
 
 
+QUASI_NEWTON = ("off", "bfgs")
+"""Values of NewtonOptions.quasi_newton."""
+
+
 @dataclasses.dataclass(frozen=True)
 class NewtonOptions:
     """Settings of the Newton solver, by what they do (why the defaults are what they are:
@@ -29,6 +33,16 @@ class NewtonOptions:
         previous step: one solve, no assembly (eyefem.solve.newton); off: the first
         iterate of a load-driven step is a fresh Newton step, that of a
         displacement-driven one the consistent predictor on a fresh factorisation.
+      quasi_newton: "off" (a new factorisation every iteration) or "bfgs": iterations
+        of a stage without contact reuse the last factorisation (the step's, or the
+        previous step's through the tangent predictor) with BFGS updates applied by
+        back-solves (eyefem.solve.quasi_newton), and reform it (a full Newton
+        iteration) when a step's line search fails, when a step lowers the residual by
+        less than quasi_newton_ratio, or after quasi_newton_updates updates. The same
+        convergence test; the adjoint still refines against the exact tangent.
+      quasi_newton_updates: updates on one factorisation before it is reformed.
+      quasi_newton_ratio: a quasi-Newton step must lower the merit (force and volume
+        residual) below this x its start's, else the next iteration reforms.
 
     Linear solves:
       backend: linear solver backend (None: the default, eyefem.solve.linsolve).
@@ -90,6 +104,9 @@ class NewtonOptions:
     contact_cycle_rtol: float = 1e-3
     extrapolate: bool = False
     tangent_predictor: bool = True
+    quasi_newton: str = "off"
+    quasi_newton_updates: int = 10
+    quasi_newton_ratio: float = 0.5
     modified_newton: float = 1e-2
     pressure_stiffness: bool = False
     restore: bool = True
@@ -111,6 +128,13 @@ class NewtonOptions:
         if not self.contact_curvature >= 0:
             raise ValueError(f"NewtonOptions.contact_curvature = {self.contact_curvature}; "
                              "must be >= 0 (0: always the exact contact tangent)")
+        if self.quasi_newton not in QUASI_NEWTON:
+            raise ValueError(f"NewtonOptions.quasi_newton = {self.quasi_newton!r}; choose from "
+                             f"{', '.join(map(repr, QUASI_NEWTON))}")
+        if self.quasi_newton_updates < 1 or not 0 < self.quasi_newton_ratio < 1:
+            raise ValueError(f"NewtonOptions: quasi_newton_updates = {self.quasi_newton_updates}, "
+                             f"quasi_newton_ratio = {self.quasi_newton_ratio}; need updates >= 1 "
+                             "and 0 < ratio < 1")
         if self.max_iter < 1 or self.max_cuts < 0 or self.stall_iterations < 2:
             raise ValueError(f"NewtonOptions: max_iter = {self.max_iter}, max_cuts = "
                              f"{self.max_cuts}, stall_iterations = {self.stall_iterations}; "
