@@ -34,6 +34,8 @@ from eyefem.eye.mesh_error import mesh_error
 from eyefem.eye.outcomes import outcomes, stage_summary, stress_patches
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import PRESETS, SEED_MATERIALS, with_overrides
+from eyefem.eye.timeline import (TIMELINE_FIELDS, plot_timeline, regulation, timed_stages,
+                                  timeline_outcomes)
 from eyefem.eye.wall import WALL_ELEMENT_FIELD, with_wall_element
 from eyefem.fem.buckle_contact import EDGE_WIDTH, RIDGE_FLANK
 from eyefem.fem.cavity import WATER_BULK, FluidCavity
@@ -163,7 +165,7 @@ SURGERY_FIELDS = [
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
     WALL_ELEMENT_FIELD,
-] + BIOMETRY_FIELDS
+] + BIOMETRY_FIELDS + TIMELINE_FIELDS
 
 
 def _materials(materials, preset: str = "seed"):
@@ -245,6 +247,10 @@ def surgery(p, materials):
                     "buckle_body": p.get("buckle_body", "rigid")})
         if rows:
             out.update({k: rows[-1][k] for k in body.summary_outcomes})
+        timeline = timeline_outcomes(rows, p)
+        out.update(timeline)
+        if plots and timeline:
+            plot_timeline(Path(out_dir) / "iop_timeline.png", rows, p, timeline)
         out["mesh_error"] = run_mesh_error(p, parts.buckle.encircling, out)
         warn_high_iop(out["iop_mmhg"]) or warn_low_iop(out["iop_mmhg"])
         if parts.buckle.encircling and len(summary) > 1:
@@ -252,7 +258,8 @@ def surgery(p, materials):
                                  - summary[0]["corneal_astigmatism_D"])
         return out
 
-    return Setup("surgery", model, body.stages(parts, path), probe, finish, parts=parts)
+    return Setup("surgery", model, timed_stages(body.stages(parts, path), p), probe, finish,
+                 parts=parts)
 
 
 def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
@@ -362,7 +369,8 @@ def _eye_terms(parts: SurgeryParts) -> tuple:
     """The eye's own terms: zonule, IOP load, cavity, lens springs, orbit."""
     eye, p, mesh = parts.eye, parts.p, parts.eye.mesh
     return (eye.zonule_bars(p["zonule_E"]), PressureLoad("iop", mesh, "wetted", 0.0),
-            FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"]),
+            FluidCavity("cavity", mesh, [("wetted",)], bulk=p["liquid_bulk"],
+                        regulation=regulation(p)),
             eye.lens_springs(),
             orbit_spring(mesh, p))
 
@@ -634,7 +642,8 @@ ADVANCED_FIELDS = frozenset({
     "ridge_flank", "buckle_edge", "sponge_end", "bite_length", "limbus_width",
     "zonule_insertion_radius", "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
-    "sclera_thickness_equator", "sclera_thickness_pole", "wall_element", "lens_support"})
+    "sclera_thickness_equator", "sclera_thickness_pole", "wall_element", "lens_support",
+    *(f.name for f in TIMELINE_FIELDS)})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all
 (``--all``): the orbit's hold, load steps, contact and material details."""
 
