@@ -12,7 +12,8 @@ and outputs::
 
     [materials.rubber]                 # generalised Mooney-Rivlin c_rs, MPa
     c10 = 25.0
-    c01 = 5.0
+    c01 = 5.0                          # k = 1000: bulk modulus, MPa (absent or 0: exactly
+                                       # incompressible; verification problems, user_mesh)
 
     [solver]                           # NewtonOptions fields
     rtol = 1e-8
@@ -252,6 +253,12 @@ def load_case(path: str | Path, schemas: dict[str, list[Field]]) -> Case:
             raise CaseError(f"{path} [materials.{name}]: initial shear modulus 2 (c10 + c01) = "
                             f"{mu:.3g} MPa is below {MIN_SHEAR_MODULUS:g} MPa (1 Pa: no tissue "
                             "eyefem models is that soft); give the coefficients in MPa")
+    bulk = [n for n, m in mats.items() if getattr(m, "k", 0.0)]
+    if bulk and problem not in bulk_modulus_problems():
+        raise CaseError(f"{path} [materials.{bulk[0]}]: k = {mats[bulk[0]].k:g} MPa; problem "
+                        f"'{problem}' keeps its materials exactly incompressible (the bulk "
+                        "modulus k is read for the verification problems and user_mesh); "
+                        "remove k")
     solver = parse_section(raw.get("solver", {}), SOLVER_FIELDS, f"{path} [solver]")
     solver["backend"] = solver["backend"] or None
     try:
@@ -276,6 +283,18 @@ material is refused above 1e4 MPa only (no rubber-like solid is that stiff)."""
 
 MIN_SHEAR_MODULUS = 1e-6
 """MPa (1 Pa): a material whose initial shear modulus is below it is refused."""
+
+
+def bulk_modulus_problems() -> set:
+    """The problems whose case files may give a material a bulk modulus ``k`` > 0 (MPa:
+    FEBio's nearly incompressible uncoupled form, eyefem.fem.materials.
+    UncoupledMooneyRivlin): the verification problems and user_mesh, whose models are
+    eyefem.solve.model.solid_model of one solid. The eye's and the examples' keep exact
+    incompressibility (their outcomes read the Q1P0 solid)."""
+    from eyefem.problems.user_mesh import PROBLEMS as user_mesh
+    from eyefem.problems.verification import PROBLEMS as verification
+
+    return set(verification) | set(user_mesh)
 
 
 def material_c10_field(name: str) -> Field:

@@ -9,10 +9,14 @@ Mapping (see docs/febio.md):
   quad4 faces keep their node order (right-hand normal out of the solid in both codes);
 * materials: eyefem's W = c10 (I1bar - 3) + c01 (I2bar - 3), incompressible through the
   element multiplier, becomes FEBio's uncoupled "Mooney-Rivlin" (c1 = c10, c2 = c01) with
-  the penalty bulk modulus k = ``bulk_factor`` (c10 + c01) (default 1000: the two agree
-  as k grows); higher-order terms (c20, c30, ...) have no FEBio "Mooney-Rivlin"
-  equivalent and are dropped with a warning; reading, k is ignored (eyefem is exactly
-  incompressible) with a warning when k < 100 (c1 + c2);
+  the bulk modulus k = ``bulk_factor`` (c10 + c01) (default 1000) and FEBio's augmented
+  Lagrangian (<laugon>1</laugon>, <atol> AUGMENTATION_TOL): its augmentations drive each
+  three-field element's volume ratio Jbar = v / V to 1, the Q1P0 element's constraint, and
+  the reader takes laugon = 1 back as exactly incompressible; higher-order terms (c20, c30, ...) have no FEBio "Mooney-Rivlin"
+  equivalent and are dropped with a warning; FEBio's own laws (eyefem.fem.materials.
+  UncoupledMooneyRivlin with its k, CoupledMooneyRivlin) are written as what they are
+  ("Mooney-Rivlin" with that k, "neo-Hookean", "coupled Mooney-Rivlin"), and read back
+  as such (eyefem.io.febio_read);
 * loads: prescribed displacements (a dof d is node d // 3, component d % 3) become
   "zero displacement" / "prescribed displacement" boundary conditions on node sets, each
   surface pressure (eyefem.fem.surface.PressureLoad: a follower load, positive against the
@@ -35,6 +39,7 @@ import numpy as np
 
 from eyefem.fem.mesh import Mesh
 from eyefem.fem.solid import SolidQ1P0
+from eyefem.fem.solid_compressible import SolidCompressible
 from eyefem.fem.surface import PressureLoad
 from eyefem.io.runner import Setup
 from eyefem.solve.solver import Stage
@@ -46,6 +51,11 @@ BULK_FACTOR = 1000.0
 """Default FEBio bulk modulus k as a multiple of c10 + c01 (Poisson's ratio about 0.4997)."""
 
 _XYZ = "xyz"
+
+AUGMENTATION_TOL = 1e-3
+"""FEBio's <atol> written with <laugon>1</laugon> for an exactly incompressible material:
+its augmentations stop when the norm of the element pressures changes by less than this
+fraction (FE3FieldElasticSolidDomain::Augment; FEBio's default 0.01)."""
 
 
 class FebError(ValueError):
@@ -87,7 +97,8 @@ def write_feb(setup: Setup, path, *, stages: int = 1,
       stages: how many stages to export; only 1 is supported (later stages of the
         surgery need contact, sutures and a closed cavity, which FEBio decks from here
         cannot carry).
-      bulk_factor: FEBio's k = bulk_factor (c10 + c01) per material.
+      bulk_factor: FEBio's k = bulk_factor (c10 + c01) per exactly incompressible
+        material (a material with its own k, or a coupled one, is written as it is).
     Returns: the warnings (terms and coefficients not exported), also logged.
     Raises: ValueError for stages != 1 or a model without solid elements; OSError.
     """
@@ -100,7 +111,7 @@ def write_feb(setup: Setup, path, *, stages: int = 1,
     mesh, theta = model.mesh, model.theta0()
     active = [t for t in model.terms if stage.active is None or t.name in stage.active]
     warnings: list[str] = []
-    solids = [t for t in active if isinstance(t, SolidQ1P0)]
+    solids = [t for t in active if isinstance(t, (SolidQ1P0, SolidCompressible))]
     if not solids:
         raise ValueError(f"write_feb: '{setup.name}' stage '{stage.name}' has no active solid "
                          "elements to export")
@@ -119,13 +130,16 @@ def write_feb(setup: Setup, path, *, stages: int = 1,
 
     # materials: one per (name) used by the exported elements
     elem_mat = np.full(mesh.n_elem, -1, np.int64)
-    coeffs = {}
+    coeffs, volumetric = {}, {}
     for t in solids:
         c = np.asarray(theta[t.name]["coeffs"])
         el = np.asarray(t.elements)
         elem_mat[el] = mesh.material_ids[el]
         for m in np.unique(mesh.material_ids[el]):
             coeffs.setdefault(int(m), c[m])
+            if isinstance(t, SolidCompressible):  # (k, (c1, c2, lam)) of FEBio's own laws
+                volumetric.setdefault(int(m), (float(np.asarray(theta[t.name]["k"])[m]),
+                                               np.asarray(theta[t.name]["coupled"])[m]))
     exported = np.nonzero(elem_mat >= 0)[0]
     mat_ids = sorted(coeffs)
 
@@ -148,6 +162,9 @@ def write_feb(setup: Setup, path, *, stages: int = 1,
     for i, m in enumerate(mat_ids, start=1):
         c = coeffs[m]
         name = mesh.materials[m]
+        if m in volumetric:
+            _write_febio_law(mats, i, mat_names[name], c, *volumetric[m], name, warnings)
+            continue
         extra = [f"c{r}{s}" for r in range(c.shape[0]) for s in range(c.shape[1])
                  if (r + s > 1) and c[r, s] != 0.0]
         if extra:
@@ -157,11 +174,14 @@ def write_feb(setup: Setup, path, *, stages: int = 1,
         el = ET.SubElement(mats, "material", id=str(i), name=mat_names[name],
                            type="Mooney-Rivlin")
         el.append(ET.Comment(f" eyefem c10 = {c[1, 0]:g}, c01 = {c[0, 1]:g} MPa, incompressible; "
-                             f"k = {bulk_factor:g} (c10 + c01) "))
+                             f"k = {bulk_factor:g} (c10 + c01) with FEBio's augmented "
+                             "Lagrangian (laugon: Jbar -> 1 per element, eyefem's constraint) "))
         ET.SubElement(el, "density").text = "1"
         ET.SubElement(el, "c1").text = _fmt(c[1, 0])
         ET.SubElement(el, "c2").text = _fmt(c[0, 1])
         ET.SubElement(el, "k").text = _fmt(k)
+        ET.SubElement(el, "laugon").text = "1"
+        ET.SubElement(el, "atol").text = _fmt(AUGMENTATION_TOL)
 
     xml_mesh = ET.SubElement(root, "Mesh")
     nodes = ET.SubElement(xml_mesh, "Nodes", name="nodes")
@@ -283,6 +303,38 @@ def _warn_unheld(mesh: Mesh, elements, held_nodes, warnings: list):
                             "prescribed displacement: only skipped terms hold it, so FEBio "
                             "will find it free to move; add a boundary condition in FEBio "
                             "Studio")
+
+
+def _write_febio_law(mats, i, febio_name, c, k, cc, name, warnings) -> None:
+    """A material of eyefem.fem.solid_compressible as the FEBio law it is: uncoupled
+    "Mooney-Rivlin" with its own k, "neo-Hookean" (E, v from c1 = mu / 2 and lam) where
+    c2 = 0, else "coupled Mooney-Rivlin" (c1, c2, k = lam)."""
+    if cc[0] > 0:
+        c1, c2, lam = (float(v) for v in cc)
+        if c2 == 0.0:
+            mu = 2.0 * c1
+            el = ET.SubElement(mats, "material", id=str(i), name=febio_name, type="neo-Hookean")
+            ET.SubElement(el, "density").text = "1"
+            ET.SubElement(el, "E").text = _fmt(mu * (3.0 * lam + 2.0 * mu) / (lam + mu))
+            ET.SubElement(el, "v").text = _fmt(lam / (2.0 * (lam + mu)))
+            return
+        el = ET.SubElement(mats, "material", id=str(i), name=febio_name,
+                           type="coupled Mooney-Rivlin")
+        ET.SubElement(el, "density").text = "1"
+        for tag, v in (("c1", c1), ("c2", c2), ("k", lam)):
+            ET.SubElement(el, tag).text = _fmt(v)
+        return
+    extra = [f"c{r}{s}" for r in range(c.shape[0]) for s in range(c.shape[1])
+             if (r + s > 1) and c[r, s] != 0.0]
+    if extra:
+        warnings.append(f"material '{name}': {', '.join(extra)} dropped (FEBio's "
+                        "Mooney-Rivlin has c1 = c10 and c2 = c01 only)")
+    el = ET.SubElement(mats, "material", id=str(i), name=febio_name, type="Mooney-Rivlin")
+    el.append(ET.Comment(f" eyefem c10 = {c[1, 0]:g}, c01 = {c[0, 1]:g}, k = {k:g} MPa "
+                         "(nearly incompressible, U(J) = k/2 ln^2 J) "))
+    ET.SubElement(el, "density").text = "1"
+    for tag, v in (("c1", c[1, 0]), ("c2", c[0, 1]), ("k", k)):
+        ET.SubElement(el, tag).text = _fmt(v)
 
 
 def _boundary_sets(stage: Stage, n_nodes: int, warnings: list) -> list:

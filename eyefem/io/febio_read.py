@@ -1,5 +1,11 @@
-"""Reading FEBio 4 input decks of hexahedral Mooney-Rivlin solids back into eyefem (the
+"""Reading FEBio 4 input decks of hexahedral hyperelastic solids into eyefem (the
 mapping: eyefem.io.febio, docs/febio.md).
+
+Materials as FEBio defines them (eyefem.fem.materials): "Mooney-Rivlin" is uncoupled,
+W = c1 (I1bar - 3) + c2 (I2bar - 3) + k/2 (ln J)^2 with the deck's k, on FEBio's
+three-field hex8 (U on the element's volume ratio; eyefem.fem.solid_compressible);
+"neo-Hookean" (E, v) and "coupled Mooney-Rivlin" (c1, c2, k) are coupled, at every Gauss
+point. Other types and parameters are refused by name.
 
 Decks are checked like case files: ids and id ranges (bounded by the deck's node count
 before anything is allocated), finite numbers, the material constants against the case
@@ -8,7 +14,7 @@ analysis type (static only). A pressure on an open surface is FEBio's follower l
 (eyefem.fem.surface.pressure_term).
 
 Length: one reader per deck section, each with the messages that name the file, the tag
-and the value it cannot read; about 560 lines.
+and the value it cannot read; about 660 lines.
 """
 
 from __future__ import annotations
@@ -23,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from eyefem.fem.materials import MooneyRivlin
+from eyefem.fem.materials import (CoupledMooneyRivlin, MooneyRivlin, UncoupledMooneyRivlin,
+                                  febio_neo_hookean)
 from eyefem.fem.mesh import Mesh, hex_geometry
 from eyefem.fem.surface import pressure_term
 from eyefem.io.casefile import material_c10_field, unit_slip
@@ -65,7 +72,9 @@ class FebLoads:
       prescribed: (dofs (n,), targets (n,) mm) at the end of the step (from zero).
       pressures: (name, face set, p at the start, p at the end) per pressure load, MPa.
       n_steps: FEBio's time_steps.
-      bulk_moduli: material name -> FEBio's k (MPa), not used by eyefem.
+      bulk_moduli: material name -> the deck's <k> (MPa; 0 for neo-Hookean, which has
+        none). eyefem uses it (eyefem.fem.materials), except with <laugon>1</laugon>
+        (exactly incompressible).
     """
 
     prescribed: tuple[np.ndarray, np.ndarray]
@@ -165,10 +174,12 @@ def read_feb(path) -> tuple[Mesh, dict, FebLoads]:
     displacements and surface pressures (one static step, loads linear in time).
 
     Returns: the mesh (materials named as in the deck, face sets from the Surfaces, node
-      sets from the NodeSets), the materials (name -> MooneyRivlin with c10 = c1,
-      c01 = c2) and the loads (:class:`FebLoads`).
+      sets from the NodeSets), the materials (name -> UncoupledMooneyRivlin with c10 = c1,
+      c01 = c2 and the deck's k, or MooneyRivlin where k = 0; CoupledMooneyRivlin for
+      "neo-Hookean" and "coupled Mooney-Rivlin") and the loads (:class:`FebLoads`).
     Raises: FebError (a ValueError) naming the file and the tag, element or value it
-      cannot read: another spec version, tetrahedra or shells, another material, contact,
+      cannot read: another spec version, tetrahedra or shells, another material or material
+      parameter, a pressure model other than FEBio's default, contact,
       more than one step, a dynamic analysis, a load curve that is not linear over the
       step, ids or id ranges that name no node, numbers that are not finite, material
       constants outside the case files' ranges, more than MAX_TIME_STEPS steps; OSError.
@@ -223,6 +234,14 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
     hexes, blocks, elem_ids = _read_elements(root, path, node_index)
     mat_of_block = _read_domains(root, path, blocks, materials, by_id)
     used = sorted({mat_of_block[b] for b, _ in blocks}, key=list(materials).index)
+    for ctrl in (root.find("Control"), steps[0].find("Control") if steps is not None and
+                 len(steps) else None):
+        flag = None if ctrl is None else ctrl.findtext("use_three_field_hex")
+        if flag is not None and flag.strip().lower() in ("0", "false") and any(
+                isinstance(materials[m], UncoupledMooneyRivlin) for m in used):
+            raise _err(path, "<Control><use_three_field_hex> = 0 is not supported; eyefem "
+                       "evaluates an uncoupled material's U(J) on the element's volume ratio "
+                       "(FEBio's default three-field hex8)")
     mids = np.concatenate([np.full(n, used.index(mat_of_block[b])) for b, n in blocks])
     _check_jacobians(nodes, hexes, elem_ids, path)
     face_sets, node_sets = _read_sets(root, path, node_index)
@@ -254,7 +273,7 @@ def _check_analysis(ctrl, path) -> None:
                    "</analysis> for the static problem, or run the deck in FEBio")
 
 
-def _check_constant(value, tag, name, where, path) -> None:
+def _check_constant(value, tag, name, where, path, label=None) -> None:
     """A Mooney-Rivlin constant (<c1> or <c2>, MPa) against the case files' ranges of c10
     (eyefem.io.casefile.material_c10_field): FebError outside the impossible range, a
     warning outside the plausible one, each naming the likely unit slip."""
@@ -263,16 +282,43 @@ def _check_constant(value, tag, name, where, path) -> None:
         if rng is None or rng[0] <= value <= rng[1]:
             continue
         slip = unit_slip(value, f.warn or rng, f.unit, f.slips)
-        msg = (f"{where} <{tag}> = {value:g} MPa is "
-               f"{'impossible' if refuse else 'outside the plausible range'} "
-               f"({rng[0]:g} to {rng[1]:g} MPa)" + (f": {slip}" if slip else ""))
+        msg = (f"{where} <{tag}>: {label} = {value:g} MPa is " if label else
+               f"{where} <{tag}> = {value:g} MPa is ")
+        msg += (f"{'impossible' if refuse else 'outside the plausible range'} "
+                f"({rng[0]:g} to {rng[1]:g} MPa)" + (f": {slip}" if slip else ""))
         if refuse:
             raise _err(path, msg + f"; give <{tag}> in MPa")
         log.warning("%s: %s; check the value and its unit", path, msg)
         return
 
 
+_MATERIAL_PARAMETERS = {
+    "mooney-rivlin": {"c1", "c2", "k", "density", "pressure_model", "laugon", "atol",
+                      "minaug", "maxaug"},
+    "neo-hookean": {"E", "v", "density"},
+    "coupled mooney-rivlin": {"c1", "c2", "k", "density"},
+}
+"""The material types the reader implements (FEBio's names, case-insensitive) and the
+parameters each may carry; any other type or parameter is refused by name. <density>
+does not enter a static solve."""
+
+_PRESSURE_MODELS = ("default", "0")
+"""FEBio's U(J) choices (<pressure_model>) read: its default, U = k/2 (ln J)^2."""
+
+
+def _flag(el, tag) -> str:
+    return (el.findtext(tag) or "0").strip().lower()
+
+
 def _read_materials(root, path):
+    """name -> material, name -> the deck's k (MPa; 0 for neo-Hookean), FEBio id -> name.
+
+    "Mooney-Rivlin" (uncoupled: c1, c2, k) becomes UncoupledMooneyRivlin (k > 0: FEBio's
+    U(J) = k/2 (ln J)^2 on the three-field element) or the exactly incompressible
+    MooneyRivlin (Q1P0) with <laugon>1</laugon> (FEBio's augmented Lagrangian, whose
+    limit is the Q1P0 constraint Jbar = 1 per element: what eyefem's export writes) or
+    k = 0; "neo-Hookean" (E, v) and "coupled Mooney-Rivlin" (c1, c2,
+    k) become CoupledMooneyRivlin. Other types and parameters are refused by name."""
     sec = root.find("Material")
     if sec is None or not len(sec):
         raise _err(path, "no <Material> section; define a Mooney-Rivlin material")
@@ -282,34 +328,78 @@ def _read_materials(root, path):
             continue
         name = el.get("name") or f"material_{el.get('id')}"
         where = f"material '{name}' (id {el.get('id')})"
-        if (el.get("type") or "").lower() != "mooney-rivlin":
+        kind = (el.get("type") or "").lower()
+        if kind not in _MATERIAL_PARAMETERS:
             raise _err(path, f"{where}: type '{el.get('type')}' is not supported; eyefem "
-                       "reads type=\"Mooney-Rivlin\" (c1, c2, k) only")
-        c1 = _child_float(el, "c1", path, where, hint="give c1 in MPa, e.g. <c1>0.1</c1>")
-        c2 = _child_float(el, "c2", path, where, default=0.0,
-                          hint="give c2 in MPa, e.g. <c2>0</c2>")
-        k = _child_float(el, "k", path, where, default=0.0,
-                         hint="give the bulk modulus in MPa, e.g. <k>1000</k>")
-        _check_constant(c1, "c1", name, where, path)
-        _check_constant(c2, "c2", name, where, path)
-        if 0 <= c1 and 0 <= c2 and 2 * (c1 + c2) < MIN_SHEAR_MODULUS:
-            raise _err(path, f"{where}: c1 = {c1:g} MPa, c2 = {c2:g} MPa: the shear modulus "
-                       f"2 (c1 + c2) = {2 * (c1 + c2):g} MPa is below {MIN_SHEAR_MODULUS:g} MPa "
-                       "(1 Pa: no solid eyefem solves is that soft); give c1 and c2 in MPa")
-        if k < 0:
-            raise _err(path, f"{where} <k> = {k:g} MPa: a bulk modulus must be >= 0; give it "
-                       "in MPa, e.g. <k>1000</k>")
+                       "reads \"Mooney-Rivlin\" (c1, c2, k), \"neo-Hookean\" (E, v) and "
+                       "\"coupled Mooney-Rivlin\" (c1, c2, k)")
+        for child in el:
+            if isinstance(child.tag, str) and child.tag not in _MATERIAL_PARAMETERS[kind]:
+                raise _err(path, f"{where}: parameter <{child.tag}> of '{el.get('type')}' is "
+                           "not supported (eyefem reads "
+                           f"{', '.join(sorted(_MATERIAL_PARAMETERS[kind]))}); remove it or "
+                           "run the deck in FEBio")
         try:
-            materials[name] = MooneyRivlin.from_terms(name, {"c10": c1, "c01": c2})
+            if kind == "neo-hookean":
+                materials[name], bulk[name] = _neo_hookean(el, name, where, path), 0.0
+            else:
+                materials[name], bulk[name] = _mooney_rivlin(el, kind, name, where, path)
         except ValueError as exc:
+            if isinstance(exc, FebError):
+                raise
             raise _err(path, f"{where}: {exc}") from None
-        if k < 100.0 * (c1 + c2):
-            log.warning("%s: %s has k = %g MPa < 100 (c1 + c2): FEBio treats it as "
-                        "compressible, eyefem as incompressible; the results will differ",
-                        path, where, k)
-        bulk[name] = k
         by_id[el.get("id")] = name
     return materials, bulk, by_id
+
+
+def _neo_hookean(el, name, where, path):
+    E = _child_float(el, "E", path, where, hint="give Young's modulus in MPa, e.g. <E>1</E>")
+    v = _child_float(el, "v", path, where, hint="give Poisson's ratio, e.g. <v>0.3</v>")
+    if not (E > 0 and 0 <= v < 0.5):
+        raise _err(path, f"{where}: E = {E:g} MPa, v = {v:g}; eyefem's neo-Hookean needs "
+                   "E > 0 and 0 <= v < 0.5 (FEBio's lam = v E / ((1 + v)(1 - 2 v)) >= 0)")
+    _check_constant(E / (4.0 * (1.0 + v)), "E", name, where, path,
+                    label="c1 = E / (4 (1 + v))")
+    return febio_neo_hookean(name, E, v)
+
+
+def _mooney_rivlin(el, kind, name, where, path):
+    c1 = _child_float(el, "c1", path, where, hint="give c1 in MPa, e.g. <c1>0.1</c1>")
+    c2 = _child_float(el, "c2", path, where, default=0.0, hint="give c2 in MPa, e.g. <c2>0</c2>")
+    k = _child_float(el, "k", path, where, default=0.0,
+                     hint="give the bulk modulus in MPa, e.g. <k>1000</k>")
+    _check_constant(c1, "c1", name, where, path)
+    _check_constant(c2, "c2", name, where, path)
+    if 0 <= c1 and 0 <= c2 and 2 * (c1 + c2) < MIN_SHEAR_MODULUS:
+        raise _err(path, f"{where}: c1 = {c1:g} MPa, c2 = {c2:g} MPa: the shear modulus "
+                   f"2 (c1 + c2) = {2 * (c1 + c2):g} MPa is below {MIN_SHEAR_MODULUS:g} MPa "
+                   "(1 Pa: no solid eyefem solves is that soft); give c1 and c2 in MPa")
+    if k < 0:
+        raise _err(path, f"{where} <k> = {k:g} MPa: a bulk modulus must be >= 0; give it "
+                   "in MPa, e.g. <k>1000</k>")
+    if kind == "coupled mooney-rivlin":
+        if not (c1 > 0 and k > 0):
+            raise _err(path, f"{where}: c1 = {c1:g} MPa, k = {k:g} MPa; FEBio's coupled "
+                       "Mooney-Rivlin needs c1 > 0 and k > 0")
+        return CoupledMooneyRivlin(name, c1, c2, k), k
+    model = _flag(el, "pressure_model")
+    if model not in _PRESSURE_MODELS:
+        raise _err(path, f"{where} <pressure_model> = '{el.findtext('pressure_model')}': "
+                   "eyefem implements FEBio's default U(J) = k/2 (ln J)^2 only; remove the "
+                   "tag or set it to 'default'")
+    if _flag(el, "laugon") not in ("0", "false"):
+        if _flag(el, "laugon") not in ("1", "true"):
+            raise _err(path, f"{where} <laugon> = '{el.findtext('laugon').strip()}'; give 0 "
+                       "(penalty k) or 1 (augmented Lagrangian: exactly incompressible)")
+        # FEBio's augmented Lagrangian adds multipliers L += k ln(Jbar) per element until
+        # they settle (atol): its limit is Jbar = v / V = 1 per element, the Q1P0 constraint
+        log.info("%s: %s has laugon = 1: exactly incompressible (eyefem's Q1P0 element, "
+                 "the limit of FEBio's augmentations)", path, where)
+        return MooneyRivlin.from_terms(name, {"c10": c1, "c01": c2}), k
+    if k == 0.0:
+        log.warning("%s: %s has k = 0: FEBio needs a bulk modulus > 0; eyefem solves the "
+                    "material exactly incompressible (Q1P0)", path, where)
+    return MooneyRivlin.from_terms(name, {"c10": c1, "c01": c2, "k": k}), k
 
 
 def _read_nodes(root, path):
@@ -378,6 +468,16 @@ def _read_domains(root, path, blocks, materials, by_id):
         if mat not in materials:
             raise _err(path, f"SolidDomain '{d.get('name')}': material '{d.get('mat')}' is not "
                        f"defined in <Material>")
+        etype = (d.get("elem_type") or "HEX8G8").upper()
+        if etype != "HEX8G8":
+            raise _err(path, f"SolidDomain '{d.get('name')}': elem_type=\"{d.get('elem_type')}\""
+                       " is not supported; eyefem integrates hex8 with 2 x 2 x 2 Gauss points "
+                       "(HEX8G8)")
+        if (d.get("three_field") or "on") != "on" and isinstance(
+                materials[mat], UncoupledMooneyRivlin):
+            raise _err(path, f"SolidDomain '{d.get('name')}': three_field=\"{d.get('three_field')}"
+                       "\" is not supported; eyefem evaluates an uncoupled material's U(J) on "
+                       "the element's volume ratio (FEBio's default three-field hex8)")
         out[d.get("name")] = mat
     for name, _ in blocks:
         if name not in out:

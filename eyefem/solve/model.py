@@ -310,10 +310,19 @@ def solid_model(mesh: Mesh, materials: dict, extra_terms=(), n_extra_dofs: int =
 
     Args:
       mesh: the mesh; every name in ``mesh.materials`` must be a key of ``materials``.
-      materials: name -> MooneyRivlin.
+      materials: name -> MooneyRivlin (exactly incompressible: the Q1P0 element), or one of
+        FEBio's laws with a volumetric energy (eyefem.fem.materials.UncoupledMooneyRivlin,
+        CoupledMooneyRivlin: the displacement element of eyefem.fem.solid_compressible).
       extra_terms: further Term objects (their dofs index the same q).
       n_extra_dofs: unknowns beyond displacements and multipliers.
+
+    With only incompressible materials (the default of case files and the eye) the model
+    is the Q1P0 term ``name`` on every element and one multiplier per element. Otherwise
+    the elements of compressible materials form a SolidCompressible term (named ``name``
+    where it holds every element, else ``name + "_compressible"``) and only the others
+    carry multipliers (one per Q1P0 element, after the displacements).
     """
+    from eyefem.fem.materials import bulk_modulus, coupled_constants, is_compressible
     from eyefem.fem.solid import SolidQ1P0
 
     missing = [m for m in mesh.materials if m not in materials]
@@ -322,5 +331,28 @@ def solid_model(mesh: Mesh, materials: dict, extra_terms=(), n_extra_dofs: int =
                          f"defined: {sorted(materials)}")
     coeffs = np.stack([materials[m].coeffs for m in mesh.materials])
     n_u = 3 * mesh.n_nodes
-    solid = SolidQ1P0(name, mesh, coeffs, multiplier_offset=n_u)
-    return Model(mesh, (solid, *extra_terms), n_u + mesh.n_elem + n_extra_dofs)
+    comp = np.array([is_compressible(materials[m]) for m in mesh.materials], bool)
+    if not comp.any():
+        solid = SolidQ1P0(name, mesh, coeffs, multiplier_offset=n_u)
+        return Model(mesh, (solid, *extra_terms), n_u + mesh.n_elem + n_extra_dofs)
+    from eyefem.fem.solid_compressible import SolidCompressible
+
+    if mesh.material_fractions is not None:
+        used = np.asarray(mesh.material_fractions) > 0
+        on = used[:, comp].any(axis=1)
+        mixed = on & used[:, ~comp].any(axis=1)
+        if mixed.any():
+            raise ValueError(f"element {int(np.nonzero(mixed)[0][0])}: its volume fractions mix "
+                             "an exactly incompressible material with one that has a bulk "
+                             "modulus; give every material of a mixed element the same form")
+    else:
+        on = comp[mesh.material_ids]
+    k = np.array([bulk_modulus(materials[m]) for m in mesh.materials])
+    cc = np.stack([coupled_constants(materials[m]) for m in mesh.materials])
+    inc = np.nonzero(~on)[0]
+    terms = []
+    if len(inc):
+        terms.append(SolidQ1P0(name, mesh, coeffs, multiplier_offset=n_u, elements=inc))
+    terms.append(SolidCompressible(name if not len(inc) else f"{name}_compressible", mesh,
+                                   coeffs, k, cc, elements=np.nonzero(on)[0]))
+    return Model(mesh, (*terms, *extra_terms), n_u + len(inc) + n_extra_dofs)
