@@ -21,17 +21,7 @@ import pytest
 import eyefem
 from eyefem.cli.main import main as cli_main
 from eyefem.io import manifest
-
-UNIAXIAL = """\
-[case]
-problem = "uniaxial"
-[parameters]
-stretch = 1.5
-steps = 2
-[materials.rubber]
-c10 = 25.0
-c01 = 5.0
-"""
+from test_bad_inputs import UNIAXIAL
 
 
 def _run(capsys, *args) -> tuple[int, str]:
