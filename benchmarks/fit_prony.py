@@ -1,0 +1,84 @@
+"""Fit the Prony constants (g_i, tau_i) of eyefem.fem.viscoelastic to a published
+stress-relaxation curve, and say which of them the test identifies (issue 74, item 3).
+
+Input: a CSV with columns ``time_s`` (seconds from the end of the loading ramp) and
+``G`` (the stress divided by the stress at the first sample, or by the peak stress), a
+comment header (lines starting with '#') naming its source: the figure or table it was
+read from, the species, tissue, strain level and ramp time. No curve is shipped yet
+(docs/formulation.md, "Quasi-linear viscoelastic tissue": the published curves were not
+reachable when this was written); the script runs on any such file:
+
+    python benchmarks/fit_prony.py curve.csv [--per-decade 1] [--out fit.json]
+
+The fit: time constants fixed one per decade (or ``--per-decade`` of them) across the
+sampled window [t_min, t_max], the fractions g_i >= 0 with sum g_i < 1 found by bounded
+linear least squares on G(t) = G_0 [1 - sum g_i (1 - exp(-t / tau_i))] (G_0 the
+normalisation's instantaneous value, fitted too: the first sample is taken after a
+ramp, not at t = 0). Linear in (G_0, G_0 g_i), so the fit is unique for fixed tau_i.
+
+Identifiability, stated by the script: a tau_i well inside the window is identified with
+its g_i; the relaxation faster than the ramp is lumped into G_0 (the instantaneous
+response the model takes from the living eye); the equilibrium fraction g_inf = 1 -
+sum g_i is only the fraction left at t_max: every relaxation slower than t_max
+(hours to months, what the eye's shape at three months depends on) is an extrapolation
+the test does not constrain. The script reports the singular values of the fit's
+sensitivity matrix and the parameter standard errors from the residual.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+
+def read_curve(path: str):
+    src = [ln[1:].strip() for ln in open(path) if ln.startswith("#")]
+    data = np.genfromtxt(path, delimiter=",", names=True, comments="#")
+    return np.asarray(data["time_s"], float), np.asarray(data["G"], float), src
+
+
+def fit(t, G, per_decade: int = 1) -> dict:
+    """Prony fractions for time constants fixed across the sampled window (seconds)."""
+    lo, hi = np.log10(max(t[t > 0].min(), 1e-3)), np.log10(t.max())
+    n = max(int(np.ceil((hi - lo) * per_decade)), 1)
+    tau = 10.0 ** (lo + (np.arange(n) + 0.5) / per_decade)  # mid-decade, inside the window
+    # G = G0 - sum_i a_i (1 - exp(-t/tau_i)), a_i = G0 g_i >= 0
+    A = np.column_stack([np.ones_like(t)] + [-(1 - np.exp(-t / ti)) for ti in tau])
+    res = lsq_linear(A, G, bounds=(np.r_[0.0, np.zeros(n)], np.r_[np.inf, np.full(n, np.inf)]))
+    G0, a = res.x[0], res.x[1:]
+    g = a / G0
+    r = A @ res.x - G
+    dof = max(len(t) - len(res.x), 1)
+    s2 = float(r @ r) / dof
+    sv = np.linalg.svd(A, compute_uv=False)
+    cov = s2 * np.linalg.pinv(A.T @ A)
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    return {"G0": float(G0), "tau_s": tau.tolist(), "tau_min": (tau / 60.0).tolist(),
+            "g": g.tolist(), "g_inf": float(1 - g.sum()), "rms": float(np.sqrt(s2)),
+            "singular_values": sv.tolist(), "se_G0": float(se[0]),
+            "se_g": (se[1:] / G0).tolist(), "window_s": [float(t.min()), float(t.max())],
+            "note": ("g_inf is the fraction left at the end of the test; relaxation slower "
+                     f"than {t.max():.0f} s is not constrained by this curve")}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("csv")
+    ap.add_argument("--per-decade", type=int, default=1)
+    ap.add_argument("--out")
+    a = ap.parse_args(argv)
+    t, G, src = read_curve(a.csv)
+    out = {"source": src, **fit(t, G, a.per_decade)}
+    text = json.dumps(out, indent=1)
+    print(text)
+    if a.out:
+        open(a.out, "w").write(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
