@@ -37,12 +37,12 @@ class NewtonOptions:
         of a stage without contact reuse the last factorisation (the step's, or the
         previous step's through the tangent predictor) with BFGS updates applied by
         back-solves (eyefem.solve.quasi_newton), and reform it (a full Newton
-        iteration) when a step's line search fails, when a step lowers the residual by
-        less than quasi_newton_ratio, or after quasi_newton_updates updates. The same
+        iteration) when no trial of a step's line search lowers the merit below
+        quasi_newton_ratio x its value, or after quasi_newton_updates updates. The same
         convergence test; the adjoint still refines against the exact tangent.
       quasi_newton_updates: updates on one factorisation before it is reformed.
       quasi_newton_ratio: a quasi-Newton step must lower the merit (force and volume
-        residual) below this x its start's, else the next iteration reforms.
+        residual) below this x its start's, else it is not taken and the tangent reformed.
 
     Linear solves:
       backend: linear solver backend (None: the default, eyefem.solve.linsolve).

@@ -22,9 +22,9 @@ energy in both, so the update needs no scaling of the two blocks.
 
 The reformation rule (docs/formulation.md): a new tangent is assembled and factorised
 (a full Newton iteration, eyefem.solve.globalisation) when the quasi-Newton step's line
-search finds no trial that lowers the residual, when a quasi-Newton step lowered the
-merit (force residual / reference and volume residual / solid volume) by less than the
-factor ``quasi_newton_ratio``, after ``quasi_newton_updates`` updates, and when a solve
+search finds no trial that lowers the merit (force residual / reference and volume
+residual / solid volume) below ``quasi_newton_ratio`` x its value (the step is then not
+taken), after ``quasi_newton_updates`` updates, and when a solve
 on the old factorisation fails. The convergence test is Newton's, on the true residual.
 """
 
@@ -71,7 +71,6 @@ class QuasiNewton:
         self.solver, self.asm = solver, asm
         self.pairs: list = []  # (s, y, rho)
         self.pending = None  # (s, r) of the last step, awaiting the residual at its end
-        self.m_start = None  # merit where the last quasi-Newton step started
         self.steps = 0  # quasi-Newton steps taken on this factorisation
         self._core = None
 
@@ -134,10 +133,6 @@ def quasi_newton_step(qn: QuasiNewton, model, asm, q, theta, active, opts, r, nf
     volume residual nm, relative): (new state, its Evaluated residual), or None where the
     reformation rule asks for a new tangent (the reason logged)."""
     m0 = np.hypot(nf / max(fref, 1e-300), nm)
-    if qn.m_start is not None and m0 > opts.quasi_newton_ratio * qn.m_start:
-        log.debug("  quasi-Newton: the merit fell only %.2g-fold; tangent reformed",
-                  qn.m_start / max(m0, 1e-300))
-        return None
     if len(qn.pairs) + (qn.pending is not None) > opts.quasi_newton_updates:
         log.debug("  quasi-Newton: %d updates; tangent reformed", opts.quasi_newton_updates)
         return None
@@ -153,15 +148,19 @@ def quasi_newton_step(qn: QuasiNewton, model, asm, q, theta, active, opts, r, nf
     restore = Restoration(model, q, dq, theta, active, asm, h0) if opts.restore else None
     alphas = QN_ALPHAS if opts.line_search else (1.0,)
     try:
-        q_new, lowered, ev = line_search(model, q, dq, theta, active, asm, m0, fref, vref,
-                                         alphas, restore)
+        # sufficient decrease: a trial is taken only below ratio x the merit; a lesser
+        # decrease is not taken (Newton goes on from q, not from a state the stale
+        # tangent chose: on the coarse eye's injection such steps left Newton wandering)
+        q_new, lowered, ev = line_search(model, q, dq, theta, active, asm,
+                                         opts.quasi_newton_ratio * m0, fref, vref, alphas,
+                                         restore)
     except StepFailed:
         lowered = False
     if not lowered:
-        log.debug("  quasi-Newton step (%d updates): no trial lowers the residual; "
-                  "tangent reformed", len(qn.pairs))
+        log.debug("  quasi-Newton step (%d updates): no trial lowers the merit %g-fold; "
+                  "tangent reformed", len(qn.pairs), 1.0 / opts.quasi_newton_ratio)
         return None
     qn.record(q_new - q, r_red)
-    qn.m_start, qn.steps = m0, qn.steps + 1
+    qn.steps += 1
     log.debug("  quasi-Newton step (%d updates)", len(qn.pairs))
     return q_new, ev
