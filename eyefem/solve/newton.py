@@ -162,11 +162,21 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
         q_old = s.q
         s.q, s.solver, s.evaluated = globalised_update(s.model, asm, s.q, theta, active, opts,
                                                        rf, rm, nf, nm, s.fref, vref, s.frozen)
-        if qn_on:  # the Newton step is the first pair of the new factorisation's updates
+        if qn_on and _newton_step_contracted(s, asm, opts, nf, nm, vref):
+            # a tangent whose own step lowered the merit quasi_newton_ratio-fold is reused,
+            # that step the first pair of its updates; after a weaker one (far from the
+            # solution, on a plateau) quasi-Newton attempts only cost residuals: Newton goes on
             s.qn = QuasiNewton(s.solver, asm)
             s.qn.record(s.q - q_old, s.qn.reduce(r))
     raise StepFailed(f"no convergence in {opts.max_iter} iterations (|r_u| = {nf:.3e} N, "
                      f"load {s.load:.3e} N, volume residual {nm:.2e})")
+
+
+def _newton_step_contracted(s: _Iterate, asm, opts: NewtonOptions, nf, nm, vref) -> bool:
+    """Whether the Newton update just taken (to s.evaluated) lowered the merit below
+    quasi_newton_ratio x its start's (force nf, volume nm)."""
+    m1 = merit(s.evaluated, asm, s.fref, vref) if s.evaluated is not None else None
+    return m1 is not None and m1 < opts.quasi_newton_ratio * np.hypot(nf / max(s.fref, 1e-300), nm)
 
 
 def _predict(s: _Iterate, asm: Assembler, theta, dq_prescribed, opts: NewtonOptions, active):

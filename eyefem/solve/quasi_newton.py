@@ -44,9 +44,10 @@ log = logging.getLogger(__name__)
 QN_CURVATURE = 1e-10
 """A pair (s, y) whose |y.s| is below this x |y| |s| is not used (rho would blow up)."""
 
-QN_ALPHAS = (1.0, 0.5, 0.25, 0.125)
-"""Step lengths of a quasi-Newton step's line search; none lowering the residual, the
-tangent is reformed."""
+QN_ALPHAS = (1.0, 0.5)
+"""Step lengths of a quasi-Newton step's line search; none lowering the merit
+quasi_newton_ratio-fold, the tangent is reformed (shorter trials rarely do: each costs a
+residual evaluation)."""
 
 
 def _dot(a, b) -> float:
@@ -107,7 +108,10 @@ class QuasiNewton:
             return self.solver
         if self._core is None:
             self._core = dataclasses.replace(self.solver, low_rank=[], reuse=self.solver)
-        return dataclasses.replace(self.solver, low_rank=lr, reuse=self._core)
+        # negative curvature met on the old factorisation reforms the tangent (raise)
+        # instead of factorising the whole saddle point for this iterate alone (kkt)
+        return dataclasses.replace(self.solver, low_rank=lr, reuse=self._core,
+                                   indefinite="raise")
 
     def direction(self, h0, r_red):
         """d = -H r (reduced) by the two-loop recursion with H0 = ``h0``'s solve."""
