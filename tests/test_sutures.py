@@ -91,28 +91,39 @@ def _bites(xyz, faces, width, turn=0.0):
     return lay, np.concatenate([cen - 0.5 * width * a_rot, cen + 0.5 * width * a_rot]), a_rot
 
 
-def test_bite_sensitivity_matches_central_differences_of_the_layout():
-    """radial_bite_sensitivity (d xi / d width and d xi / d turn, exact within a face)
-    against central differences of generate_sutures, bite by bite, where the bite stays in
-    its face over +-h: to 1e-7 (the differences' truncation, h = 1e-4)."""
-    from eyefem.eye.sutures import radial_bite_sensitivity
+def test_bite_derivative_through_jax_matches_central_differences_of_the_layout():
+    """radial_bites (the bites as a JAX function of the points they project, its JVP the
+    implicit derivative within each face): its value is the layout's xi, and its derivative
+    along d width and d turn against central differences of generate_sutures, bite by
+    bite, where the bite stays in its face over +-h: to 1e-7 (the differences'
+    truncation, h = 1e-4)."""
+    import jax
+    import jax.numpy as jnp
+
+    from eyefem.eye.sutures import radial_bites
 
     xyz, faces = _sphere_patch(10.0)
     w, h = 3.0, 1e-4
     lay, p, a_rot = _bites(xyz, faces, w)
     bites = [lay.bite_a, lay.bite_b]
-    emb = type(lay.bite_a)(np.concatenate([b.nodes for b in bites]),
-                           np.concatenate([b.xi for b in bites]))
+    nodes = np.concatenate([b.nodes for b in bites])
+    xi0 = np.concatenate([b.xi for b in bites])
     sgn = np.repeat([-1.0, 1.0], 4)[:, None]
-    analytic = {"width": radial_bite_sensitivity(xyz, emb, p, 0.5 * sgn * np.tile(a_rot, (2, 1))),
-                "turn": radial_bite_sensitivity(xyz, emb, p, np.cross([0.0, 0.0, 1.0], p))}
-    for var, dxi in analytic.items():
+    start = np.clip(xi0 + 0.05, -1, 1)  # Newton from a nearby design's bites
+    xi, _ = jax.jvp(lambda p: radial_bites(p, xyz[nodes], start), (jnp.asarray(p),),
+                    (jnp.zeros_like(p),))
+    np.testing.assert_allclose(xi, xi0, atol=1e-9)
+    for var, dp in {"width": 0.5 * sgn * np.tile(a_rot, (2, 1)),
+                    "turn": np.cross([0.0, 0.0, 1.0], p)}.items():
+        _, dxi = jax.jvp(lambda p: radial_bites(p, xyz[nodes], xi0), (jnp.asarray(p),),
+                         (jnp.asarray(dp),))
+        dxi = np.asarray(dxi)
         pm = [_bites(xyz, faces, w + e)[0] if var == "width" else _bites(xyz, faces, w, e)[0]
               for e in (h, -h)]
-        xi = [np.concatenate([q.bite_a.xi, q.bite_b.xi]) for q in pm]
-        same = [np.all(np.concatenate([q.bite_a.nodes, q.bite_b.nodes]) == emb.nodes, axis=1)
+        xis = [np.concatenate([q.bite_a.xi, q.bite_b.xi]) for q in pm]
+        same = [np.all(np.concatenate([q.bite_a.nodes, q.bite_b.nodes]) == nodes, axis=1)
                 for q in pm]
         ok = same[0] & same[1]
         assert ok.sum() >= 6, var
-        np.testing.assert_allclose(dxi[ok], ((xi[0] - xi[1]) / (2 * h))[ok], atol=1e-7)
+        np.testing.assert_allclose(dxi[ok], ((xis[0] - xis[1]) / (2 * h))[ok], atol=1e-7)
         assert np.abs(dxi).max() > 1e-2  # the bites do move

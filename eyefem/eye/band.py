@@ -126,12 +126,16 @@ def with_refitted_terms(model, mesh, terms: dict) -> Model:
     return Model(mesh, tuple(new.get(t.name, t) for t in model.terms), model.n_dof)
 
 
+def three_bar_shortening(suture_tightening, n_sutures: int):
+    """Shortening (3 n_sutures,), mm, of each bar of three-bar sutures over a deformable
+    buckle, each loop shortened by ``suture_tightening`` mm (numpy or JAX): the two bite
+    bars by half of it each, the bar over the buckle 0 (tied at its length)."""
+    return np.tile([0.5, 0.0, 0.5], n_sutures) * suture_tightening
+
+
 def three_bar_tightening(p) -> np.ndarray:
-    """Shortening (mm) of each bar of three-bar sutures over a deformable buckle: the two
-    bite bars by suture_tightening / 2 each, the bar over the buckle 0 (tied at its length)."""
-    tight = np.zeros(3 * p["n_sutures"])
-    tight[0::3] = tight[2::3] = p["suture_tightening"] / 2
-    return tight
+    """:func:`three_bar_shortening` of the case parameters p (suture_tightening, n_sutures)."""
+    return three_bar_shortening(p["suture_tightening"], p["n_sutures"])
 
 
 def band_dofs(parts: SurgeryParts) -> dict:
@@ -147,19 +151,19 @@ def band_dofs(parts: SurgeryParts) -> dict:
 
 
 def tightened_band(parts: SurgeryParts, fixed: np.ndarray, tightening: float):
-    """(prescribed dofs, values at the end of the tightening, stage params) of a deformable
-    band or tire: its centre line held across the globe, and either its ends pulled past
-    each other by tightening / 2 each, or a closed loop's +y cross-section held along the
-    loop and its rest length shortened by ``tightening`` (mm)."""
+    """(prescribed dofs, values at the end of the tightening) of a deformable band or tire:
+    its centre line held across the globe, and either its ends pulled past each other by
+    tightening / 2 each (mm), or a closed loop's +y cross-section held along the loop (its
+    rest length shortened by the param "shortening": eyefem.eye.bodies.DeformableRing.
+    design_params)."""
     bd = band_dofs(parts)
     held = np.r_[fixed, bd["mid_z"]]
     if parts.band.closed:
-        return (np.r_[held, bd["end0_x"]], np.zeros(len(held) + len(bd["end0_x"])),
-                {"solid": {"shortening": tightening}})
+        return np.r_[held, bd["end0_x"]], np.zeros(len(held) + len(bd["end0_x"]))
     half = 0.5 * tightening
     return (np.r_[held, bd["end0_x"], bd["end1_x"]],
             np.r_[np.zeros(len(held)), np.full(len(bd["end0_x"]), half),
-                  np.full(len(bd["end1_x"]), -half)], {})
+                  np.full(len(bd["end1_x"]), -half)])
 
 
 def band_spring_term(parts: SurgeryParts) -> OrbitSpring:

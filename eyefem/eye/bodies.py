@@ -36,6 +36,7 @@ from eyefem.eye.band import (
     band_spring_term,
     band_suture_term,
     fit_band,
+    three_bar_shortening,
     three_bar_tightening,
     tightened_band,
     with_band,
@@ -46,7 +47,7 @@ from eyefem.eye.buckles import KINDS, Buckle
 from eyefem.eye.eyemodel import EyeGeometry
 from eyefem.eye.parts import SurgeryParts, snug_scale
 from eyefem.eye.presets import SEED_MATERIALS
-from eyefem.eye.rigid_buckle import buckle_term, suture_term
+from eyefem.eye.rigid_buckle import buckle_term, rigid_design_params, suture_term
 from eyefem.eye.sponge import (
     SPONGE_PARK,
     fit_sponge,
@@ -155,22 +156,22 @@ class RigidBuckle(BuckleBody):
                                      sut if t.name == "sutures" else t
                                      for t in model.terms]), q, theta
 
-        motion = {"d": np.full(1, p["tightening"] * parts.d_per_mm),
-                  "s": np.full(1, p["buckle_shift"])}
+        tighten, suture = rigid_design_params(parts, p)
+        motion = {k: np.full(1, v) for k, v in tighten["buckle"].items()}
         ridge = {"ridge": np.full(1, KINDS[b.kind][2])}
-        pulled = p["band_tension"] > 0
+        pulled = "band_pull" in tighten
         # a pulled band (force control) moves freely: its radial motion is an unknown
         held_band = held_eye if pulled else held
-        pull = {"band_pull": {"f": p["band_tension"]}} if pulled else {}
+        pull = {"band_pull": tighten["band_pull"]} if pulled else {}
         return [
             path.pressurise(p["steps_pressurise"], held),
             Stage("tighten" if b.encircling else "place", p["steps_tighten"], held_band,
                   params={"buckle": {**motion, **ridge}, "sutures": motion,
-                          "cavity": {"dv": -p["drain_volume"]}, **pull},
+                          "cavity": tighten["cavity"], **pull},
                   active=BASE_TERMS + ("cavity", "buckle") + tuple(pull), before=place_buckle),
             Stage("suture", p["steps_suture"], held_band if b.encircling else held_eye,
-                  params={"sutures": {"tightening": np.full(2 * p["n_sutures"],
-                                                            p["suture_tightening"] / 2)}},
+                  params={"sutures": {"tightening": np.full(
+                      2 * p["n_sutures"], suture["sutures"]["tightening"])}},
                   active=BASE_TERMS + ("cavity", "buckle", "sutures") + tuple(pull),
                   before=tie_sutures),
         ]
@@ -233,18 +234,35 @@ class DeformableRing(BuckleBody):
         held, _ = path.held
         band_all = node_dofs(mesh.node_set("band"))
         held = (np.r_[held, band_all], np.zeros(len(held) + len(band_all)))
-        *tightened, shorten = tightened_band(parts, np.r_[path.fixed, path.extra_dof],
-                                             p["tightening"])
+        tightened = tightened_band(parts, np.r_[path.fixed, path.extra_dof], p["tightening"])
         band_terms = ("cavity", "buckle", "band_springs")
+        tighten, suture = self.design_params(parts, {k: p[k] for k in self.VARIABLES})
         return [
             path.pressurise(p["steps_pressurise"], held),
-            Stage("tighten", p["steps_tighten"], tuple(tightened),
-                  params={"cavity": {"dv": -p["drain_volume"]}, **shorten},
+            Stage("tighten", p["steps_tighten"], tuple(tightened), params=tighten,
                   active=BASE_TERMS + band_terms, before=place_band),
-            Stage("suture", p["steps_suture"], tuple(tightened),
-                  params={"sutures": {"tightening": three_bar_tightening(p)}},
+            Stage("suture", p["steps_suture"], tuple(tightened), params=suture,
                   active=BASE_TERMS + band_terms + ("sutures",), before=tie_sutures),
         ]
+
+    VARIABLES = ("tightening", "suture_tightening", "drain_volume", "liquid_bulk", "suture_EA")
+    """The design variables the ring's stages take as params (the tightening: of a closed
+    loop, deformable_tightening = 'shortened_loop'; the pulled ends' is a prescribed
+    displacement)."""
+
+    @staticmethod
+    def design_params(parts: SurgeryParts, design) -> tuple[dict, dict]:
+        """The params (term -> param -> value; numpy or JAX) the design (VARIABLES: name
+        -> value) sets in the tightening stage (cavity: dv = -drain_volume, bulk =
+        liquid_bulk; a closed loop's rest-length shortening = tightening) and those the
+        suture stage adds (the sutures' three-bar shortenings and EA)."""
+        tighten = {"cavity": {"dv": -design["drain_volume"], "bulk": design["liquid_bulk"]}}
+        if parts.band.closed:
+            tighten["solid"] = {"shortening": design["tightening"]}
+        n = parts.p["n_sutures"]
+        suture = {"sutures": {"tightening": three_bar_shortening(design["suture_tightening"], n),
+                              "EA": np.ones(3 * n) * design["suture_EA"]}}
+        return tighten, suture
 
     def outcomes(self, parts, model, q, theta):
         return band_outcomes(parts, model, q, theta)

@@ -1,38 +1,31 @@
-"""Surgical design variables: warm-started simulation of designs; their adjoint gradients
-(eyefem.eye.sensitivity).
+"""Surgical design variables: warm-started simulation of designs and their adjoint gradients.
 
 The design of a surgery case is a dict of continuous variables (DESIGN_VARIABLES): the
 surgical ones (band tightening or tension, buckle shift and meridian, suture width and
 tightening, drained volume) and material constants (MATERIAL_VARIABLES: c10 of every
 tissue, the zonule's Young's modulus, the liquid's bulk modulus, the sutures' EA) for
-sensitivity studies. Each stage is an equilibrium R_k(q_k, theta_k) = 0 whose params
-theta_k are functions of the design and of what the earlier stages leave:
+sensitivity studies. The rigid-buckle procedure is three stages, each an equilibrium
+R_k(q_k, theta_k) = 0 whose params are functions of the design and of what the earlier
+stages hand on (eyefem.solve.staged.StageMap, written once in JAX):
 
     theta_1 = T_1(design)                                   (pressurise; materials only)
-    theta_2 = T_2(design, V(q_1), s(q_1))                   (tighten / place)
-    theta_3 = T_3(design, V(q_1), s(q_1), L0),  L0 = lengths(q_2, theta_2)   (suture)
+    theta_2 = T_2(design, V, s),   (V, s, optics) = C_1(q_1) (tighten / place)
+    theta_3 = T_3(design, V, s, L0),         L0 = C_2(q_2, theta_2)     (suture)
 
 with V the cavity volume at which it is closed, s the snug radial scale of the fitted
-buckle (params "dr" of the buckle and its sutures) and L0 the tied suture lengths. The
-gradient of an outcome J(q_3, theta_3) - including the pre-operative axial length
-that the axial length change is measured from - is assembled by three adjoint
-solves, each reusing the last Newton factorisation of its stage (eyefem.solve.adjoint):
-
-    g_3 = dJ/dtheta_3 (adjoint on stage 3, L0, V, s held),
-    g_2 = d/dtheta_2 [ g_3,L0 . lengths(q_2(theta_2), theta_2) ] (adjoint on stage 2),
-    g_1 = d/dtheta_1 [ G_V V(q_1) + G_s s(q_1) + G_a a(q_1) ] (adjoint on stage 1),
-
-with G_V, G_s the totals of g_2 + g_3 over v_ini and dr and G_a the outcome's own
-dependence on the pre-operative eye (the changes measured from it: axial length,
-refraction, ...; eyefem.eye.sensitivity); then chained through the maps T_k, written
-once as a JAX function of the design (SurgerySimulator.design_map) and differentiated
-by jax.vjp, the suture bites by their exact derivative within their faces
-(eyefem.eye.sutures.radial_bite_sensitivity). So the history of the load path (sutures tied on
-the tightened eye, buckle fitted on the inflated eye) is differentiated, not frozen.
-The contact state (which nodes touch) is smooth (buckle_contact), so the response is
-smooth in the design except where a suture bite crosses a face boundary of the sclera
-(the bite stays continuous; its derivative jumps) or the snug buckle's touching node
-changes - see docs/adjoint.md.
+buckle (params "dr" of the buckle and its sutures), the pre-operative optics that the
+changes are measured from, and L0 the tied suture lengths. The forward run sets each
+stage's params from T_k and hands C_k on; the gradient of the outcomes
+(eyefem.eye.outcomes.outcome_function) differentiates the same functions by one backward
+sweep (eyefem.solve.staged.staged_gradients: one adjoint solve per stage on its last
+Newton factorisation, a jax.vjp through each T_k and C_k). The suture bites are a JAX
+function of the suture width and meridian inside T_2 / T_3
+(eyefem.eye.rigid_buckle.BiteRays). So the history of the load path (sutures tied on the
+tightened eye, buckle fitted on the inflated eye) is differentiated, not frozen. The
+contact state (which nodes touch) is smooth (buckle_contact), so the response is smooth
+in the design except where a suture bite crosses a face boundary of the sclera (the bite
+stays continuous; its derivative jumps) or the snug buckle's touching node changes - see
+docs/adjoint.md.
 
 The buckle and sutures are fitted once, on the case's own pre-operative eye and at its
 meridian; a design moves them by params (shift, radial fit "dr", turn "rot" about the
@@ -54,11 +47,10 @@ from typing import Callable
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.eye.outcomes import changes, eye_optics, indentation, outcome_nodes
+from eyefem.eye.outcomes import eye_optics, outcome_data, outcome_function, outcome_nodes
 from eyefem.eye.parts import snug_node, snug_scale
 from eyefem.eye.presets import SEED_MATERIALS
-from eyefem.eye.rigid_buckle import suture_term
-from eyefem.eye.sensitivity import DesignGradients, term_kind
+from eyefem.eye.rigid_buckle import BiteRays, bite_rays, rigid_design_params, suture_term
 from eyefem.eye.surgery import surgery
 from eyefem.eye.variables import (  # noqa: F401 - the design's names, re-exported
     DESIGN_VARIABLES,
@@ -71,27 +63,44 @@ from eyefem.eye.variables import (  # noqa: F401 - the design's names, re-export
     SURGICAL_VARIABLES,
     default_parameters,
 )
-from eyefem.fem.cavity import cavity_state, close_cavity
-from eyefem.fem.units import MMHG
+from eyefem.fem.cavity import cavity_pressures, close_cavity
 from eyefem.solve.solver import ConvergenceError, NewtonOptions, Solution, Stage, solve
+from eyefem.solve.staged import StageMap, StageRecord, hand_on, stage_params, staged_gradients
 
 log = logging.getLogger(__name__)
 
-@dataclasses.dataclass
+
+def term_kind(term) -> tuple:
+    """The key of the compiled functions of a term's state, one per kind whatever the
+    design: its class and static configuration, as the model's kernels are keyed
+    (eyefem.solve.model.Model._kernel: its methods read arrays only from their arguments)."""
+    return (type(term), term.static_key())
+
+
+@dataclasses.dataclass(frozen=True)
 class Preop:
     """The pressurised pre-operative eye of one set of material constants.
 
     Attributes: sol1 (stage-1 solution), theta2 (params with the cavity closed at its
-    volume), scale (snug radial scale of the buckle) and node (the node it touches),
-    optics (eyefem.eye.outcomes.eye_optics: axial length, corneal power, ...),
-    materials (the values of STAGE1_VARIABLES)."""
+    volume), node (the node the snug buckle touches), carry (what stage 1 hands on:
+    "volume" (mm^3), "scale" (the buckle's snug radial scale), "optics"
+    (eyefem.eye.outcomes.eye_optics)), materials (the values of STAGE1_VARIABLES)."""
 
     sol1: Solution
     theta2: dict
-    scale: float
     node: int
-    optics: dict
+    carry: dict
     materials: tuple
+
+    @property
+    def optics(self) -> dict:
+        """The pre-operative optics, floats (axial length, mm, ...)."""
+        return {k: float(v) for k, v in self.carry["optics"].items()}
+
+    @property
+    def scale(self) -> float:
+        """The snug radial scale of the buckle on this eye."""
+        return float(self.carry["scale"])
 
     @property
     def axial(self) -> float:
@@ -99,21 +108,31 @@ class Preop:
         return self.optics["axial_length_mm"]
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Result:
-    """A converged design: outcome values and the three solutions the adjoint needs."""
+    """A converged design: outcome values, its stages (eyefem.solve.staged.StageRecord:
+    pressurise, tighten, suture) and the suture term and bites of its layout."""
 
     design: dict
     outcomes: dict
-    sol2: Solution
-    sol3: Solution
+    stages: tuple
     sutures: object  # the suture term of this design
+    bites: BiteRays
     newton_iterations: int
-    preop: Preop | None = None
+    preop: Preop
+
+    @property
+    def sol2(self) -> Solution:
+        return self.stages[1].solution
+
+    @property
+    def sol3(self) -> Solution:
+        return self.stages[2].solution
 
 
-class SurgerySimulator(DesignGradients):
-    """Simulate one surgery case for many designs, with warm starts and adjoints.
+class SurgerySimulator:
+    """Simulate one rigid-buckle surgery case for many designs, with warm starts and
+    adjoint gradients.
 
     Args:
       params: surgery case parameters (eyefem.eye.surgery.SURGERY_FIELDS); the
@@ -137,7 +156,7 @@ class SurgerySimulator(DesignGradients):
         mesh = self.parts.eye.mesh
         self._mat_row = {m: mesh.materials.index(m) for m in SEED_MATERIALS if m in mesh.materials}
         self._nodes = outcome_nodes(self.parts)
-        self._compiled: dict = {}  # outcome functions, one per outcome list (outcome_vector)
+        self._compiled: dict = {}  # outcome and carry functions, one per kind (outcome_vector)
         sol1 = _kept(solve(self.model1, [self.stage1], options=options))
         self.stage1_iterations = sum(r.iterations for r in sol1.history)
         # the buckle and sutures are fitted once, at this eye's snug scale; other designs
@@ -145,70 +164,103 @@ class SurgerySimulator(DesignGradients):
         self.model, _, _ = self.stage2.before(self.model1, sol1.q, sol1.theta)
         self.scale0 = float(snug_scale(self.parts, sol1.q))
         self.meridian0 = float(self.params["buckle_meridian_deg"])
-        theta0 = self.model1.theta0()
-        self._c10 = {m: float(theta0["solid"]["coeffs"][i, 1, 0]) for m, i in self._mat_row.items()}
-        self.preop = self._preop(sol1, self._stage1_key(self.design0()))
+        theta0 = self.model.theta0()
+        self._shapes = {t: {k: np.shape(v) for k, v in ps.items()} for t, ps in theta0.items()}
+        self._coeffs = np.asarray(theta0["solid"]["coeffs"])
+        self._c10 = {m: float(self._coeffs[i, 1, 0]) for m, i in self._mat_row.items()}
         self.last: Result | None = None
         self.pulled = any(t.name == "band_pull" for t in self.model.terms)
         self._ramped = ("solid", "zonule", "buckle", "cavity") + (("band_pull",) if self.pulled else ())
+        self.preop = self._preop(sol1, self._stage1_key(self.design0()))
 
-    # --- design -> params ---------------------------------------------------------
+    # --- the procedure as data: design -> params, what each stage hands on ----------
     def design0(self) -> dict:
         d = {k: float(self.params[k]) for k in SURGICAL_VARIABLES}
         d.update({f"c10_{m}": c for m, c in self._c10.items()})
         d.update({k: float(self.params[k]) for k in ("zonule_E", "liquid_bulk", "suture_EA")})
         return d
 
-    def design_map(self, design: dict, like: dict, bites=None) -> dict:
-        """The stage params the design variables set: term -> param -> array, shaped like
-        the params of the theta ``like``; a JAX function of ``design`` (name -> scalar), the
-        one map from the design to the model that the forward run evaluates and the
-        adjoint differentiates (jax.vjp, eyefem.eye.sensitivity).
+    def _full(self, term, key, v):
+        return jnp.broadcast_to(jnp.asarray(v, dtype=jnp.float64), self._shapes[term][key])
 
-        buckle and sutures: d = tightening x d_per_mm (radial motion), s = buckle_shift,
-        rot = meridian - the case's meridian (radians); sutures: EA, tightening =
-        suture_tightening / 2 per bar (stage 3), and with ``bites`` = (xi (n, 2), dxi/dw,
-        dxi/dmeridian, w, meridian) the bites xi linearised about that design (the exact
-        derivative of the layout there); cavity: dv = -drain_volume, bulk; zonule: EA =
-        zonule_E x its area; solid: c10 of each tissue; band_pull: f = band_tension.
-        Not here: the buckle's radial fit dr, set by the pre-operative eye (stage 1)."""
-        def full(term, key, v):
-            return jnp.broadcast_to(jnp.asarray(v, dtype=jnp.float64), np.shape(like[term][key]))
-
-        rot = (design["buckle_meridian_deg"] - self.meridian0) * (np.pi / 180)
-        motion = {"d": design["tightening"] * self.parts.d_per_mm, "s": design["buckle_shift"],
-                  "rot": rot}
+    def _materials(self, design) -> dict:
+        """T_1: the params of the design's material constants (solid c10, zonule EA)."""
         rows = np.array(list(self._mat_row.values()))
         c10 = jnp.stack([jnp.asarray(design[f"c10_{m}"], jnp.float64) for m in self._mat_row])
+        return {"solid": {"coeffs": jnp.asarray(self._coeffs).at[rows, 1, 0].set(c10)},
+                "zonule": {"EA": self._full("zonule", "EA",
+                                            self.parts.eye.zonule_bar_EA(design["zonule_E"]))}}
+
+    def design_map(self, design: dict, carry: dict, bites: BiteRays) -> dict:
+        """T_2: the params of stage 2 (term -> param -> array, JAX) from the design (name
+        -> scalar) and stage 1's carry: the rigid buckle's own params
+        (eyefem.eye.rigid_buckle.rigid_design_params: radial motion d, shift s, drained
+        volume, band tension) and rot = meridian - the case's meridian (radians),
+        dr = R (s - s_0) the radial fit on this pre-operative eye (s its snug scale, s_0
+        the one the terms were fitted at); sutures: EA, the bites xi (``bites``, a
+        function of suture_width and the meridian); cavity: v_ini = the volume at
+        closure, bulk; zonule: EA = zonule_E x its area; solid: c10 of each tissue."""
+        rot = (design["buckle_meridian_deg"] - self.meridian0) * (np.pi / 180)
+        dr = self.parts.eye.geometry.scleral_radius * (carry["scale"] - self.scale0)
+        tighten, _ = rigid_design_params(self.parts, design)
+        motion = {**tighten["buckle"], "rot": rot, "dr": dr}
+        full = self._full
         out = {"buckle": {k: full("buckle", k, v) for k, v in motion.items()},
                "sutures": {**{k: full("sutures", k, v) for k, v in motion.items()},
                            "EA": full("sutures", "EA", design["suture_EA"]),
-                           "tightening": full("sutures", "tightening",
-                                              design["suture_tightening"] / 2)},
-               "cavity": {"dv": full("cavity", "dv", -design["drain_volume"]),
+                           "xi": bites.xi_of(design["suture_width"],
+                                             design["buckle_meridian_deg"])},
+               "cavity": {"v_ini": full("cavity", "v_ini", carry["volume"]),
+                          "dv": full("cavity", "dv", tighten["cavity"]["dv"]),
                           "bulk": full("cavity", "bulk", design["liquid_bulk"])},
-               "zonule": {"EA": full("zonule", "EA",
-                                     self.parts.eye.zonule_bar_EA(design["zonule_E"]))},
-               "solid": {"coeffs": jnp.asarray(like["solid"]["coeffs"]).at[rows, 1, 0].set(c10)}}
-        if self.pulled:
-            out["band_pull"] = {"f": full("band_pull", "f", design["band_tension"])}
-        if bites is not None:
-            xi, dxi_w, dxi_m, w, m = bites
-            out["sutures"]["xi"] = (xi + dxi_w * (design["suture_width"] - w)
-                                    + dxi_m * (design["buckle_meridian_deg"] - m))
+               **self._materials(design)}
+        if "band_pull" in tighten:
+            out["band_pull"] = {"f": full("band_pull", "f", tighten["band_pull"]["f"])}
         return out
 
-    def _with_design(self, theta, design, keys) -> dict:
-        """theta with the design's values (design_map) of ``keys`` ((term, param) pairs)."""
-        values = self.design_map(design, theta)
+    def _tied(self, design, carry, bites) -> dict:
+        """T_3: stage 2's params (design_map) with the sutures tied at their stage-2
+        lengths L0 and shortened (eyefem.eye.rigid_buckle.rigid_design_params)."""
+        out = self.design_map(design, carry, bites)
+        _, suture = rigid_design_params(self.parts, design)
+        out["sutures"] = {**out["sutures"], "L0": self._full("sutures", "L0", carry["L0"]),
+                          "tightening": self._full("sutures", "tightening",
+                                                   suture["sutures"]["tightening"])}
+        return out
+
+    def maps(self, sut) -> tuple[StageMap, StageMap, StageMap]:
+        """The three stages as data (eyefem.solve.staged.StageMap), one set per kind of
+        suture term (their carry functions compiled once)."""
+        def build():
+            parts, X, nodes = self.parts, self.parts.eye.mesh.nodes, self._nodes
+
+            def preop(q, theta, data):  # C_1
+                return {"volume": cavity_pressures(q, theta["cavity"], *data["cavity"])[1][0],
+                        "scale": snug_scale(parts, q, data["node"]),
+                        "optics": eye_optics(X, q, nodes)}
+
+            def tied_lengths(q, theta, data):  # C_2
+                sut_data, sut_dofs = data
+                return {"L0": sut.lengths(q[sut_dofs], theta["sutures"], sut_data)}
+
+            return (StageMap("pressurise", lambda d, c, data: self._materials(d), preop),
+                    StageMap("tighten", self.design_map, tied_lengths),
+                    StageMap("suture", self._tied))
+        return self._kept_fn(("maps", term_kind(sut)), build)
+
+    def _kept_fn(self, key, build: Callable):
+        """The object cached under ``key`` (built by ``build()`` the first time)."""
+        if key not in self._compiled:
+            self._compiled[key] = build()
+        return self._compiled[key]
+
+    @staticmethod
+    def _with(theta, values) -> dict:
+        """theta with the params ``values`` (term -> param -> array) set (numpy)."""
         out = dict(theta)
-        for term, key in keys:
-            out[term] = {**out[term], key: np.asarray(values[term][key])}
+        for term, ps in values.items():
+            out[term] = {**out[term], **{k: np.asarray(v) for k, v in ps.items()}}
         return out
-
-    def _materials_theta(self, theta, design):
-        """theta with the design's material constants (solid c10, zonule EA, liquid bulk)."""
-        return self._with_design(theta, design, MATERIAL_PARAMS + (("cavity", "bulk"),))
 
     def _stage1_key(self, design) -> tuple:
         return tuple(float(design[f"c10_{m}"]) for m in self._mat_row) + (float(design["zonule_E"]),)
@@ -216,10 +268,11 @@ class SurgerySimulator(DesignGradients):
     def _preop(self, sol1: Solution, materials: tuple) -> Preop:
         _, _, theta2 = close_cavity(self.model, sol1.q, sol1.theta, "cavity", "iop")
         node = snug_node(self.parts, sol1.q)
-        optics = {k: float(v) for k, v in eye_optics(self.parts.eye.mesh.nodes, sol1.q,
-                                                     self._nodes).items()}
-        return Preop(sol1, theta2, float(snug_scale(self.parts, sol1.q, node)), node, optics,
-                     materials)
+        cav = self.model.term("cavity")
+        pre_map = self.maps(self.model.term("sutures"))[0]
+        carry = hand_on(pre_map, sol1.q, sol1.theta, {"cavity": (cav.data, cav.dofs),
+                                                      "node": node})
+        return Preop(sol1, theta2, node, carry, materials)
 
     def _stage1(self, design) -> Preop:
         """The pre-operative eye for the design's material constants (re-solved from the
@@ -228,7 +281,8 @@ class SurgerySimulator(DesignGradients):
         if want == self.preop.materials:
             return self.preop
         prev = self.preop.sol1
-        target = self._materials_theta(prev.theta, design)
+        target = self._with(prev.theta, stage_params(self.maps(self.model.term("sutures"))[0],
+                                                     design, {}))
         ramp = {k: target[k] for k in ("solid", "zonule")}
         s1 = self.stage1
         try:
@@ -238,27 +292,16 @@ class SurgerySimulator(DesignGradients):
         except ConvergenceError as exc:
             log.warning("pre-operative warm start failed (%s); pressurising again",
                         str(exc).splitlines()[0])
-            start = self._materials_theta(self.model1.theta0(), design)
+            start = self._with(self.model1.theta0(), ramp)
             sol1 = _kept(solve(self.model1, [s1], theta=start, options=self.options))
         self.preop = self._preop(sol1, want)
         return self.preop
 
-    def _theta2(self, design, sut, pre: Preop):
-        """Stage 2's params: the design's (design_map) on the closed pre-operative eye, the
-        buckle and sutures fitted at its snug scale (dr)."""
-        dr = np.full(1, self.parts.eye.geometry.scleral_radius * (pre.scale - self.scale0))
+    def _theta2(self, design, sut, pre: Preop, bites: BiteRays):
+        """Stage 2's params: T_2 (design_map) on the closed pre-operative eye."""
         th = {**pre.theta2, "sutures": sut.params,
-              "buckle": {**pre.theta2["buckle"], "dr": dr,
-                         "ridge": self.stage2.params["buckle"]["ridge"]}}
-        th["sutures"] = {**th["sutures"], "dr": dr}
-        keys = [k for k in STAGE_PARAMS[2] if k[0] in th and k != ("sutures", "xi")]
-        return self._with_design(th, design, keys)
-
-    def _tied(self, sut, q2, theta2, design):
-        """Stage 3's params: the sutures tied at their stage-2 lengths and tightened."""
-        L = np.asarray(sut.lengths(np.asarray(q2)[sut.dofs], theta2["sutures"], sut.data))
-        th = {**theta2, "sutures": {**theta2["sutures"], "L0": L}}
-        return self._with_design(th, design, [("sutures", "tightening")])
+              "buckle": {**pre.theta2["buckle"], "ridge": self.stage2.params["buckle"]["ridge"]}}
+        return self._with(th, stage_params(self.maps(sut)[1], design, pre.carry, bites))
 
     def _model(self, sut):
         return self.model.with_terms([sut if t.name == "sutures" else t for t in self.model.terms])
@@ -306,8 +349,10 @@ class SurgerySimulator(DesignGradients):
         sut = suture_term(self.parts, self.scale0, design["suture_width"],
                           design["buckle_meridian_deg"])
         model = self._model(sut)
+        bites = bite_rays(self.parts, design["suture_width"], design["buckle_meridian_deg"])
+        maps = self.maps(sut)
         held = self.stage2.prescribed
-        th2 = self._theta2(design, sut, pre)
+        th2 = self._theta2(design, sut, pre, bites)
         prev = self.last if warm else None
         ramped = {k: th2[k] for k in self._ramped}
         if prev is None:
@@ -321,7 +366,10 @@ class SurgerySimulator(DesignGradients):
             sol2 = solve(model, [Stage("tighten", 1, held, params=ramped, active=self.stage2.active)],
                          q0=prev.sol2.q, theta=start, options=self.options)
         sol2 = _kept(sol2)
-        th3 = self._tied(sut, sol2.q, sol2.theta, design)
+        sut_data = (sut.data, sut.dofs)
+        carry2 = hand_on(maps[1], sol2.q, sol2.theta, sut_data)
+        th3 = self._with(sol2.theta, stage_params(maps[2], design, {**pre.carry, **carry2},
+                                                  bites))
         same_faces = prev is not None and np.array_equal(prev.sutures.nodes_a, sut.nodes_a)
         if same_faces:  # continuation of every param from the previous design's state
             sol3 = solve(model, [Stage("suture", 1, self.stage3.prescribed,
@@ -336,71 +384,70 @@ class SurgerySimulator(DesignGradients):
                          q0=sol2.q, theta=untied, options=self.options)
         sol3 = _kept(sol3)
         its = sum(r.iterations for r in sol2.history + sol3.history)
-        res = Result(design, {}, sol2, sol3, sut, its, pre)
+        cav = self.model.term("cavity")
+        stages = (StageRecord(maps[0], pre.sol1, None, {"cavity": (cav.data, cav.dofs),
+                                                         "node": pre.node}, pre.carry),
+                  StageRecord(maps[1], sol2, bites, sut_data, carry2),
+                  StageRecord(maps[2], sol3, bites))
+        res = Result(design, {}, stages, sut, bites, its, pre)
         f, data = self.outcome_vector(res, OUTCOMES)
-        res.outcomes = dict(zip(OUTCOMES, map(float, f(sol3.q, sol3.theta, data))))
+        values = f(jnp.asarray(sol3.q), sol3.theta, {**pre.carry, **carry2}, data)
+        res = dataclasses.replace(res, outcomes=dict(zip(OUTCOMES, map(float, values))))
         self.last = res
         return res
 
-    # --- outcomes as JAX functions ---------------------------------------------------
+    # --- outcomes and their gradients -------------------------------------------------
     def outcome_vector(self, res: Result, names, weights=None) -> tuple[Callable, dict]:
-        """(f, data): f(q, theta, data) -> (k,) the named outcomes at the converged design
-        ``res`` (the changes measured from ``res``'s own pre-operative eye;
-        eyefem.eye.outcomes), the eye's optics evaluated once for all of them; with
-        ``weights`` (k,), (1,) their weighted sum. f is a function of its arguments alone,
-        one object per outcome list and kind of suture term, so that its derivatives are
-        compiled once for every design (eyefem.solve.adjoint.values_and_grads); ``data``
-        holds what belongs to ``res``: the pre-operative optics, the cavity's and the
-        sutures' data, the bar of the largest suture force."""
+        """(f, data): f(q, theta, carry, data) -> (k,) the named outcomes at the converged
+        design ``res`` (eyefem.eye.outcomes.outcome_function: the changes measured from
+        the carried pre-operative optics); with ``weights`` (k,), (1,) their weighted sum.
+        f is one object per outcome list and kind of suture term, so that its derivatives
+        are compiled once for every design; ``data`` holds what belongs to ``res``
+        (eyefem.eye.outcomes.outcome_data)."""
         names, sut = tuple(names), res.sutures
-        f = self._kept_fn(("outcomes", names, weights is None, term_kind(sut)),
-                          lambda: self._outcome_vector_fn(names, sut))
-        cav = res.sol3.model.term("cavity")
-        force = np.asarray(sut.forces(res.sol3.q, res.sol3.theta["sutures"]))
-        data = {"preop": {k: jnp.asarray(v, jnp.float64)
-                          for k, v in (res.preop or self.preop).optics.items()},
-                "cavity": (cav.data, cav.dofs), "sutures": (sut.data, sut.dofs),
-                "largest": jnp.asarray(int(np.argmax(force))),
-                "weights": None if weights is None else jnp.asarray(weights, jnp.float64)}
-        return f, data
+        f = self._kept_fn(("outcomes", names, term_kind(sut)),
+                          lambda: outcome_function(names, self.parts.eye.mesh.nodes,
+                                                   self._nodes, sut))
+        return f, outcome_data(res.sol3.model, res.sol3.q, res.sol3.theta, weights)
 
-    def _outcome_vector_fn(self, names: tuple, sut) -> Callable:
-        """f(q, theta, data) of :meth:`outcome_vector` (``sut``: a suture term of the kind
-        whose data f receives; only its methods are used)."""
-        X, nodes = self.parts.eye.mesh.nodes, self._nodes
-        optical = set(OPTICAL_CHANGES) | {"corneal_astigmatism_D"}
+    def gradients(self, res: Result, outcomes=None) -> dict[str, dict[str, float]]:
+        """d outcome / d design variable for the named outcomes (default: all OUTCOMES):
+        one backward sweep over the stages (eyefem.solve.staged.staged_gradients), one
+        right-hand side per outcome."""
+        names = list(OUTCOMES) if outcomes is None else list(outcomes)
+        return dict(zip(names, self._gradients(res, *self.outcome_vector(res, names))))
 
-        def outcome(name, q, theta, data, opt, ch):
-            if name in OPTICAL_CHANGES:
-                return ch[name]
-            if name in optical:
-                return opt[name]
-            if name == "iop_mmhg":
-                return cavity_state(q, theta["cavity"], *data["cavity"])[0][0] / MMHG
-            if name == "indentation_mm":
-                return indentation(X, q, nodes)
-            if name == "max_suture_force_N":
-                sut_data, sut_dofs = data["sutures"]
-                return sut.axial_forces(q[sut_dofs], theta["sutures"], sut_data)[data["largest"]]
-            raise KeyError(f"unknown outcome '{name}'; known: {list(OUTCOMES)}")
+    def weighted_gradient(self, res: Result, weights: dict) -> dict[str, float]:
+        """d (sum_k w_k outcome_k) / d design variable, for outcome name -> weight w_k: the
+        cost of one outcome's gradient whatever the weights (the backward pass of
+        eyefem.simulate)."""
+        items = [(k, float(w)) for k, w in weights.items() if w]
+        if not items:
+            return {k: 0.0 for k in DESIGN_VARIABLES}
+        names = [k for k, _ in items]
+        w = np.array([w for _, w in items])
+        return self._gradients(res, *self.outcome_vector(res, names, w))[0]
 
-        def outcomes(q, theta, data):
-            opt = eye_optics(X, q, nodes) if optical & set(names) else None
-            ch = changes(opt, data["preop"]) if opt is not None else {}
-            values = jnp.stack([outcome(n, q, theta, data, opt, ch) for n in names])
-            w = data["weights"]
-            return values if w is None else jnp.reshape(jnp.dot(w, values), (1,))
+    def _gradients(self, res: Result, f, data) -> list[dict[str, float]]:
+        _, totals = staged_gradients(res.stages, res.design, f, data)
+        if self.parts.buckle.encircling:  # its sutures are spread evenly around: no meridian
+            for total in totals:
+                total["buckle_meridian_deg"] = 0.0
+        return [{k: total.get(k, 0.0) for k in DESIGN_VARIABLES} for total in totals]
 
-        return outcomes
-
-    def outcome_fns(self, res: Result) -> dict[str, Callable]:
-        """Outcome name -> J(q, theta), JAX-traceable, at the converged design ``res`` (one
-        outcome of :meth:`outcome_vector` each)."""
-        def one(name):
-            f, data = self.outcome_vector(res, (name,))
-            return lambda q, theta: f(q, theta, data)[0]
-
-        return {name: one(name) for name in OUTCOMES}
+    def jacobian(self, res: Result, variables, outcomes=None) -> np.ndarray:
+        """d outcome / d variable at the converged design ``res``: array (n_outcomes,
+        n_variables), rows in the order of ``outcomes`` (default: all OUTCOMES), columns
+        in the order of ``variables`` (names in DESIGN_VARIABLES). Built from gradients()."""
+        names = list(OUTCOMES) if outcomes is None else list(outcomes)
+        variables = list(variables)
+        unknown = [v for v in variables if v not in DESIGN_VARIABLES]
+        if unknown:
+            raise ValueError(f"unknown design variables {unknown}; known: "
+                             f"{sorted(DESIGN_VARIABLES)}")
+        grads = self.gradients(res, names)
+        jac = [[grads[o][v] for v in variables] for o in names]
+        return np.array(jac, dtype=float).reshape(len(names), len(variables))
 
 
 def _kept(sol: Solution) -> Solution:
@@ -411,3 +458,154 @@ def _kept(sol: Solution) -> Solution:
     if sol.solver is not None:
         sol.solver.keep()
     return sol
+
+
+@dataclasses.dataclass(frozen=True)
+class RingResult:
+    """A converged design of a deformable ring: outcome values, its stages
+    (eyefem.solve.staged.StageRecord: pressurise, tighten, suture) and its suture term."""
+
+    design: dict
+    outcomes: dict
+    stages: tuple
+    sutures: object
+    newton_iterations: int
+
+
+class RingSimulator:
+    """Simulate a deformable band or tire case (buckle_body = 'deformable', encircling)
+    for many designs, with adjoint gradients, through the stages its body declares
+    (eyefem.eye.bodies.DeformableRing.design_params, the same as ``eyefem run``'s).
+
+    The design variables are those the ring's stages take as params
+    (DeformableRing.VARIABLES: tightening of a closed loop, suture tightening, drained
+    volume, liquid bulk modulus, suture EA); they leave the pressurised eye (stage 1) and
+    the band's snug fit on it unchanged, so stage 1 is solved once. Each design solves
+    stages 2 and 3 from it, with the case's load steps (no warm start); the gradient is
+    one backward sweep over the three stages (eyefem.solve.staged.staged_gradients).
+
+    Args: as :class:`SurgerySimulator`.
+    """
+
+    def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
+        from eyefem.eye.bodies import DeformableRing
+
+        self.params = dict(params)
+        self.options = options
+        setup = surgery(self.params, materials)
+        self.parts = setup.parts
+        if self.params.get("buckle_body") != "deformable" or not self.parts.buckle.encircling:
+            raise ValueError("RingSimulator: a deformable band or tire (buckle_body = "
+                             "'deformable', buckle = 'band', 'tire_flat' or 'tire_ridged')")
+        self.body = DeformableRing()
+        self.variables = tuple(v for v in self.body.VARIABLES
+                               if v != "tightening" or self.parts.band.closed)
+        self.stage1, self.stage2, self.stage3 = setup.stages
+        self.model1 = setup.model
+        self._nodes = outcome_nodes(self.parts)
+        self._compiled: dict = {}
+        cav = self.model1.term("cavity")
+        self._cavity = (cav.data, cav.dofs)
+        self.sol1 = _kept(solve(self.model1, [self.stage1], options=options))
+        self.carry1 = hand_on(self._maps()[0], self.sol1.q, self.sol1.theta,
+                              {"cavity": self._cavity})
+        self.last: RingResult | None = None
+
+    def design0(self) -> dict:
+        return {k: float(self.params[k]) for k in self.variables}
+
+    def _maps(self) -> tuple[StageMap, StageMap, StageMap]:
+        """The three stages as data: T_2 / T_3 the ring's design params
+        (DeformableRing.design_params) with the closed volume and the tied lengths."""
+        if "maps" in self._compiled:
+            return self._compiled["maps"]
+        parts, X, nodes = self.parts, self.parts.eye.mesh.nodes, self._nodes
+
+        def preop(q, theta, data):  # C_1
+            return {"volume": cavity_pressures(q, theta["cavity"], *data["cavity"])[1][0],
+                    "optics": eye_optics(X, q, nodes)}
+
+        def tighten(design, carry, data):  # T_2
+            t2, _ = self.body.design_params(parts, design)
+            return {**t2, "cavity": {**t2["cavity"], "v_ini": carry["volume"]}}
+
+        def tied_lengths(q, theta, data):  # C_2
+            sut, sut_data, sut_dofs = self._compiled["sutures"], *data
+            return {"L0": sut.lengths(q[sut_dofs], theta["sutures"], sut_data)}
+
+        def suture(design, carry, data):  # T_3
+            _, t3 = self.body.design_params(parts, design)
+            return {**tighten(design, carry, data),
+                    "sutures": {**t3["sutures"], "L0": carry["L0"]}}
+
+        self._compiled["maps"] = (StageMap("pressurise", lambda d, c, data: {}, preop),
+                                  StageMap("tighten", tighten, tied_lengths),
+                                  StageMap("suture", suture))
+        return self._compiled["maps"]
+
+    def _check(self, design: dict) -> None:
+        for k in design:
+            if k not in self.variables:
+                raise ValueError(f"design variable '{k}' cannot vary for a deformable "
+                                 f"{self.parts.buckle.kind}: its design variables are "
+                                 f"{list(self.variables)}")
+
+    def run(self, design: dict | None = None, **_) -> RingResult:
+        """Solve stages 2 and 3 for a design (missing variables: the case's values)."""
+        self._check(design or {})
+        design = {**self.design0(), **(design or {})}
+        maps = self._maps()
+
+        def stage(s, values):
+            params = {t: {**s.params.get(t, {}), **ps} for t, ps in values.items()}
+            return dataclasses.replace(s, params={**s.params, **params})
+
+        t2 = stage_params(maps[1], design, self.carry1)
+        sol2 = _kept(solve(self.model1, [stage(self.stage2, t2)], q0=self.sol1.q,
+                           theta=self.sol1.theta, options=self.options))
+        sut = sol2.model.term("sutures")
+        self._compiled.setdefault("sutures", sut)  # its methods only: one kind per case
+        carry2 = hand_on(maps[1], sol2.q, sol2.theta, (sut.data, sut.dofs))
+        t3 = stage_params(maps[2], design, {**self.carry1, **carry2})
+        sol3 = _kept(solve(sol2.model, [stage(self.stage3, t3)], q0=sol2.q, theta=sol2.theta,
+                           options=self.options))
+        stages = (StageRecord(maps[0], self.sol1, None, {"cavity": self._cavity}, self.carry1),
+                  StageRecord(maps[1], sol2, None, (sut.data, sut.dofs), carry2),
+                  StageRecord(maps[2], sol3))
+        its = sum(r.iterations for r in sol2.history + sol3.history)
+        res = RingResult(design, {}, stages, sut, its)
+        f, data = self.outcome_vector(res, OUTCOMES)
+        values = f(jnp.asarray(sol3.q), sol3.theta, {**self.carry1, **carry2}, data)
+        res = dataclasses.replace(res, outcomes=dict(zip(OUTCOMES, map(float, values))))
+        self.last = res
+        return res
+
+    def outcome_vector(self, res: RingResult, names, weights=None) -> tuple[Callable, dict]:
+        """(f, data) as :meth:`SurgerySimulator.outcome_vector`."""
+        names, sol3 = tuple(names), res.stages[2].solution
+        sut = sol3.model.term("sutures")
+        f = self._kept_fn(("outcomes", names),
+                          lambda: outcome_function(names, sol3.model.mesh.nodes, self._nodes,
+                                                   sut))
+        return f, outcome_data(sol3.model, sol3.q, sol3.theta, weights)
+
+    def _kept_fn(self, key, build: Callable):
+        if key not in self._compiled:
+            self._compiled[key] = build()
+        return self._compiled[key]
+
+    def gradients(self, res: RingResult, outcomes=None) -> dict[str, dict[str, float]]:
+        """d outcome / d design variable (self.variables) for the named outcomes (default:
+        all OUTCOMES): one backward sweep over the stages."""
+        names = list(OUTCOMES) if outcomes is None else list(outcomes)
+        _, totals = staged_gradients(res.stages, res.design, *self.outcome_vector(res, names))
+        return dict(zip(names, totals))
+
+    def weighted_gradient(self, res: RingResult, weights: dict) -> dict[str, float]:
+        """d (sum_k w_k outcome_k) / d design variable (one backward sweep)."""
+        items = [(k, float(w)) for k, w in weights.items() if w]
+        if not items:
+            return {k: 0.0 for k in self.variables}
+        names, w = [k for k, _ in items], np.array([w for _, w in items])
+        return staged_gradients(res.stages, res.design,
+                                *self.outcome_vector(res, names, w))[1][0]

@@ -5,9 +5,10 @@ indentation, suture force and the clinical optics (corneal power and astigmatism
 anterior chamber depth; eyefem.eye.optics); a buckle body adds its own (a band's tension
 and shortening). The outcomes of an operation are changes from the pressurised
 pre-operative eye (:func:`changes`: axial length, refraction, corneal power, anterior
-chamber depth). The geometric ones are written with jax.numpy on node positions, so the
-reported value (numpy) and its adjoint gradient (eyefem.eye.design, JAX) come from the
-same function.
+chamber depth). Each is written once with jax.numpy (:func:`cavity_iop_mmhg`,
+:func:`indentation`, :func:`suture_force`, :func:`eye_optics`, :func:`changes`), so the
+reported value (numpy, :func:`outcomes`) and its adjoint gradient (:func:`outcome_function`,
+eyefem.eye.design) come from the same functions.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from eyefem.eye import optics
 from eyefem.eye.parts import SurgeryParts, buckle_coords_at
 from eyefem.eye.sutures import ray_face_intersection
 from eyefem.fem.bars import bilinear
+from eyefem.fem.cavity import cavity_pressures
 from eyefem.fem.mesh import hex_geometry, quad_shape
 from eyefem.fem.units import KPA, MMHG
 
@@ -151,6 +153,20 @@ def indentation(X, q, nodes: OutcomeNodes):
     return r(nodes.beside) - r(nodes.under)
 
 
+def cavity_iop_mmhg(q, params, data, dofs):
+    """The closed cavity's pressure, mmHg (JAX): its first cavity's, from its volume law
+    (params, data, dofs: the FluidCavity's)."""
+    return cavity_pressures(q, params, data, dofs)[0][0] / MMHG
+
+
+def suture_force(sutures, q, params, data, dofs, largest):
+    """The axial force (N) of suture bar ``largest`` (JAX): the most loaded bar's, with
+    ``largest`` = argmax of ``sutures.forces`` at the state (the bar is chosen at the
+    state, its force differentiated); ``sutures``: the term (its methods only), params,
+    data and dofs its own."""
+    return sutures.axial_forces(q[dofs], params, data)[largest]
+
+
 def eye_optics(X, q, nodes: OutcomeNodes) -> dict:
     """Axial length (mm), corneal power and astigmatism (D), anterior chamber depth (mm)."""
     x = X + q[: 3 * len(X)].reshape(-1, 3)
@@ -257,20 +273,84 @@ def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
     its own (BuckleBody.outcomes)."""
     X, nodes = model.mesh.nodes, outcome_nodes(parts)
     cav = model.term("cavity")
-    P, V = cav.pressures(q, theta["cavity"])
+    _, V = cav.pressures(q, theta["cavity"])
     closed = theta["iop"]["p"] == 0.0  # close_cavity releases the surface load
-    iop = float(P[0]) if closed else float(theta["iop"]["p"])
-    forces = model.term("sutures").forces(q, theta["sutures"])
+    iop = (float(cavity_iop_mmhg(jnp.asarray(q), theta["cavity"], cav.data, cav.dofs)) if closed
+           else float(theta["iop"]["p"]) / MMHG)
+    sut = model.term("sutures")
+    force = (float(suture_force(sut, jnp.asarray(q), theta["sutures"], sut.data, sut.dofs,
+                                int(np.argmax(sut.forces(q, theta["sutures"])))))
+             if np.any(theta["sutures"]["tightening"]) else 0.0)
     now = {k: float(v) for k, v in eye_optics(X, q, nodes).items()}
     unloaded = eye_optics(X, np.zeros_like(q), nodes)["axial_length_mm"]
-    return {"iop_mmhg": iop / MMHG, "volume_mm3": float(V[0]),
+    return {"iop_mmhg": iop, "volume_mm3": float(V[0]),
             "axial_length_mm": now["axial_length_mm"],
             "axial_length_change_unloaded_mm": now["axial_length_mm"] - float(unloaded),
             "indentation_mm": float(indentation(X, q, nodes)),
-            "max_suture_force_N": float(forces.max()) if np.any(theta["sutures"]["tightening"])
-            else 0.0, **{k: v for k, v in now.items() if k != "axial_length_mm"},
+            "max_suture_force_N": force, **{k: v for k, v in now.items()
+                                            if k != "axial_length_mm"},
             "scleral_stress_kPa": peak_scleral_stress(
                 model, q, theta, stress_patches(model.mesh) if patches is None else patches)}
+
+
+OPTICS = ("axial_length_mm", "corneal_power_D", "corneal_astigmatism_D",
+          "anterior_chamber_depth_mm")
+"""The optics of a state (:func:`eye_optics`)."""
+CHANGES = ("axial_length_change_mm", "refraction_change_D", "corneal_power_change_D",
+           "anterior_chamber_depth_change_mm")
+"""The changes of an operation (:func:`changes`), measured from the pre-operative eye."""
+
+
+def outcome_function(names, X, nodes: OutcomeNodes, sutures):
+    """f(q, theta, carry, data) -> (k,) the named outcomes at state q (n_dof,) (JAX), or
+    (1,) their weighted sum with data["weights"] (k,) (None: the values); the functions
+    :func:`outcomes` reports, so that a value and its gradient come from one definition.
+
+    Args:
+      names: outcome names: iop_mmhg, indentation_mm, max_suture_force_N, the OPTICS and
+        the CHANGES (from carry["optics"], the pre-operative eye's :func:`eye_optics`).
+      X: (n_nodes, 3) reference node positions, mm; nodes: the mesh's OutcomeNodes.
+      sutures: a suture term of the kind whose data f receives (its methods only).
+    data: {"cavity": (data, dofs) of the FluidCavity, "sutures": (data, dofs),
+    "largest": the most loaded suture bar (:func:`suture_force`), "weights"}.
+    """
+    names = tuple(names)
+    known = ("iop_mmhg", "indentation_mm", "max_suture_force_N") + OPTICS + CHANGES
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise KeyError(f"unknown outcomes {unknown}; known: {list(known)}")
+    optical = bool(set(names) & set(OPTICS + CHANGES))
+
+    def outcome(name, q, theta, data, opt, ch):
+        if name in CHANGES:
+            return ch[name]
+        if name in OPTICS:
+            return opt[name]
+        if name == "iop_mmhg":
+            return cavity_iop_mmhg(q, theta["cavity"], *data["cavity"])
+        if name == "indentation_mm":
+            return indentation(X, q, nodes)
+        return suture_force(sutures, q, theta["sutures"], *data["sutures"], data["largest"])
+
+    def f(q, theta, carry, data):
+        opt = eye_optics(X, q, nodes) if optical else None
+        ch = changes(opt, carry["optics"]) if opt is not None else {}
+        values = jnp.stack([outcome(n, q, theta, data, opt, ch) for n in names])
+        w = data["weights"]
+        return values if w is None else jnp.reshape(jnp.dot(w, values), (1,))
+
+    return f
+
+
+def outcome_data(model, q, theta, weights=None) -> dict:
+    """The data of :func:`outcome_function` at a converged state q (n_dof,), theta of
+    ``model``: its cavity's and sutures' data and dofs, the most loaded suture bar, and
+    ``weights`` (k,) or None."""
+    cav, sut = model.term("cavity"), model.term("sutures")
+    force = np.asarray(sut.forces(q, theta["sutures"]))
+    return {"cavity": (cav.data, cav.dofs), "sutures": (sut.data, sut.dofs),
+            "largest": jnp.asarray(int(np.argmax(force))),
+            "weights": None if weights is None else jnp.asarray(weights, jnp.float64)}
 
 
 def stage_summary(rows) -> list[dict]:

@@ -55,11 +55,11 @@ class SurgeryParts:
 def snug_scale(parts: SurgeryParts, q, node=None):
     """Radial scale of a buckle fitted snug on the eye at state q (n_dof,): the largest
     |x| / |X| of the outer scleral nodes under it (jax or numpy). ``node``: evaluate at
-    that node instead (the maximiser, for a derivative). See :func:`snug_node`."""
+    that node instead (the maximiser, for a derivative; may be traced). See :func:`snug_node`."""
     mesh = parts.eye.mesh
     s = snug_node(parts, q) if node is None else node
-    x = mesh.nodes[s] + q[3 * s: 3 * s + 3]
-    return jnp.linalg.norm(x) / np.linalg.norm(mesh.nodes[s])
+    x = jnp.asarray(mesh.nodes)[s] + q[: 3 * mesh.n_nodes].reshape(-1, 3)[s]
+    return jnp.linalg.norm(x) / jnp.linalg.norm(jnp.asarray(mesh.nodes)[s])
 
 
 def snug_node(parts: SurgeryParts, q) -> int:

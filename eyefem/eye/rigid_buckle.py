@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 
 from eyefem.eye.buckles import KINDS, SPONGE_LENGTH, suture_anchor_frame
 from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import SEED_MATERIALS
-from eyefem.eye.sutures import generate_sutures
+from eyefem.eye.sutures import generate_sutures, radial_bites
 from eyefem.fem.bars import AnchoredBars, end_patches, reference_end_positions
 from eyefem.fem.buckle_contact import BuckleContact
 
@@ -35,6 +36,79 @@ def suture_layout(parts: SurgeryParts, width: float, meridian_deg: float | None 
     return generate_sutures(mesh.nodes, mesh.face_set("eye/sclera_outer"), cen, acr, nrm,
                             width=width, angle_deg=p["suture_angle_deg"], n_bars=3,
                             buckle_half_width=b.width / 2)
+
+
+def rigid_motion(parts: SurgeryParts, tightening, shift) -> dict:
+    """The rigid buckle's motion params (numpy or JAX): radial d = tightening x d_per_mm
+    (mm; encircling: the circumference shortened by ``tightening`` mm) and posterior shift
+    s = ``shift`` (mm); the same for its suture anchors."""
+    return {"d": tightening * parts.d_per_mm, "s": shift}
+
+
+def rigid_design_params(parts: SurgeryParts, design) -> tuple[dict, dict]:
+    """The params (term -> param -> scalar; numpy or JAX) the design (name -> value:
+    tightening, buckle_shift, drain_volume, band_tension, suture_tightening) sets in the
+    rigid buckle's tightening (or placing) stage - the buckle's and its anchors' motion
+    (:func:`rigid_motion`), the drained volume dv = -drain_volume, a pulled band's
+    tension f (cases with band_tension > 0) - and in its suture stage: each bar of a
+    two-bar loop shortened by suture_tightening / 2. The forward run
+    (eyefem.eye.bodies.RigidBuckle) and the design map (eyefem.eye.design) both read them
+    from here."""
+    motion = rigid_motion(parts, design["tightening"], design["buckle_shift"])
+    tighten = {"buckle": motion, "sutures": motion, "cavity": {"dv": -design["drain_volume"]}}
+    if parts.p["band_tension"] > 0:
+        tighten["band_pull"] = {"f": design["band_tension"]}
+    return tighten, {"sutures": {"tightening": design["suture_tightening"] / 2}}
+
+
+@dataclasses.dataclass(frozen=True)
+class BiteRays:
+    """The suture bites of one layout as a function of the design (suture width, meridian).
+
+    Bite i is where the ray from the globe centre through p_i = R_z(m - meridian_deg)
+    (centres_i + side_i w/2 across_i) meets its face (eyefem.eye.sutures.radial_bites):
+    w the suture width (mm), m the buckle's meridian (degrees; a segmental buckle turns
+    about the eye's axis z, an encircling one does not), across_i the across direction
+    turned by the suture angle.
+
+    Attributes: centres, across (n, 3) at the layout's meridian; side (n,) -1 (bite A) or
+    +1 (bite B); meridian_deg: the layout's; turns: whether the meridian turns the
+    bites; faces_xyz (n, 4, 3) reference positions of each bite's face, mm; xi (n, 2) the
+    layout's bites (Newton's start).
+    """
+
+    centres: np.ndarray
+    across: np.ndarray
+    side: np.ndarray
+    meridian_deg: float
+    turns: bool
+    faces_xyz: np.ndarray
+    xi: np.ndarray
+
+    def xi_of(self, width, meridian_deg):
+        """The bites' parametric coordinates (n, 2) at suture width ``width`` (mm) and
+        meridian ``meridian_deg`` (degrees); JAX, differentiable in both."""
+        p = self.centres + 0.5 * width * self.side[:, None] * self.across
+        if self.turns:
+            a = (meridian_deg - self.meridian_deg) * (np.pi / 180)
+            c, s = jnp.cos(a), jnp.sin(a)
+            p = jnp.stack([c * p[:, 0] - s * p[:, 1], s * p[:, 0] + c * p[:, 1], p[:, 2]], 1)
+        return radial_bites(p, self.faces_xyz, self.xi)
+
+
+def bite_rays(parts: SurgeryParts, width: float, meridian_deg: float) -> BiteRays:
+    """The :class:`BiteRays` of the sutures laid out at ``width`` (mm) and ``meridian_deg``
+    (the bites in the order of :func:`suture_term`: every bite A, then every bite B)."""
+    layout = suture_layout(parts, width, meridian_deg)
+    cen, acr, nrm = suture_frame(parts, meridian_deg)
+    ang = np.radians(parts.p["suture_angle_deg"])
+    a_rot = np.cos(ang) * acr + np.sin(ang) * np.cross(nrm, acr)
+    n = len(cen)
+    nodes = np.concatenate([layout.bite_a.nodes, layout.bite_b.nodes])
+    return BiteRays(np.concatenate([cen, cen]), np.concatenate([a_rot, a_rot]),
+                    np.repeat([-1.0, 1.0], n), float(meridian_deg),
+                    not parts.buckle.encircling, parts.eye.mesh.nodes[nodes],
+                    np.concatenate([layout.bite_a.xi, layout.bite_b.xi]))
 
 
 def suture_term(parts: SurgeryParts, scale: float, width: float | None = None,

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from eyefem.fem.bars import (
@@ -233,29 +235,49 @@ def suture_bars(name, layout: SutureLayout, xyz, sclera_faces, *, EA, bite_radiu
     return TiedBars(name, na, nb, xa, xb, xyz, EA=EA, patch_a=pa, patch_b=pb)
 
 
-def radial_bite_sensitivity(xyz, bites: EmbeddedPoint, points, dpoints,
-                            globe_centre=(0.0, 0.0, 0.0)):
-    """d xi / d s (n, 2) of bites that are the radial projections of points p(s) onto the
-    faces they lie in (the bites of :func:`generate_sutures`), for dp/ds = ``dpoints``.
+BITE_NEWTON = 8
+"""Newton iterations of :func:`radial_bites` from its start (quadratic: from a bite of the
+nearby design, 3-4 reach round-off)."""
 
-    The bite x(xi) = N(xi) . X_face lies on the ray from the globe centre c through p:
-    x(xi) - c - r u(p) = 0 with u = (p - c) / |p - c| and r = |x - c|. Differentiating,
-    [dx/dxi, -u] [dxi/ds; dr/ds] = r du/ds with du/ds = (I - u u^T) dp/ds / |p - c|:
-    one 3 x 3 solve per bite, exact within the bite's face (its derivative jumps where a
-    bite crosses a face boundary, as the bite itself stays continuous).
 
-    Args: xyz (n_nodes, 3); bites: (n) face nodes and parametric coordinates; points,
-    dpoints: (n, 3) the projected points and their derivatives, mm per unit of s.
-    """
-    c = np.asarray(globe_centre, float)
-    rel = np.asarray(points, float) - c
-    out = np.zeros((len(rel), 2))
-    for i, (nodes, xi) in enumerate(zip(bites.nodes, bites.xi)):
-        xf = xyz[nodes]
-        x = bilinear(xi) @ xf
-        dist = np.linalg.norm(rel[i])
-        u = rel[i] / dist
-        du = (dpoints[i] - u * (u @ dpoints[i])) / dist
-        J = np.column_stack([(dbilinear(xi).T @ xf).T, -u])
-        out[i] = np.linalg.solve(J, np.linalg.norm(x - c) * du)[:2]
-    return out
+def _ray_residual(z, p, xf):
+    """x(xi) - t u (3,): zero where the bilinear face xf (4, 3) at z = (xi (2,), t) lies on
+    the ray t u from the globe centre (the origin) through p (3,), u = p / |p|."""
+    return bilinear(z[:2]) @ xf - z[2] * p / jnp.linalg.norm(p)
+
+
+def _ray_hit(p, xf, xi0):
+    """(xi (2,), t) of the ray through p on the face xf, by Newton from xi0 (2,)."""
+    z = jnp.concatenate([xi0, jnp.linalg.norm(bilinear(xi0) @ xf)[None]])
+    for _ in range(BITE_NEWTON):
+        z = z - jnp.linalg.solve(jax.jacfwd(_ray_residual)(z, p, xf), _ray_residual(z, p, xf))
+    return z
+
+
+@jax.custom_jvp
+def radial_bites(points, faces_xyz, xi0):
+    """Parametric coordinates xi (n, 2) of the suture bites: where the rays from the globe
+    centre (the origin) through ``points`` (n, 3), mm, meet the faces ``faces_xyz``
+    (n, 4, 3) (reference node positions of the face holding each bite, mm), by Newton
+    from ``xi0`` (n, 2) (the bites of a nearby design, :func:`generate_sutures`).
+
+    Differentiable in ``points`` (the faces and xi0 are constants of the design's layout):
+    its JVP is the implicit derivative of the ray's hit within each face, d(xi, t) =
+    -[dr/d(xi, t)]^-1 dr/dp dp for the residual r of :func:`_ray_residual`, so a bite moves
+    with the design inside its face; where a design moves a bite across a face boundary
+    its layout (the face, xi0) is made anew, the bite staying continuous and its
+    derivative jumping."""
+    return jax.vmap(_ray_hit)(points, faces_xyz, xi0)[:, :2]
+
+
+@radial_bites.defjvp
+def _radial_bites_jvp(primals, tangents):
+    points, faces_xyz, xi0 = primals
+    dpoints = tangents[0]
+    z = jax.vmap(_ray_hit)(points, faces_xyz, xi0)
+
+    def dz(z, p, xf, dp):
+        _, rp = jax.jvp(lambda p: _ray_residual(z, p, xf), (p,), (dp,))
+        return -jnp.linalg.solve(jax.jacfwd(_ray_residual)(z, p, xf), rp)
+
+    return z[:, :2], jax.vmap(dz)(z, points, faces_xyz, dpoints)[:, :2]

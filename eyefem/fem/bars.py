@@ -516,9 +516,13 @@ class TiedBars(Bars):
         p = e * jnp.logaddexp(self._raw(q_loc, params, data) / e, 0.0)
         return 0.5 * params["EA"] / params["L0"] * p**2
 
-    def forces(self, q, params):
-        """Axial force per bar (n,), N (positive in tension)."""
-        s = self._raw(jnp.asarray(q)[self.dofs], params, self.data)
+    def axial_forces(self, q_loc, params, data):
+        """Axial force per bar (n,), N: dE/dl (JAX-traceable)."""
+        s = self._raw(q_loc, params, data)
         e = self.smoothing
         p = e * jnp.logaddexp(s / e, 0.0)
-        return np.asarray(params["EA"] / params["L0"] * p * jax.nn.sigmoid(s / e))
+        return params["EA"] / params["L0"] * p * jax.nn.sigmoid(s / e)
+
+    def forces(self, q, params):
+        """Axial force per bar (n,), N (positive in tension)."""
+        return np.asarray(self.axial_forces(jnp.asarray(q)[self.dofs], params, self.data))
