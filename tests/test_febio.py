@@ -180,7 +180,8 @@ def test_reads_a_hand_written_deck(tmp_path):
     ({"mtype": "Ogden"}, "type 'Ogden' is not supported"),
     ({"etype": "tet4", "conn": "1,2,3,5"}, "hexahedra are needed"),
     ({"conn": "1,4,3,2,5,8,7,6"}, "element 7: non-positive Jacobian"),
-    ({"points": "<pt>0.5,0.9</pt><pt>1,1</pt>"}, "load curve 1: not linear"),
+    ({"points": "<pt>1,1</pt></points><extend>SPIRAL</extend><points>"},
+     "load curve 1: <extend>SPIRAL</extend> is not supported"),
 ])
 def test_unsupported_decks_are_refused_clearly(tmp_path, kw, message):
     with pytest.raises(FebError, match=message) as exc:

@@ -33,6 +33,7 @@ from eyefem.fem.materials import (CoupledMooneyRivlin, MooneyRivlin, UncoupledMo
                                   febio_neo_hookean)
 from eyefem.fem.mesh import Mesh, hex_geometry
 from eyefem.fem.surface import pressure_term
+from eyefem.fem.terms import NodalForce
 from eyefem.io.casefile import material_c10_field, unit_slip
 from eyefem.io.febio import SPEC_VERSION, FebError
 from eyefem.io.runner import Setup
@@ -75,12 +76,39 @@ class FebLoads:
       bulk_moduli: material name -> the deck's <k> (MPa; 0 for neo-Hookean, which has
         none). eyefem uses it (eyefem.fem.materials), except with <laugon>1</laugon>
         (exactly incompressible).
+      steps: one :class:`FebStep` per FEBio step (prescribed, pressures and n_steps above
+        are the first one's).
+      forces: (name, dofs (n,), f at t = 0 (n,) N) per nodal force term (nodal loads, and
+        body loads as the nodal forces of the element volumes).
     """
 
     prescribed: tuple[np.ndarray, np.ndarray]
     pressures: tuple[tuple[str, str, float, float], ...]
     n_steps: int
     bulk_moduli: dict
+    steps: tuple = ()
+    forces: tuple = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class FebStep:
+    """One FEBio <step> (or the deck's single analysis) in eyefem's terms.
+
+    Attributes:
+      name: the step's name.
+      n_steps: its time_steps.
+      t_end: FEBio's time at its end (the sum of time_steps x step_size so far).
+      prescribed: (dofs, targets mm) held during the step: the model's boundary conditions
+        and the step's own, at the step's end time.
+      params: term name -> params at the step's end: {"p": MPa} per pressure, {"f": (n,) N}
+        per nodal force (zero where the load is not active in the step).
+    """
+
+    name: str
+    n_steps: int
+    t_end: float
+    prescribed: tuple[np.ndarray, np.ndarray]
+    params: dict
 
 
 def _err(path, msg):
@@ -215,27 +243,25 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
     module = root.find("Module")
     if module is not None and module.get("type", "solid") != "solid":
         raise _err(path, f"<Module type=\"{module.get('type')}\">; only 'solid' is supported")
-    sections = {t: root.find(t) for t in ("Control", "Boundary", "Loads")}
     _check_analysis(root.find("Control"), path)
-    steps = root.find("Step")
-    if steps is not None and len(steps):
-        if len(steps) > 1:
-            raise _err(path, f"<Step> has {len(steps)} steps; eyefem imports one step")
-        _check_analysis(steps[0].find("Control"), path)
-        for t, top in list(sections.items()):
-            inner = steps[0].find(t)
-            if inner is not None:
-                if top is not None and len(top) and t != "Control":
-                    raise _err(path, f"<{t}> both at the top and in the step; merge them")
-                sections[t] = inner
+    step_els = [] if root.find("Step") is None else [
+        st for st in root.find("Step") if isinstance(st.tag, str)]
+    for st in step_els:
+        if st.tag != "step":
+            raise _err(path, f"<Step><{st.tag}> is not supported; give each step as <step>")
+        for child in st:
+            if isinstance(child.tag, str) and child.tag not in ("Control", "Boundary", "Loads") \
+                    and len(child):
+                raise _err(path, f"<step name=\"{st.get('name')}\"><{child.tag}> is not "
+                           "supported (eyefem reads a step's Control, Boundary and Loads)")
+        _check_analysis(st.find("Control"), path)
 
     materials, bulk, by_id = _read_materials(root, path)
     nodes, node_index = _read_nodes(root, path)
     hexes, blocks, elem_ids = _read_elements(root, path, node_index)
     mat_of_block = _read_domains(root, path, blocks, materials, by_id)
     used = sorted({mat_of_block[b] for b, _ in blocks}, key=list(materials).index)
-    for ctrl in (root.find("Control"), steps[0].find("Control") if steps is not None and
-                 len(steps) else None):
+    for ctrl in [root.find("Control")] + [st.find("Control") for st in step_els]:
         flag = None if ctrl is None else ctrl.findtext("use_three_field_hex")
         if flag is not None and flag.strip().lower() in ("0", "false") and any(
                 isinstance(materials[m], UncoupledMooneyRivlin) for m in used):
@@ -246,17 +272,53 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
     _check_jacobians(nodes, hexes, elem_ids, path)
     face_sets, node_sets = _read_sets(root, path, node_index)
     mesh = Mesh(nodes, hexes, mids, tuple(used), node_sets, face_sets)
+    density = _densities(root, path, mesh, used, blocks, mat_of_block)
 
-    n_steps, t_end = _read_control(sections["Control"], path)
-    curves = _read_curves(root, path, t_end)
-    prescribed = _read_boundary(sections["Boundary"], path, mesh, curves)
-    pressures = _read_loads(sections["Loads"], path, mesh, curves)
-    loads = FebLoads(prescribed, tuple(pressures), n_steps,
-                     {m: bulk[m] for m in used})
-    log.info("read %s: %d nodes, %d hex8, materials %s, %d prescribed dofs, %d pressure "
-             "loads, %d steps", path, mesh.n_nodes, mesh.n_elem, list(used),
-             len(prescribed[0]), len(pressures), n_steps)
+    curves = _read_curves(root, path)
+    top = _Sources(root.find("Boundary"), root.find("Loads"))
+    if not step_els:
+        specs = [("step_1", root.find("Control"), None)]
+    else:
+        specs = [(st.get("name") or f"step_{i + 1}", st.find("Control"), st)
+                 for i, st in enumerate(step_els)]
+    terms: dict = {}  # term name -> (kind, data, value at t per step or None)
+    steps, t = [], 0.0
+    for k, (name, ctrl, st) in enumerate(specs):
+        n, dt = _read_control(ctrl, root.find("Control") if st is not None else None, path)
+        t0, t = t, t + n * dt
+        own = _Sources(None if st is None else st.find("Boundary"),
+                       None if st is None else st.find("Loads"))
+        prescribed = _read_boundary([top.boundary, own.boundary], path, mesh, curves, t,
+                                    relative_ok=(k == 0))
+        params = {}
+        for scope, src in (("", top.loads), (f"{name}:" if st is not None else "", own.loads)):
+            for tname, kind, dat, value in _read_loads(src, path, mesh, curves, scope,
+                                                        density):
+                terms.setdefault(tname, (kind, dat, value(t0)))
+                params[tname] = {"p" if kind == "pressure" else "f": value(t)}
+        steps.append((name, n, t, prescribed, params))
+    out_steps = []
+    for name, n, t_end, prescribed, params in steps:
+        full = {tn: params.get(tn, {"p" if kind == "pressure" else "f":
+                                    0.0 if kind == "pressure" else np.zeros(len(dat))})
+                for tn, (kind, dat, _) in terms.items()}
+        out_steps.append(FebStep(name, n, t_end, prescribed, full))
+    pressures = tuple((tn, dat, float(v0), float(out_steps[0].params[tn]["p"]))
+                      for tn, (kind, dat, v0) in terms.items() if kind == "pressure")
+    forces = tuple((tn, dat, np.asarray(v0, np.float64))
+                   for tn, (kind, dat, v0) in terms.items() if kind == "force")
+    loads = FebLoads(out_steps[0].prescribed, pressures, out_steps[0].n_steps,
+                     {m: bulk[m] for m in used}, tuple(out_steps), forces)
+    log.info("read %s: %d nodes, %d hex8, materials %s, %d step(s), %d pressure loads, "
+             "%d nodal force terms", path, mesh.n_nodes, mesh.n_elem, list(used),
+             len(out_steps), len(pressures), len(forces))
     return mesh, {m: materials[m] for m in used}, loads, hashlib.sha256(data).hexdigest()
+
+
+@dataclasses.dataclass(frozen=True)
+class _Sources:
+    boundary: object
+    loads: object
 
 
 def _check_analysis(ctrl, path) -> None:
@@ -531,13 +593,21 @@ def _read_sets(root, path, node_index):
     return faces, nsets
 
 
-def _read_control(ctrl, path):
-    if ctrl is None:
+def _read_control(ctrl, fallback, path):
+    """(time_steps, step_size) of a <Control> (a step's; ``fallback``: the deck's top-level
+    <Control> for the values a step does not give)."""
+    if ctrl is None and fallback is None:
         raise _err(path, "no <Control> section (time_steps, step_size)")
-    steps = _child_float(ctrl, "time_steps", path, "<Control>",
-                         hint="give the number of load steps, e.g. <time_steps>10</time_steps>")
-    dt = _child_float(ctrl, "step_size", path, "<Control>",
-                      hint="give the step's time increment, e.g. <step_size>0.1</step_size>")
+    vals = []
+    for tag, hint in (("time_steps", "give the number of load steps, e.g. "
+                       "<time_steps>10</time_steps>"),
+                      ("step_size", "give the step's time increment, e.g. "
+                       "<step_size>0.1</step_size>")):
+        src = ctrl if ctrl is not None and ctrl.find(tag) is not None else fallback
+        if src is None:
+            src = ctrl
+        vals.append(_child_float(src, tag, path, "<Control>", hint=hint))
+    steps, dt = vals
     if steps != int(steps) or steps < 1 or not dt > 0:
         raise _err(path, f"<Control>: time_steps = {steps:g}, step_size = {dt:g}; time_steps "
                    "must be a whole number >= 1 and step_size > 0")
@@ -546,87 +616,203 @@ def _read_control(ctrl, path):
         raise _err(path, f"<Control> time_steps = {steps:g}: more than {bound} load steps (each "
                    "is a Newton solve; eyefem ramps the loads linearly, so tens suffice); "
                    "lower time_steps, or raise the bound with EYEFEM_MAX_STEPS")
-    n = int(steps)
-    return n, n * dt
+    return int(steps), dt
 
 
-def _read_curves(root, path, t_end):
-    """Load controller id -> (value at t = 0, value at the end); linear curves only."""
+_INTERPOLATIONS = ("LINEAR", "STEP", "SMOOTH", "SMOOTH STEP")
+_EXTENSIONS = ("CONSTANT", "EXTRAPOLATE", "REPEAT", "REPEAT OFFSET")
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadCurve:
+    """FEBio's load curve (FECore PointCurve::value, ExtendValue): points (t, v) sorted by
+    t, ``interpolate`` LINEAR, STEP (the value of the next point), SMOOTH (Lagrange
+    quadratics through three points, blended linearly between two of them) or SMOOTH STEP
+    (f0 + (f1 - f0) w^3 (10 - 15 w + 6 w^2)); ``extend`` CONSTANT, EXTRAPOLATE, REPEAT or
+    REPEAT OFFSET outside the points. ``error``: why the curve cannot be evaluated (another
+    interpolation or controller type), raised only where a load uses it (a curve that only
+    drives the time stepper's dtmax is never a load)."""
+
+    lid: str
+    t: tuple
+    v: tuple
+    interpolate: str = "LINEAR"
+    extend: str = "CONSTANT"
+    error: str | None = None
+
+    def __call__(self, time: float) -> float:
+        if self.error:
+            raise FebError(self.error)
+        t, v = self.t, self.v
+        n = len(t)
+        if n == 1:
+            return v[0]
+        if time == t[0]:
+            return v[0]
+        if time == t[-1]:
+            return v[-1]
+        if time < t[0] or time > t[-1]:
+            return self._extend(time)
+        i = int(np.searchsorted(t, time, side="right"))  # FEBio's binarySearch: first t > time
+        mode = self.interpolate
+        if mode == "STEP":
+            return v[i]
+        if mode == "LINEAR" or (mode == "SMOOTH" and n == 2):
+            return _lerp(time, t[i - 1], v[i - 1], t[i], v[i])
+        if mode == "SMOOTH STEP":
+            w = (time - t[i - 1]) / (t[i] - t[i - 1])
+            return v[i - 1] + (v[i] - v[i - 1]) * w ** 3 * (10.0 - 15.0 * w + 6.0 * w * w)
+        # SMOOTH, three or more points
+        if n == 3 or i == 1:
+            return _qerp(time, t[:3], v[:3])
+        if i == n - 1:
+            return _qerp(time, t[n - 3:], v[n - 3:])
+        q1 = _qerp(time, t[i - 2:i + 1], v[i - 2:i + 1])
+        q2 = _qerp(time, t[i - 1:i + 2], v[i - 1:i + 2])
+        return _lerp(time, t[i - 1], q1, t[i], q2)
+
+    def _extend(self, time):
+        t, v = self.t, self.v
+        span = t[-1] - t[0]
+        if span == 0:
+            return v[0]
+        if self.extend == "CONSTANT" or (self.extend == "EXTRAPOLATE"
+                                         and self.interpolate in ("STEP", "SMOOTH STEP")):
+            return v[0] if time < t[0] else v[-1]
+        if self.extend == "EXTRAPOLATE":
+            if self.interpolate == "LINEAR":
+                return (_lerp(time, t[0], v[0], t[1], v[1]) if time < t[0] else
+                        _lerp(time, t[-2], v[-2], t[-1], v[-1]))
+            dt = 0.001 * span
+            return (_lerp(time, t[0], v[0], t[0] + dt, self(t[0] + dt)) if time < t[0] else
+                    _lerp(time, t[-1] - dt, self(t[-1] - dt), t[-1], v[-1]))
+        k = 0
+        while time < t[0]:
+            time, k = time + span, k - 1
+        while time > t[-1]:
+            time, k = time - span, k + 1
+        off = k * (v[-1] - v[0]) if self.extend == "REPEAT OFFSET" else 0.0
+        return self(time) + off
+
+
+def _lerp(time, t0, f0, t1, f1):
+    return f0 + (f1 - f0) * (time - t0) / (t1 - t0)
+
+
+def _qerp(time, t, f):
+    (t0, t1, t2), (f0, f1, f2) = t, f
+    q0 = ((t2 - time) * (t1 - time)) / ((t2 - t0) * (t1 - t0))
+    q1 = ((t2 - time) * (time - t0)) / ((t2 - t1) * (t1 - t0))
+    q2 = ((time - t1) * (time - t0)) / ((t2 - t1) * (t2 - t0))
+    return f0 * q0 + f1 * q1 + f2 * q2
+
+
+def _read_curves(root, path):
+    """Load controller id -> :class:`LoadCurve` (FEBio's interpolations)."""
     out = {}
     data = root.find("LoadData")
     for lc in ([] if data is None else data):
         if not isinstance(lc.tag, str):
             continue
         lid = lc.get("id")
+        where = f"load controller {lid}"
         if lc.tag != "load_controller" or lc.get("type") != "loadcurve":
-            raise _err(path, f"load controller {lid}: <{lc.tag} type=\"{lc.get('type')}\"> is "
-                       "not supported; use type=\"loadcurve\"")
+            out[lid] = LoadCurve(lid, (0.0,), (0.0,), error=(
+                f"{path}: {where}: <{lc.tag} type=\"{lc.get('type')}\"> is not supported; "
+                "eyefem reads type=\"loadcurve\""))
+            continue
         pts = [_floats(p.text, path, f"load curve {lid} point") for p in lc.iter("pt")]
         if len(pts) < 1 or any(len(p) != 2 for p in pts):
             raise _err(path, f"load curve {lid}: <points> needs <pt>time,value</pt> pairs")
-        t, v = np.array(pts).T
-        mode = (lc.findtext("interpolate") or "LINEAR").strip().upper()
-        ts = np.linspace(0.0, t_end, 11)
-        vs = np.interp(ts, t, v)
-        line = vs[0] + (vs[-1] - vs[0]) * ts / t_end
-        if np.max(np.abs(vs - line)) > 1e-9 * max(1.0, np.max(np.abs(vs))) or (
-                mode != "LINEAR" and len(pts) > 2):
-            raise _err(path, f"load curve {lid}: not linear over the step [0, {t_end:g}]; "
-                       "eyefem ramps loads linearly within a step")
-        out[lid] = (float(vs[0]), float(vs[-1]))
+        pts.sort(key=lambda p: p[0])
+        mode = " ".join((lc.findtext("interpolate") or "LINEAR").strip().upper().split())
+        ext = " ".join((lc.findtext("extend") or "CONSTANT").strip().upper().split())
+        error = None
+        if mode not in _INTERPOLATIONS:
+            error = (f"{path}: load curve {lid}: <interpolate>{mode}</interpolate> is not "
+                     f"supported (eyefem evaluates {', '.join(_INTERPOLATIONS)} as FEBio does)")
+        elif ext not in _EXTENSIONS:
+            error = (f"{path}: load curve {lid}: <extend>{ext}</extend> is not supported "
+                     f"({', '.join(_EXTENSIONS)})")
+        t, v = zip(*pts)
+        out[lid] = LoadCurve(lid, tuple(t), tuple(v), mode, ext, error)
     return out
 
 
-def _scale(el, path, curves, where):
-    """(start, end) of a parameter ``value lc=...`` (constant without lc)."""
-    if el.get("type") == "map" or el.get("type") == "math":
-        raise _err(path, f"{where}: value type '{el.get('type')}' is not supported; give one "
-                   "number per boundary condition")
+def _value(el, path, curves, where, size=1):
+    """t -> the parameter's value at FEBio time t: its number(s) times its curve's value
+    (``lc``; constant without one). ``size`` numbers (a vector for 3)."""
+    if el.get("type") in ("map", "math"):
+        raise _err(path, f"{where}: value type '{el.get('type')}' is not supported; give "
+                   f"{'one number' if size == 1 else f'{size} numbers'}")
     v = _floats(el.text, path, where)
-    if len(v) != 1:
-        raise _err(path, f"{where}: expected one number, got '{el.text}'")
+    if len(v) != size:
+        raise _err(path, f"{where}: expected {size} number(s), got '{el.text}'")
+    vec = np.array(v)
     lc = el.get("lc")
     if lc is None:
-        return v[0], v[0]
+        return lambda t: vec.copy() if size > 1 else float(vec[0])
     if lc not in curves:
         raise _err(path, f"{where}: load controller {lc} is not defined in <LoadData>")
-    a, b = curves[lc]
-    return v[0] * a, v[0] * b
+    curve = curves[lc]
+    return lambda t: vec * curve(t) if size > 1 else float(vec[0] * curve(t))
 
 
-def _read_boundary(sec, path, mesh, curves):
+def _nodes_of(mesh, ns, path, where):
+    """Node ids of a <bc>/<nodal_load>'s node_set: a NodeSet, or '@surface:NAME' (the
+    nodes of a Surface)."""
+    if ns is not None and ns.startswith("@surface:") and ns[9:] in mesh.face_sets:
+        return np.unique(mesh.face_sets[ns[9:]])
+    if ns not in mesh.node_sets:
+        raise _err(path, f"{where}: node set '{ns}' is not defined in <Mesh>")
+    return mesh.node_sets[ns]
+
+
+def _relative(el, path, where) -> bool:
+    raw = (el.findtext("relative") or "0").strip().lower()
+    if raw not in ("0", "1", "false", "true"):
+        raise _err(path, f"{where} <relative> = '{raw}'; give 0 or 1")
+    return raw in ("1", "true")
+
+
+def _read_boundary(secs, path, mesh, curves, t, relative_ok):
+    """(dofs, targets at FEBio time t) of the boundary conditions of ``secs`` (the model's
+    and the step's <Boundary>). A prescribed displacement is FEBio's u = value x lc(t)
+    (relative = 1 adds the displacement when the condition becomes active: the same in
+    the first step, where it starts from the undeformed state; refused in later steps)."""
     dofs, vals = [], []
-    for bc in ([] if sec is None else sec):
-        if not isinstance(bc.tag, str):
-            continue
-        ns, kind = bc.get("node_set"), bc.get("type")
-        where = f"<bc name=\"{bc.get('name')}\" type=\"{kind}\">"
-        if bc.tag != "bc" or ns not in mesh.node_sets:
-            raise _err(path, f"{where}: node set '{ns}' is not defined in <Mesh>")
-        nodes = mesh.node_sets[ns]
-        if kind == "zero displacement":
-            comps = "".join(c for c in _XYZ
-                            if _child_float(bc, f"{c}_dof", path, where, default=0.0) != 0)
-            d = node_dofs(nodes, comps)
-            dofs.append(d)
-            vals.append(np.zeros(len(d)))
-        elif kind == "prescribed displacement":
+    for sec in secs:
+        for bc in ([] if sec is None else sec):
+            if not isinstance(bc.tag, str):
+                continue
+            ns, kind = bc.get("node_set"), bc.get("type")
+            where = f"<bc name=\"{bc.get('name')}\" type=\"{kind}\">"
+            if bc.tag != "bc":
+                raise _err(path, f"<Boundary><{bc.tag}> is not supported; give <bc>")
+            if kind not in ("zero displacement", "prescribed displacement"):
+                raise _err(path, f"{where}: boundary condition type '{kind}' is not supported "
+                           "(zero displacement, prescribed displacement)")
+            nodes = _nodes_of(mesh, ns, path, where)
+            if kind == "zero displacement":
+                comps = "".join(c for c in _XYZ
+                                if _child_float(bc, f"{c}_dof", path, where, default=0.0) != 0)
+                d = node_dofs(nodes, comps)
+                dofs.append(d)
+                vals.append(np.zeros(len(d)))
+                continue
             comp = (bc.findtext("dof") or "").strip()
             if comp not in ("x", "y", "z"):
                 raise _err(path, f"{where}: <dof> '{comp}'; expected x, y or z")
+            if _relative(bc, path, where) and not relative_ok and sec is secs[-1]:
+                raise _err(path, f"{where}: relative = 1 in a later step (the displacement "
+                           "added to the one at the step's start) is not supported; give the "
+                           "absolute displacement")
             val = bc.find("value")
             if val is None:
                 raise _err(path, f"{where}: <value> is missing")
-            start, end = _scale(val, path, curves, where)
-            if start != 0.0:
-                raise _err(path, f"{where}: the displacement is {start:g} mm at t = 0; eyefem "
-                           "starts from the undeformed state (make the load curve start at 0)")
             d = node_dofs(nodes, comp)
             dofs.append(d)
-            vals.append(np.full(len(d), end))
-        else:
-            raise _err(path, f"{where}: boundary condition type '{kind}' is not supported "
-                       "(zero displacement, prescribed displacement)")
+            vals.append(np.full(len(d), _value(val, path, curves, where)(t)))
     if not dofs:
         return np.zeros(0, np.int64), np.zeros(0)
     d, v = np.concatenate(dofs), np.concatenate(vals)
@@ -641,38 +827,120 @@ def _read_boundary(sec, path, mesh, curves):
     return d, v
 
 
-def _read_loads(sec, path, mesh, curves):
+def _densities(root, path, mesh, used, blocks, mat_of_block):
+    """Density (FEBio's <density>, default 1) of each element, for body loads."""
+    rho = {}
+    for el in root.find("Material"):
+        if isinstance(el.tag, str):
+            name = el.get("name") or f"material_{el.get('id')}"
+            rho[name] = _child_float(el, "density", path, f"material '{name}'", default=1.0)
+    return np.array([rho.get(mesh.materials[m], 1.0) for m in mesh.material_ids])
+
+
+def _element_node_integrals(mesh, density):
+    """(n_nodes,) sum over the elements of density x the integral of N_a over the reference
+    volume (2 x 2 x 2 Gauss, as FEBio integrates a hex8's body force)."""
+    from eyefem.fem.mesh import hex_gauss_points, hex_shape
+    xg, _ = hex_gauss_points()
+    shape, _ = hex_shape(xg)  # (8g, 8a)
+    _, dv, _ = hex_geometry(mesh.nodes, mesh.hexes)  # (e, 8g)
+    per = np.einsum("ga,eg->ea", shape, dv) * density[:, None]
+    out = np.zeros(mesh.n_nodes)
+    np.add.at(out, mesh.hexes.ravel(), per.ravel())
+    return out
+
+
+def _read_loads(sec, path, mesh, curves, scope, density):
+    """[(term name, kind, data, value(t))]: kind "pressure" (data: the surface; value in
+    MPa) or "force" (data: dofs; value: (n,) N) per load of a <Loads>.
+
+    Surface pressure: FEBio's follower pressure. Nodal loads: ``nodal_force`` (value x, y,
+    z) and ``nodal_load`` (one dof x, y or z, scale), dead loads on the node set's nodes.
+    Body load ``const`` (x, y, z per unit mass): FEBio adds -rho b N_a over the reference
+    volume to its residual (FEElasticSolidDomain::BodyForce), i.e. the nodal forces
+    -b rho integral N_a dV (gravity along -z is given as z = +9.81)."""
     out = []
     for sl in ([] if sec is None else sec):
         if not isinstance(sl.tag, str):
             continue
-        where = f"<{sl.tag} type=\"{sl.get('type')}\">"
-        if sl.tag != "surface_load" or sl.get("type") != "pressure":
-            raise _err(path, f"{where}: only surface_load type=\"pressure\" is supported")
-        surf = sl.get("surface")
-        if surf not in mesh.face_sets:
-            raise _err(path, f"{where}: surface '{surf}' is not defined in <Mesh>")
-        p = sl.find("pressure")
-        if p is None:
-            raise _err(path, f"{where}: <pressure> is missing")
-        if (sl.findtext("linear") or "0").strip() not in ("0", "false"):
-            log.warning("%s: %s on '%s' has linear = 1 (a dead load); eyefem applies a "
-                        "follower pressure", path, where, surf)
-        p0, p1 = _scale(p, path, curves, where)
-        name = sl.get("name") or f"pressure_{len(out) + 1}"
-        out.append((name, surf, p0, p1))
+        kind = sl.get("type")
+        where = f"<{sl.tag} type=\"{kind}\">"
+        tname = scope + (sl.get("name") or f"{sl.tag}_{len(out) + 1}")
+        if sl.tag == "surface_load" and kind == "pressure":
+            surf = sl.get("surface")
+            if surf not in mesh.face_sets:
+                raise _err(path, f"{where}: surface '{surf}' is not defined in <Mesh>")
+            p = sl.find("pressure")
+            if p is None:
+                raise _err(path, f"{where}: <pressure> is missing")
+            if (sl.findtext("linear") or "0").strip() not in ("0", "false"):
+                log.warning("%s: %s on '%s' has linear = 1 (a dead load); eyefem applies a "
+                            "follower pressure", path, where, surf)
+            out.append((tname, "pressure", surf, _value(p, path, curves, where)))
+        elif sl.tag == "nodal_load" and kind in ("nodal_force", "nodal_load"):
+            nodes = _nodes_of(mesh, sl.get("node_set"), path, where)
+            if _relative(sl, path, where):
+                raise _err(path, f"{where}: relative = 1 is not supported")
+            if kind == "nodal_force":
+                el = sl.find("value")
+                if el is None:
+                    raise _err(path, f"{where}: <value> is missing")
+                vec = _value(el, path, curves, where, size=3)
+                dofs = node_dofs(nodes, "xyz")
+                out.append((tname, "force", dofs,
+                            lambda t, vec=vec, n=len(nodes): np.tile(vec(t), n)))
+            else:
+                comp = (sl.findtext("dof") or "").strip()
+                if comp not in ("x", "y", "z"):
+                    raise _err(path, f"{where}: <dof> '{comp}'; eyefem reads x, y or z")
+                el = sl.find("scale")
+                if el is None:
+                    raise _err(path, f"{where}: <scale> is missing")
+                sc = _value(el, path, curves, where)
+                out.append((tname, "force", node_dofs(nodes, comp),
+                            lambda t, sc=sc, n=len(nodes): np.full(n, sc(t))))
+        elif sl.tag == "body_load" and kind == "const":
+            if sl.get("elem_set"):
+                raise _err(path, f"{where}: elem_set is not supported (the whole mesh)")
+            comps = [_value(sl.find(c), path, curves, f"{where} <{c}>") if sl.find(c) is not None
+                     else (lambda t: 0.0) for c in _XYZ]
+            for child in sl:
+                if isinstance(child.tag, str) and child.tag not in _XYZ:
+                    raise _err(path, f"{where}: <{child.tag}> is not supported (x, y, z)")
+            mass = _element_node_integrals(mesh, density)
+            used = np.nonzero(mass)[0]
+            out.append((tname, "force", node_dofs(used, "xyz"),
+                        lambda t, comps=comps, m=mass[used]:
+                        -(m[:, None] * np.array([c(t) for c in comps])[None, :]).ravel()))
+        else:
+            raise _err(path, f"{where}: <{sl.tag} type=\"{kind}\"> is not supported (eyefem "
+                       "reads surface_load pressure, nodal_load nodal_force / nodal_load and "
+                       "body_load const)")
     return out
 
 
+def build_stages(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, list]:
+    """The eyefem model (the solid, FEBio's follower pressure per pressure load:
+    eyefem.fem.surface.pressure_term, a NodalForce per nodal or body load) and one Stage
+    per FEBio step: the step's time_steps, its boundary conditions and the loads at its
+    end time, reached linearly from the previous step's end (for the elastic solids read,
+    the state at a step's end depends on the loads there only, not on the path)."""
+    terms = [pressure_term(name, mesh, surf, p0) for name, surf, p0, _ in loads.pressures]
+    terms += [NodalForce(name, dofs, {"f": f0}) for name, dofs, f0 in loads.forces]
+    model = solid_model(mesh, materials, tuple(terms))
+    steps = loads.steps or (FebStep("load", loads.n_steps, 1.0, loads.prescribed,
+                                    {n: {"p": p1} for n, _, _, p1 in loads.pressures}),)
+    stages = [Stage(st.name, st.n_steps, st.prescribed, params=st.params) for st in steps]
+    return model, stages
+
+
 def build_model(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, Stage]:
-    """The eyefem model (Q1P0 solid + FEBio's follower pressure per pressure load:
-    eyefem.fem.surface.pressure_term, a FollowerPressure on an open surface) and its one
-    Stage."""
-    terms = tuple(pressure_term(name, mesh, surf, p0) for name, surf, p0, _ in loads.pressures)
-    model = solid_model(mesh, materials, terms)
-    stage = Stage("load", loads.n_steps, loads.prescribed,
-                  params={name: {"p": p1} for name, _, _, p1 in loads.pressures})
-    return model, stage
+    """:func:`build_stages` of a deck with one step: the model and its Stage."""
+    model, stages = build_stages(mesh, materials, loads)
+    if len(stages) != 1:
+        raise FebError(f"the deck has {len(stages)} steps; use build_stages (one Stage per "
+                       "step)")
+    return model, stages[0]
 
 
 def feb_setup(path) -> Setup:
@@ -681,7 +949,7 @@ def feb_setup(path) -> Setup:
     sha256 of the deck read (``deck_sha256``)."""
     path = Path(path)
     mesh, materials, loads, sha = read_feb_deck(path)
-    model, stage = build_model(mesh, materials, loads)
+    model, stages = build_stages(mesh, materials, loads)
     n = mesh.n_nodes
 
     def probe(model, q, theta):
@@ -692,4 +960,4 @@ def feb_setup(path) -> Setup:
         return {"deck": str(path), "deck_sha256": sha, "nodes": n, "elements": mesh.n_elem,
                 "max_displacement_mm": rows[-1]["max_displacement_mm"] if rows else 0.0}
 
-    return Setup(path.stem, model, [stage], probe, finish)
+    return Setup(path.stem, model, stages, probe, finish)
