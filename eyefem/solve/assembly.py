@@ -49,14 +49,60 @@ class LocalBlocks:
     low_rank: tuple
 
 
-def _pattern(rows, cols, n):
-    """CSR pattern of the (rows, cols) pairs and the slot of each pair."""
-    key = rows.astype(np.int64) * n + cols
-    uniq, inv = np.unique(key, return_inverse=True)
-    r, c = np.divmod(uniq, n)
-    indptr = np.zeros(n + 1, np.int64)
-    np.add.at(indptr, r + 1, 1)
-    return np.cumsum(indptr), c, inv.ravel()
+PATTERN_CHUNK = 2000
+"""Items per chunk while the CSR pattern and the slot maps are built (:class:`Assembler`):
+the keys of one chunk's local entries are alive at a time, not every term's at once."""
+
+
+def _chunk_keys(rd, lo, hi, n):
+    """Keys row * n + col (int64, (hi - lo) * k * k) of the local entries of items lo:hi
+    (rd (items, k): reduced dof indices, -1 where not free), -1 where either is not free."""
+    r = rd[lo:hi, :, None].astype(np.int64)
+    c = rd[lo:hi, None, :]
+    key = r * n + c
+    key[(r < 0) | (c < 0)] = -1
+    return key.ravel()
+
+
+def _sorted_unique(a):
+    """The sorted distinct values of a 1-D array a (sorted in place; numpy 2's np.unique
+    hashes first, about ten times slower here)."""
+    a.sort()
+    return a[np.concatenate([[True], a[1:] != a[:-1]])] if len(a) else a
+
+
+def _pattern_of(rds, n):
+    """The CSR pattern (indptr (n + 1,), indices) of the local entries of every term's
+    reduced dofs ``rds`` (items, k) and, per term, each entry's slot (its position in
+    ``indices``; len(indices) for an entry on a dof that is not free), in chunks of
+    PATTERN_CHUNK items: the sorted distinct keys and each entry's position among them,
+    as np.unique(keys, return_inverse=True) of all entries at once gave them, without
+    every key and np.unique's sort of them alive together. Case 1's tightening stage on
+    the default eye (11,862 hexahedra): Assembler() allocates 140 MB at its peak instead
+    of 616 MB, in 10.4 s against 14.3 s (shared 2-core machine), the same pattern and
+    slots (docs/performance.md, "Memory")."""
+    parts = []
+    for rd in rds:
+        for lo in range(0, len(rd), PATTERN_CHUNK):
+            key = _chunk_keys(rd, lo, lo + PATTERN_CHUNK, n)
+            parts.append(_sorted_unique(key[key >= 0]))
+    uniq = _sorted_unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+    del parts
+    itype = np.int32 if max(n, len(uniq)) < 2 ** 31 else np.int64
+    indptr = np.zeros(n + 1, itype)
+    np.cumsum(np.bincount(uniq // n, minlength=n), out=indptr[1:])
+    indices = (uniq % n).astype(itype)
+    slots = []
+    for rd in rds:
+        k = rd.shape[1]
+        out = np.empty(len(rd) * k * k, np.int64)
+        for lo in range(0, len(rd), PATTERN_CHUNK):
+            key = _chunk_keys(rd, lo, lo + PATTERN_CHUNK, n)
+            s = np.searchsorted(uniq, key)
+            s[key < 0] = len(uniq)
+            out[lo * k * k: lo * k * k + len(s)] = s
+        slots.append(out)
+    return indptr, indices, slots
 
 
 class Assembler:
@@ -85,8 +131,8 @@ class Assembler:
         self.mred = np.full(n, -1, np.int64)
         self.mred[self.mult] = np.arange(len(self.mult))
         self.n_p, self.n_m = len(self.free_primal), len(self.mult)
-        rows, cols, brow, bcol = [], [], [], []
-        pats, offs, boffs = {}, 0, 0
+        rds, brow, bcol = [], [], []
+        pats, boffs = {}, 0
         staged = []
         for t in model.terms:
             if getattr(t, "dynamic", False):
@@ -99,13 +145,8 @@ class Assembler:
             rd = self.red[t.dofs[:, prim]]  # (n, kp)
             if self.n_p < 2 ** 31:  # halves the pattern's temporaries
                 rd = rd.astype(np.int32)
-            r = np.repeat(rd, len(prim), axis=1).ravel()
-            c = np.tile(rd, (1, len(prim))).ravel()
-            valid = np.nonzero((r >= 0) & (c >= 0))[0]
-            rows.append(r[valid]); cols.append(c[valid])
-            staged.append((t.name, prim, ms[0] if ms else None, valid, offs, len(r)))
-            del r, c
-            offs += len(valid)
+            rds.append(rd)
+            staged.append((t.name, prim, ms[0] if ms else None))
             if ms:
                 bc = np.repeat(self.mred[t.dofs[:, ms[0]]], len(prim))
                 br = rd.ravel()
@@ -113,11 +154,8 @@ class Assembler:
                 brow.append(br[bvalid]); bcol.append(bc[bvalid])
                 pats[t.name] = (bvalid, boffs)
                 boffs += len(bvalid)
-        if rows:
-            self.indptr, self.indices, inv = _pattern(np.concatenate(rows), np.concatenate(cols), self.n_p)
-            del rows, cols
-        else:
-            self.indptr, self.indices, inv = np.zeros(self.n_p + 1, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        self.indptr, self.indices, slots = _pattern_of(rds, self.n_p)
+        del rds
         if brow:
             br, bc = np.concatenate(brow), np.concatenate(bcol)
             self.B_pattern = sp.csr_matrix((np.arange(len(br), dtype=np.float64) + 1, (br, bc)),
@@ -126,14 +164,12 @@ class Assembler:
             binv = np.empty_like(order)
             binv[order] = np.arange(len(order))
         self.patterns: dict[str, _TermPattern] = {}
-        for name, prim, m, valid, off, n_entries in staged:
+        for (name, prim, m), k_slots in zip(staged, slots):
             bs = bv = None
             if name in pats:
                 bv, boff = pats[name]
                 bs = binv[boff: boff + len(bv)]
-            slots = np.full(n_entries, len(self.indices), np.int64)
-            slots[valid] = inv[off: off + len(valid)]
-            self.patterns[name] = _TermPattern(prim, m, slots, bs, bv)
+            self.patterns[name] = _TermPattern(prim, m, k_slots, bs, bv)
 
     def assemble(self, q, theta, active=None, pressure_stiffness=True, gauss_newton=False,
                  beta=None, model: Model | None = None):

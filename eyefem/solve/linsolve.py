@@ -113,6 +113,25 @@ def _free_pattern(key) -> None:
     old["freed"], old["owner"] = True, None
 
 
+RELEASE_OTHER_FACTORS = True
+"""Before a pattern's instance factorises, the other patterns' shared instances free their
+numeric factors (Pardiso phase 0) and keep only their symbolic analysis: at most one set of
+factors of the shared instances is alive (kept ones, :meth:`_Pardiso.keep`, hold their
+own). An old factorisation solved again is refactorised first (its owner is gone), to the
+same digits. The stages of a surgical run factorise three or more patterns (each stage's
+prescribed dofs, a sparse look-ahead's tangent, the whole saddle point): on the default
+eye (11,862 hexahedra) each held 197 MB of factors beside its 60 MB analysis
+(benchmarks/bench_memory.py; docs/performance.md, "Memory")."""
+
+
+def _release_factors(entry) -> None:
+    """Free the numeric factors of every shared pattern's instance but ``entry``'s."""
+    for other in _PARDISO_BY_PATTERN.values():
+        if other is not entry and not other["freed"] and other["owner"] is not None:
+            other["solver"].free_memory(everything=False)
+            other["owner"] = None
+
+
 PARDISO_IPARM = {1: 1, 2: 2, 8: 0, 10: 8, 11: 0, 13: 0, 21: 1, 25: 2}
 """Pardiso settings (1-based iparm): 1 = 1 (these instead of the defaults), 2 = 2 (METIS
 ordering), 8 = 0 (no automatic iterative refinement: with the defaults every back-solve
@@ -255,6 +274,8 @@ class _Pardiso:
             raise LinearSolveError(f"Pardiso failed (phase {phase}): {exc}") from exc
 
     def _factorize(self):
+        if RELEASE_OTHER_FACTORS and not self.entry.get("kept"):
+            _release_factors(self.entry)
         if self.entry["freed"]:
             self._analyse()
         self._call(self.entry["solver"], 22)
