@@ -1,7 +1,8 @@
 """The JAX-native entry point: ``simulate(case, design) -> outcomes``, differentiable in the design.
 
-``simulate`` runs a rigid-buckle surgery case (stages: pressurise, fit and tighten the
-buckle, tie the sutures) and returns its outcomes (eyefem.eye.design.OUTCOMES)::
+``simulate`` runs a surgery case with a rigid buckle or a deformable band or tire (stages:
+pressurise, fit and tighten the buckle, tie the sutures) and returns its outcomes
+(eyefem.eye.design.OUTCOMES)::
 
     import jax, eyefem
     jax.config.update("jax_enable_x64", True)
@@ -11,8 +12,9 @@ buckle, tie the sutures) and returns its outcomes (eyefem.eye.design.OUTCOMES)::
 Under ``jax.grad`` / ``jax.vjp`` / ``jax.jacrev`` / ``jax.jit`` the forward solve is a
 ``jax.pure_callback`` (Newton on the host, scipy sparse), wrapped in a ``jax.custom_vjp``
 whose backward pass is the adjoint: a host callback takes the cotangent of the outcomes
-and returns the gradient of their weighted sum (SurgerySimulator.weighted_gradient:
-three adjoint solves on the stages' last factorisations, whatever the cotangent), so
+and returns the gradient of their weighted sum (SurgerySimulator.weighted_gradient: one
+backward sweep over the stages, eyefem.solve.staged, three adjoint solves on the stages'
+last factorisations, whatever the cotangent), so
 ``jax.grad`` of any scalar of the outcomes costs one forward solve and three adjoint
 solves; ``jax.jacrev`` one backward pass per outcome. Forward-mode (``jax.jvp``, ``jax.jacfwd``) is not
 supported (custom_vjp). A call without traced values runs the host solve directly and
@@ -38,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from eyefem.catalog import schemas
-from eyefem.eye.design import DESIGN_VARIABLES, OUTCOMES, SurgerySimulator
+from eyefem.eye.design import DESIGN_VARIABLES, OUTCOMES, RingSimulator, SurgerySimulator
 from eyefem.io import casefile
 from eyefem.io.casefile import Case
 
@@ -59,6 +61,20 @@ def load_case(path: str | Path) -> Case:
     return casefile.load_case(path, schemas())
 
 
+def with_material_preset(case: Case, preset: str) -> Case:
+    """The case with the material preset ``preset`` (eyefem.eye.presets.PRESETS): its
+    materials_preset set and its own tables of the preset's tissues dropped (a warning
+    names them)."""
+    from eyefem.eye.presets import tissues_replaced
+
+    kept, dropped = tissues_replaced(case.materials, preset)
+    if dropped:
+        log.warning("--materials %s replaces the case file's [materials] tables of %s",
+                    preset, ", ".join(dropped))
+    return dataclasses.replace(case, parameters={**case.parameters, "materials_preset": preset},
+                               materials=kept)
+
+
 def clear_cache() -> None:
     """Forget every simulator simulate() has built (and their warm-start states)."""
     with _simulators_lock:
@@ -67,11 +83,13 @@ def clear_cache() -> None:
 
 def simulate(case: str | Path | Case, design: dict | None = None, *,
              mesh: str | None = None) -> dict:
-    """Outcomes of a rigid-buckle surgery case at a design; differentiable in the design.
+    """Outcomes of a surgery case at a design; differentiable in the design.
 
     Args:
       case: a case-file path (relative to the current directory) or a parsed Case
-        (load_case); its ``[case] problem`` must be "surgery" with a rigid buckle.
+        (load_case); its ``[case] problem`` must be "surgery", with a rigid buckle
+        (SurgerySimulator) or a deformable band or tire (RingSimulator: the design
+        variables its stages take as params, RingSimulator.variables).
       design: design-variable name -> value (eyefem.eye.design.DESIGN_VARIABLES: mm,
         degrees, N, MPa, mm^3 as documented there), overriding the case; scalars, Python
         floats or JAX values (traced under jax.grad / jax.jit).
@@ -137,7 +155,8 @@ def _host(case, mesh: str | None) -> _Host:
             return _simulators[key]
     params = _surgery_parameters(parsed, mesh)
     log.info("simulate: building the simulator of %s on the %s mesh", parsed.path, params["mesh"])
-    host = _Host(SurgerySimulator(params, parsed.materials, parsed.solver))
+    simulator = SurgerySimulator if params.get("buckle_body", "rigid") == "rigid" else RingSimulator
+    host = _Host(simulator(params, parsed.materials, parsed.solver))
     with _simulators_lock:
         _simulators[key] = host
         while len(_simulators) > CACHED_SIMULATORS:
@@ -154,11 +173,11 @@ def _surgery_parameters(case: Case, mesh: str | None) -> dict:
                          f"with `eyefem run {case.path}` or build it with eyefem.solve")
     params = dict(case.parameters)
     body = params.get("buckle_body", "rigid")
-    if body != "rigid":
-        raise ValueError(f"{case.path}: [parameters] buckle_body = '{body}'; eyefem.simulate "
-                         "and its gradients support the rigid-buckle surgery cases (the design "
-                         "moves the rigid buckle's exact surface); set buckle_body = 'rigid', "
-                         f"or run the deformable buckle with `eyefem run {case.path}`")
+    if body != "rigid" and params.get("buckle") == "sponge_radial":
+        raise ValueError(f"{case.path}: [parameters] buckle_body = '{body}' with a sponge; "
+                         "eyefem.simulate and its gradients support the rigid buckles and the "
+                         "deformable band and tires; set buckle_body = 'rigid', or run the "
+                         f"deformable sponge with `eyefem run {case.path}`")
     if mesh is not None:
         field = next(f for f in schemas()["surgery"] if f.name == "mesh")
         if not field.check(mesh):

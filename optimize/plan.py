@@ -307,11 +307,10 @@ def _check_start(case, start: dict, bounds: dict):
 def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     from eyefem.catalog import schemas
-    from eyefem.cli.dialogue import write_case
-    from eyefem.cli.main import with_material_preset
+    from eyefem.api import with_material_preset
     from eyefem.eye.design import SurgerySimulator
     from eyefem.io.casefile import CaseError, load_case
-    from eyefem.io.output import write_csv, write_text
+    from eyefem.io.output import write_case, write_csv, write_text
     from eyefem.solve.heap import configure_heap
     from eyefem.solve.solver import ConvergenceError
 

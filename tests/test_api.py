@@ -109,8 +109,8 @@ def test_plain_call_matches_the_surgery_simulator(base):
     (CASE1, {"suture_widht": 9.0}, "coarse", "did you mean 'suture_width'"),
     (CASE1, {"suture_width": [9.0, 8.0]}, "coarse", "one scalar per variable"),
     (CASE1, None, "fine-ish", "mesh = 'fine-ish'"),
-    (str(ROOT / "cases" / "surgery" / "deformable_band.toml"), None, "coarse",
-     r"\[parameters\] buckle_body = 'deformable'"),
+    (str(ROOT / "cases" / "surgery" / "deformable_sponge.toml"), None, "coarse",
+     r"\[parameters\] buckle_body = 'deformable' with a sponge"),
     (str(ROOT / "cases" / "verification" / "uniaxial.toml"), None, None,
      r"\[case\] problem = 'uniaxial'"),
 ])

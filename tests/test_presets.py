@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from eyefem.catalog import schemas
-from eyefem.cli.main import with_material_preset
+from eyefem.api import with_material_preset
 from eyefem.eye.presets import PHYSIOLOGICAL_SCLERA, SEED_MATERIALS, tissues_replaced
 from eyefem.eye.surgery import _materials
 from eyefem.fem.materials import MooneyRivlin

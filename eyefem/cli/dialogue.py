@@ -14,10 +14,8 @@ import dataclasses
 from pathlib import Path
 from typing import Callable, Iterable
 
-import tomli_w
-
 from eyefem.io.casefile import REQUIRED, CaseError, Field, parse_section
-from eyefem.io.output import write_text
+from eyefem.io.output import write_case
 
 
 def _convert(field: Field, text: str):
@@ -91,22 +89,6 @@ def ask_parameters(fields: list[Field], ask: Callable[[str], str], say: Callable
     if preset:
         raise CaseError(f"unknown parameters {sorted(preset)}; valid: {[f.name for f in fields]}")
     return values
-
-
-def write_case(path: Path, problem: str, title: str, parameters: dict,
-               materials: dict | None = None, description: str = "",
-               solver: dict | None = None):
-    """Write a case file atomically (TOML); ``solver``: its ``[solver]`` section (NewtonOptions
-    fields), left out when empty."""
-    doc = {"case": {"problem": problem, "title": title or problem}}
-    if description:
-        doc["case"]["description"] = description
-    doc["parameters"] = parameters
-    if materials:
-        doc["materials"] = materials
-    if solver:
-        doc["solver"] = solver
-    write_text(Path(path), tomli_w.dumps(doc))
 
 
 def check_target(path: Path, force: bool = False) -> Path:

@@ -55,22 +55,6 @@ def _compilation_cache(jax):
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
 
 
-def with_material_preset(case, preset: str):
-    """The case with the material preset ``preset`` (``--materials``): its
-    materials_preset set and its own tables of the preset's tissues dropped (said)."""
-    import dataclasses
-
-    from eyefem.eye.presets import tissues_replaced
-
-    kept, dropped = tissues_replaced(case.materials, preset)
-    if dropped:
-        logging.getLogger("eyefem").warning(
-            "--materials %s replaces the case file's [materials] tables of %s", preset,
-            ", ".join(dropped))
-    return dataclasses.replace(case, parameters={**case.parameters, "materials_preset": preset},
-                               materials=kept)
-
-
 def _load_run_case(args, claim: bool = False):
     """(case, setup, output folder, release) of the arguments of ``eyefem run`` or ``eyefem
     stability`` (case, --out, --mesh, --materials), or an exit code after saying why.
@@ -78,6 +62,7 @@ def _load_run_case(args, claim: bool = False):
     With ``claim`` the output folder is claimed (eyefem.io.manifest.claim: new, empty or an
     eyefem run's; ``--force`` adopts another) and locked before the model is built;
     ``release`` frees the lock (a no-op without ``claim``)."""
+    from eyefem.api import with_material_preset
     from eyefem.catalog import problems, schemas
     from eyefem.io import manifest
     from eyefem.io.casefile import CaseError, check_material_names, load_case

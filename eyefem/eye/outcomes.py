@@ -159,11 +159,17 @@ def cavity_iop_mmhg(q, params, data, dofs):
     return cavity_pressures(q, params, data, dofs)[0][0] / MMHG
 
 
+def most_loaded_bar(sutures, q, params) -> int:
+    """The suture bar with the largest axial force at state q (n_dof,) (numpy): the bar
+    whose force :func:`suture_force` reports."""
+    return int(np.argmax(sutures.forces(q, params)))
+
+
 def suture_force(sutures, q, params, data, dofs, largest):
     """The axial force (N) of suture bar ``largest`` (JAX): the most loaded bar's, with
     ``largest`` = argmax of ``sutures.forces`` at the state (the bar is chosen at the
-    state, its force differentiated); ``sutures``: the term (its methods only), params,
-    data and dofs its own."""
+    state by :func:`most_loaded_bar`, its force differentiated); ``sutures``: the term
+    (its methods only), params, data and dofs its own."""
     return sutures.axial_forces(q[dofs], params, data)[largest]
 
 
@@ -279,7 +285,7 @@ def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
            else float(theta["iop"]["p"]) / MMHG)
     sut = model.term("sutures")
     force = (float(suture_force(sut, jnp.asarray(q), theta["sutures"], sut.data, sut.dofs,
-                                int(np.argmax(sut.forces(q, theta["sutures"])))))
+                                most_loaded_bar(sut, q, theta["sutures"])))
              if np.any(theta["sutures"]["tightening"]) else 0.0)
     now = {k: float(v) for k, v in eye_optics(X, q, nodes).items()}
     unloaded = eye_optics(X, np.zeros_like(q), nodes)["axial_length_mm"]
@@ -347,9 +353,8 @@ def outcome_data(model, q, theta, weights=None) -> dict:
     ``model``: its cavity's and sutures' data and dofs, the most loaded suture bar, and
     ``weights`` (k,) or None."""
     cav, sut = model.term("cavity"), model.term("sutures")
-    force = np.asarray(sut.forces(q, theta["sutures"]))
     return {"cavity": (cav.data, cav.dofs), "sutures": (sut.data, sut.dofs),
-            "largest": jnp.asarray(int(np.argmax(force))),
+            "largest": jnp.asarray(most_loaded_bar(sut, q, theta["sutures"])),
             "weights": None if weights is None else jnp.asarray(weights, jnp.float64)}
 
 

@@ -361,3 +361,21 @@ def plot_curves(path: Path, x, curves: Mapping[str, tuple], *, xlabel: str, ylab
     with atomic_path(Path(path)) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
+
+
+def write_case(path: Path, problem: str, title: str, parameters: dict,
+               materials: dict | None = None, description: str = "",
+               solver: dict | None = None):
+    """Write a case file atomically (TOML); ``solver``: its ``[solver]`` section (NewtonOptions
+    fields), left out when empty."""
+    import tomli_w
+
+    doc = {"case": {"problem": problem, "title": title or problem}}
+    if description:
+        doc["case"]["description"] = description
+    doc["parameters"] = parameters
+    if materials:
+        doc["materials"] = materials
+    if solver:
+        doc["solver"] = solver
+    write_text(Path(path), tomli_w.dumps(doc))
