@@ -368,3 +368,12 @@ def test_febio_regression_decks(name):
     model, stage = build_model(mesh, mats, loads)
     q = solve(model, [stage]).q
     assert solution_norm(mesh, stage, q) == pytest.approx(FEBIO_SOLUTION_NORMS[name], rel=1e-4)
+
+
+def test_the_problems_that_take_a_bulk_modulus_are_the_verification_ones_and_user_mesh():
+    """eyefem.io.casefile names them (io does not import the problems above it)."""
+    from eyefem.io.casefile import BULK_MODULUS_PROBLEMS
+    from eyefem.problems.user_mesh import PROBLEMS as user_mesh
+    from eyefem.problems.verification import PROBLEMS as verification
+
+    assert BULK_MODULUS_PROBLEMS == set(verification) | set(user_mesh)

@@ -254,7 +254,7 @@ def load_case(path: str | Path, schemas: dict[str, list[Field]]) -> Case:
                             f"{mu:.3g} MPa is below {MIN_SHEAR_MODULUS:g} MPa (1 Pa: no tissue "
                             "eyefem models is that soft); give the coefficients in MPa")
     bulk = [n for n, m in mats.items() if getattr(m, "k", 0.0)]
-    if bulk and problem not in bulk_modulus_problems():
+    if bulk and problem not in BULK_MODULUS_PROBLEMS:
         raise CaseError(f"{path} [materials.{bulk[0]}]: k = {mats[bulk[0]].k:g} MPa; problem "
                         f"'{problem}' keeps its materials exactly incompressible (the bulk "
                         "modulus k is read for the verification problems and user_mesh); "
@@ -285,16 +285,14 @@ MIN_SHEAR_MODULUS = 1e-6
 """MPa (1 Pa): a material whose initial shear modulus is below it is refused."""
 
 
-def bulk_modulus_problems() -> set:
-    """The problems whose case files may give a material a bulk modulus ``k`` > 0 (MPa:
-    FEBio's nearly incompressible uncoupled form, eyefem.fem.materials.
-    UncoupledMooneyRivlin): the verification problems and user_mesh, whose models are
-    eyefem.solve.model.solid_model of one solid. The eye's and the examples' keep exact
-    incompressibility (their outcomes read the Q1P0 solid)."""
-    from eyefem.problems.user_mesh import PROBLEMS as user_mesh
-    from eyefem.problems.verification import PROBLEMS as verification
-
-    return set(verification) | set(user_mesh)
+BULK_MODULUS_PROBLEMS = frozenset({"equibiaxial_sheet", "inflated_disk", "inflated_shell",
+                                   "patch_test", "uniaxial", "user_mesh"})
+"""The problems whose case files may give a material a bulk modulus ``k`` > 0 (MPa:
+FEBio's nearly incompressible uncoupled form, eyefem.fem.materials.UncoupledMooneyRivlin):
+the verification problems and user_mesh, whose models are eyefem.solve.model.solid_model
+of one solid (tests/test_febio_materials.py checks the list against their catalogues).
+The eye's and the examples' keep exact incompressibility (their outcomes read the Q1P0
+solid)."""
 
 
 def material_c10_field(name: str) -> Field:
