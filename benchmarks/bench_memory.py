@@ -125,6 +125,7 @@ class PardisoWatch:
         self.factorisations = 0
         self.analyses = 0
         self.instances = 0  # _Pardiso objects made (one per factorised tangent)
+        self.reports = {}  # id(pypardiso solver) -> (permanent KB, factors KB)
         self.last = {}
         self.max_alive = (0, 0.0)  # (instances holding factors, their KB)
         self.max_report = {}
@@ -156,6 +157,7 @@ class PardisoWatch:
                    "peak_symbolic_KB": int(ip[14]), "permanent_KB": int(ip[15]),
                    "factors_KB": int(ip[16]), "nnz_L": int(ip[17])}
             watch.last = rep
+            watch.reports[id(obj.entry["solver"])] = (rep["permanent_KB"], rep["factors_KB"])
             if rep["permanent_KB"] + rep["factors_KB"] > (watch.max_report.get("permanent_KB", 0)
                                                           + watch.max_report.get("factors_KB", 0)):
                 watch.max_report = rep
@@ -167,15 +169,20 @@ class PardisoWatch:
         cls.__init__, cls._factorize, cls._analyse = _init, _factorize, _analyse
 
     def alive(self):
-        """(instances holding a symbolic analysis or factors, their KB) now."""
+        """(instances holding a symbolic analysis or factors, their KB) now: Pardiso's
+        permanent memory, plus its factors where they are held (an owner)."""
         held = {}
+
+        def add(e):
+            perm, fact = self.reports.get(id(e["solver"]), (e.get("kb", 0.0), 0.0))
+            held[id(e["solver"])] = perm + (fact if e.get("owner") is not None else 0.0)
         for e in list(self.ls._PARDISO_BY_PATTERN.values()):
             if not e.get("freed"):
-                held[id(e["solver"])] = e.get("kb", 0.0)
+                add(e)
         for obj in list(self.objects):
             e = obj.entry
             if not e.get("freed") and e.get("owner") is not None:
-                held[id(e["solver"])] = e.get("kb", 0.0)
+                add(e)
         return len(held), sum(held.values())
 
 

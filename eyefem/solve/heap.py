@@ -7,7 +7,7 @@ blocks of that size come from the heap, whose freed middle is never returned: th
 resident memory creeps up by 10-20 MB per iteration. Fixed thresholds (blocks of 4 MB and
 more mapped on their own and unmapped when freed; the heap's top trimmed above 32 MB free)
 stop the creep, at the price of the page faults of blocks mapped afresh. Measured
-(docs/performance.md, "Where the memory goes"): FEBio's mesh of ``benchmarks/bench_core.py
+(docs/performance.md, "Memory"): FEBio's mesh of ``benchmarks/bench_core.py
 --sizes 20:5`` peaks at 0.98 GB instead of 1.15 GB (+5 % time); the eye saves a fixed
 0.2-0.25 GB (default case 1 2.62 against 2.86 GB, the fine level 3.76 against 3.95 GB) for
 about 6 % of the run time. So glibc's own thresholds stay the default, and
