@@ -92,14 +92,14 @@ def test_outcomes_at_named_times():
 
 @pytest.mark.slow
 def test_coarse_case1_on_the_timeline(tmp_path, capsys):
-    """cases/surgery/case1_timeline.toml on the coarse eye: the on-table peak, the minutes
+    """cases/surgery/timeline_case1.toml on the coarse eye: the on-table peak, the minutes
     above the central retinal artery's closing pressure, the IOP back at Goldmann's steady
     state by two days, the volume balance closed at every step, every step in equilibrium.
     Recorded outcomes pinned at 1e-6 (the tolerance of the surgical cases' records)."""
     from eyefem.cli.main import main
 
     out = tmp_path / "out"
-    assert main(["-q", "run", "cases/surgery/case1_timeline.toml", "--mesh", "coarse",
+    assert main(["-q", "run", "cases/surgery/timeline_case1.toml", "--mesh", "coarse",
                  "--no-vtu", "--out", str(out)]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["unbalanced_steps"]["count"] == 0
