@@ -147,8 +147,8 @@ class SurgerySimulator:
         if self.params.get("buckle_body", "rigid") != "rigid":
             raise ValueError(f"buckle_body = '{self.params['buckle_body']}': the design gradients "
                              "and the planner move the rigid buckle's exact surface by its "
-                             "parameters; set buckle_body = 'rigid' (a deformable band is "
-                             "simulated by `eyefem run` only)")
+                             "parameters; set buckle_body = 'rigid' (a deformable band or "
+                             "tire: RingSimulator)")
         setup = surgery(self.params, materials)
         self.setup, self.parts = setup, setup.parts
         self.stage1, self.stage2, self.stage3 = setup.stages
