@@ -118,3 +118,17 @@ def test_coarse_case1_on_the_timeline(tmp_path, capsys):
     assert flows and max(flows) < 1e-9 * 200.0  # of the largest flow, ~ the 175 uL lost
     assert (out / "iop_timeline.png").stat().st_size > 10_000
     assert not math.isnan(s["refraction_change_1w_D"])
+
+
+def test_the_planner_refuses_a_case_on_the_timeline(tmp_path, capsys):
+    """The design gradients solve the closed cavity's three stages: a timeline case is
+    refused by name (exit 2), not planned on another model."""
+    from optimize.plan import main as plan_main
+
+    case = tmp_path / "t.toml"
+    case.write_text('[case]\nproblem = "surgery"\n[parameters]\nmesh = "coarse"\n'
+                    "volume_regulation = true\n")
+    rc = plan_main([str(case), "--target-indentation", "1.0", "--vars", "tightening",
+                    "--out", str(tmp_path / "p")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "do not follow the surgery's timeline yet" in err

@@ -144,6 +144,7 @@ class SurgerySimulator:
     def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
         self.params = dict(params)
         self.options = options
+        _refuse_timeline(self.params)
         if self.params.get("buckle_body", "rigid") != "rigid":
             raise ValueError(f"buckle_body = '{self.params['buckle_body']}': the design gradients "
                              "and the planner move the rigid buckle's exact surface by its "
@@ -492,6 +493,7 @@ class RingSimulator:
 
         self.params = dict(params)
         self.options = options
+        _refuse_timeline(self.params)
         setup = surgery(self.params, materials)
         self.parts = setup.parts
         if self.params.get("buckle_body") != "deformable" or not self.parts.buckle.encircling:
@@ -609,3 +611,13 @@ class RingSimulator:
         names, w = [k for k, _ in items], np.array([w for _, w in items])
         return staged_gradients(res.stages, res.design,
                                 *self.outcome_vector(res, names, w))[1][0]
+
+
+def _refuse_timeline(params: dict):
+    """ValueError for a case on the surgery's timeline: the simulators solve the closed
+    cavity's three stages (eyefem.eye.timeline is not differentiated by them yet)."""
+    if params.get("volume_regulation", False):
+        raise ValueError("volume_regulation = true: the design gradients and the planner do "
+                         "not follow the surgery's timeline yet (they solve the closed "
+                         "cavity's three stages); plan the case without it, or run the "
+                         "timeline with eyefem run")
