@@ -87,16 +87,6 @@ def load_gold(path) -> dict:
     raise ValueError(f"{path}: no stdResults table")
 
 
-def solution_norm(mesh, stage, q) -> float:
-    """FEBio's solution_norm at the end of ``stage`` (the last step): |u| over the dofs of
-    nodes in elements that the stage neither fixes nor prescribes."""
-    free = np.ones(3 * mesh.n_nodes, bool)
-    free[stage.prescribed[0]] = False
-    used = np.zeros(mesh.n_nodes, bool)
-    used[np.unique(mesh.hexes)] = True
-    free &= np.repeat(used, 3)
-    return float(np.linalg.norm(np.asarray(q)[: 3 * mesh.n_nodes][free]))
-
 
 def own_log_records(path) -> str | None:
     """The first data record a deck's <Output><logfile> defines (its gold value is then
@@ -130,7 +120,7 @@ def run_deck(path, gold: float | None, *, time_cap: float = 120.0,
              max_nodes: int = 3000) -> Row:
     """Read (and, in scope, solve) one deck; a Row whatever happens."""
     from eyefem.io.febio import FebError
-    from eyefem.io.febio_read import build_stages, read_feb
+    from eyefem.io.febio_read import build_stages, read_feb, solution_norm
     from eyefem.solve.solver import ConvergenceError, solve
 
     path = Path(path)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eyefem.io.febio_read import LoadCurve, build_stages, read_feb
+from eyefem.io.febio_read import LoadCurve, build_stages, read_feb, solution_norm
 from eyefem.solve.solver import solve
 from test_febio import _DECK
 
@@ -59,7 +59,7 @@ def _two_steps():
 def _norm(path):
     mesh, mats, loads = read_feb(path)
     model, stages = build_stages(mesh, mats, loads)
-    return conf.solution_norm(mesh, stages[-1], solve(model, stages).q)
+    return solution_norm(mesh, stages[-1], solve(model, stages).q)
 
 
 def test_load_curves_as_febio_evaluates_them():

@@ -22,7 +22,7 @@ from eyefem.fem.mesh import Mesh
 from eyefem.fem.solid import SolidQ1P0
 from eyefem.fem.solid_compressible import SolidCompressible
 from eyefem.io.febio import FebError, write_feb
-from eyefem.io.febio_read import build_model, read_feb
+from eyefem.io.febio_read import build_model, read_feb, solution_norm
 from eyefem.io.runner import Setup
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage, solve
@@ -348,15 +348,6 @@ FEBIO_SOLUTION_NORMS = {"mi03": 1.1783901556, "tu01": 14.9958440769, "mi26": 2.0
                         "mi27": 4.17586115304, "mi30": 1881.63452986}
 
 
-def solution_norm(mesh, stage, q) -> float:
-    """FEBio's solution norm: |u| over the dofs of nodes in elements that are neither fixed
-    nor prescribed."""
-    free = np.ones(3 * mesh.n_nodes, bool)
-    free[stage.prescribed[0]] = False
-    used = np.zeros(mesh.n_nodes, bool)
-    used[np.unique(mesh.hexes)] = True
-    free &= np.repeat(used, 3)
-    return float(np.linalg.norm(np.asarray(q)[: 3 * mesh.n_nodes][free]))
 
 
 @pytest.mark.skipif(not os.environ.get("EYEFEM_FEBIO_VERIFY"),

@@ -961,3 +961,15 @@ def feb_setup(path) -> Setup:
                 "max_displacement_mm": rows[-1]["max_displacement_mm"] if rows else 0.0}
 
     return Setup(path.stem, model, stages, probe, finish)
+
+
+def solution_norm(mesh, stage, q) -> float:
+    """FEBio's ``solution_norm`` at the end of ``stage`` (its TestSuite's gold standard):
+    |u| (mm) over the dofs of nodes in elements that the stage neither fixes nor
+    prescribes. Args: mesh; stage (its ``prescribed``); q (n_dof,) the state."""
+    free = np.ones(3 * mesh.n_nodes, bool)
+    free[stage.prescribed[0]] = False
+    used = np.zeros(mesh.n_nodes, bool)
+    used[np.unique(mesh.hexes)] = True
+    free &= np.repeat(used, 3)
+    return float(np.linalg.norm(np.asarray(q)[: 3 * mesh.n_nodes][free]))
