@@ -102,11 +102,14 @@ def test_objectives_of_data_are_compiled_once_and_released_with_the_function(loa
     class Held:  # something an objective closes over (a simulator's mesh, say)
         pass
 
+    traces = []  # f runs in Python only while it is traced (compiled)
+
     def make():
         held = Held()
 
         def f(q, theta, data):
             held.touched = True
+            traces.append(1)
             return data["w"] * jnp.stack([jnp.mean(q[x1]), jnp.sum(q[x1] ** 2)])
 
         return f, weakref.ref(held)
@@ -120,7 +123,8 @@ def test_objectives_of_data_are_compiled_once_and_released_with_the_function(loa
         for g, r in zip(grads, ref_grads):
             np.testing.assert_allclose(g["solid"]["coeffs"], r["solid"]["coeffs"],
                                        rtol=1e-9, atol=1e-12 * np.abs(r["solid"]["coeffs"]).max())
-    assert jacobians_of(f)._cache_size() == 1  # the second weight reused the first compile
+    assert len(traces) == 1  # the second weight reused the first compile (f not traced again)
+    assert jacobians_of(f)._cache_size() <= 1
     assert abs(vals[0]) > 0 and not np.allclose(grads[0]["solid"]["coeffs"], 0)
     del f
     gc.collect()
