@@ -97,12 +97,12 @@ CASE_FILE_ERRORS = [  # (id, case text, words of the message); exit code 2, noth
     ("bite length out of range", SURGERY + "bite_length = 0.2\n", "0 (a disc) or 0.4 to 12 mm"),
     ("contact quadrature out of range", SURGERY + "contact_quadrature = 5\n",
      "'contact_quadrature' = 5 is out of range: 0 (nodes) or 1 to 4"),
-    ("sponge end on a ring", SURGERY + "sponge_end = 1.0\n",
-     "sponge_end = 1.0 mm rounds a sponge's ends; the tire_flat is a ring"),
+    ("sponge end on a ring", SURGERY + "sponge_end = 0.5\n",
+     "sponge_end = 0.5 mm rounds a sponge's ends; the tire_flat is a ring"),
     ("sponge end out of range", SURGERY + "sponge_end = 0.1\n", "0 or 0.2 to 2 mm"),
     ("sponge end on a deformable sponge",
      SURGERY + 'buckle = "sponge_radial"\nbuckle_body = "deformable"\ntightening = 0.0\n'
-     "sponge_end = 1.0\n", "a deformable sponge has its own mesh"),
+     "sponge_end = 0.5\n", "a deformable sponge has its own mesh"),
 ]
 
 
@@ -351,7 +351,7 @@ def test_materials_many_orders_apart_are_named():
 def test_disk_full_while_writing_is_a_message(tmp_path, capsys, monkeypatch):
     import errno
 
-    from eyefem.io import runner
+    from eyefem.run import runner
 
     real = runner.write_csv
     calls = []
@@ -371,7 +371,7 @@ def test_disk_full_while_writing_is_a_message(tmp_path, capsys, monkeypatch):
 
 
 def test_ctrl_c_in_run_is_a_message_and_marks_the_folder(tmp_path, capsys, monkeypatch):
-    from eyefem.io import runner
+    from eyefem.run import runner
 
     def interrupt(path, rows):
         raise KeyboardInterrupt

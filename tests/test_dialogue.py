@@ -102,18 +102,18 @@ def test_a_new_case_gets_the_case_files_converging_model(tmp_path):
     # docs/convergence.md: the case files' model (1 mm tire edges, the ridge's 1.5 mm
     # flanks, 0.343 N/mm of lens springs in all, a rigid sponge's ends rounded over 1 mm)
     # converges with the mesh; the fields' own
-    # defaults are the earlier model, which a new case must not fall into
+    # defaults are that model too, and a new case states it
     fields = {f.name: f.default for f in PROBLEMS["surgery"][0]}
     out = {"iop_mmhg": 40.0, "indentation_mm": 1.0}
     # and, like the case files 2-6, a rigid buckle whose surface curves sharply under the
     # nodes it presses (ridge shoulders, rounded sponge ends) gets contact_curvature = 1e-3
     for answers, edge, flank, end, curv in (
-            (["coarse", "tire_ridged"], 1.0, 1.5, 0.0, 1e-3),
-            (["coarse", "tire_flat"], 1.0, 1.0, 0.0, 0.0),
-            (["coarse", "band"], 1.0, 1.0, 0.0, 0.0),
-            (["coarse", "sponge_radial"], 0.5, 1.0, 1.0, 1e-3),
-            (["coarse", "sponge_radial", "deformable"], 0.5, 1.0, 0.0, 0.0),
-            (["coarse", "tire_flat", "deformable"], 0.5, 1.0, 0.0, 0.0)):
+            (["coarse", "tire_ridged"], 1.0, 1.5, 1.0, 1e-3),
+            (["coarse", "tire_flat"], 1.0, 1.5, 1.0, 0.0),
+            (["coarse", "band"], 1.0, 1.5, 1.0, 0.0),
+            (["coarse", "sponge_radial"], 1.0, 1.5, 1.0, 1e-3),
+            (["coarse", "sponge_radial", "deformable"], 1.0, 1.5, 1.0, 0.0),
+            (["coarse", "tire_flat", "deformable"], 1.0, 1.5, 1.0, 0.0)):
         folder = tmp_path / "_".join(answers)
         folder.mkdir()
         _, case = _surgery_prompts(folder, answers)
@@ -127,7 +127,7 @@ def test_a_new_case_gets_the_case_files_converging_model(tmp_path):
                              not answers[1].startswith("sponge"), out)
         assert "another model" not in err["note"], (answers, err["note"])
     assert (fields["buckle_edge"], fields["ridge_flank"], fields["lens_support"],
-            fields["sponge_end"]) == (0.5, 1.0, 0.0, 0.0)
+            fields["sponge_end"]) == (1.0, 1.5, 0.343, 1.0)
 
 
 def test_new_case_all_asks_every_field(tmp_path):

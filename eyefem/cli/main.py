@@ -145,7 +145,7 @@ def _failed_record(out: Path) -> str:
 def cmd_run(args) -> int:
     from eyefem.io import manifest
     from eyefem.io.checkpoint import CheckpointError
-    from eyefem.io.runner import run_setup, write_summary
+    from eyefem.run.runner import run_setup, write_summary
     from eyefem.solve.solver import ConvergenceError
 
     loaded = _load_run_case(args, claim=True)
@@ -205,7 +205,7 @@ def cmd_stability(args) -> int:
     from eyefem.io import manifest
     from eyefem.io.checkpoint import CheckpointError
     from eyefem.io.output import write_text, write_vtu
-    from eyefem.io.runner import completed_state
+    from eyefem.run.runner import completed_state
     from eyefem.solve.errors import LinearSolveError
     from eyefem.solve.stability import (
         StabilityError,
@@ -355,7 +355,8 @@ def cmd_describe(args) -> int:
         return 2
     fields, builder = found
     print(f"{args.problem}: {(builder.__doc__ or '').strip().splitlines()[0]}\n[parameters]")
-    print(describe(fields))
+    print(describe(fields, first=getattr(builder, "first", ()),
+                   advanced=getattr(builder, "advanced", ())))
     return 0
 
 
@@ -427,7 +428,7 @@ def cmd_export_feb(args) -> int:
 def cmd_import_feb(args) -> int:
     from eyefem.io import manifest
     from eyefem.io.febio_read import feb_setup
-    from eyefem.io.runner import run_setup, write_summary
+    from eyefem.run.runner import run_setup, write_summary
     from eyefem.solve.solver import ConvergenceError
 
     try:

@@ -52,8 +52,9 @@ from eyefem.solve.model import node_dofs, solid_model
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SEED_MATERIALS", "SURGERY_FIELDS", "surgery", "check_parameters", "orbit_spring",
-           "pictures", "PROBLEMS", "BASE_TERMS"]
+__all__ = ["SEED_MATERIALS", "SURGERY_FIELDS", "CONVERGING_MODEL", "EARLIER_MODEL", "surgery",
+           "check_parameters", "resolve_model", "orbit_spring", "pictures", "PROBLEMS",
+           "BASE_TERMS"]
 
 BODIES = ("rigid", "deformable")
 """Buckle bodies: the rigid analytic surface, or a deformable hexahedral band, tire (with
@@ -61,6 +62,72 @@ its band) or radial sponge."""
 
 TIGHTENINGS = ("pulled_ends", "shortened_loop")
 """How a deformable band or tire is tightened (eyefem.eye.band)."""
+
+CONVERGING_MODEL = {"lens_support": 0.343, "buckle_edge": 1.0, "ridge_flank": 1.5,
+                    "sponge_end": 1.0}
+"""The model fields' defaults: the model whose outcomes converge with the mesh
+(docs/convergence.md, "Results: the case files' model"), which the surgical case files
+carry and ``new-case`` writes into a new case: the lens's springs, 0.343 N/mm in all (the
+sum the default level's 1e-3 N/mm per node gave), shared by its nodes, so the lens is held
+alike on every level; a rigid band's or tire's edges lifting over 1 mm; the ridged tire's
+ridge with 1.5 mm flanks; a rigid sponge's ends rounding off over 1 mm (then the case's
+``[solver]`` wants CURVED_CONTACT_SOLVER)."""
+
+EARLIER_MODEL = {"lens_support": 0.0, "buckle_edge": EDGE_WIDTH, "ridge_flank": RIDGE_FLANK,
+                 "sponge_end": 0.0}
+"""What ``model = "earlier"`` sets (the results recorded before the mesh study, whose
+outcomes move with the mesh): lens_support 0, i.e. LENS_SPRING_PER_NODE = 1e-3 N/mm on
+every lens node (a sum that follows the lens mesh: 0.125 N/mm on coarse, 0.729 on fine);
+0.5 mm ring edges (curvature up to 7.2 per mm); 1 mm ridge flanks; a sponge's contact
+fading out over about 0.1 mm beyond each end."""
+
+MODELS = ("converged", "earlier")
+"""The values of the ``model`` switch. One switch, not four defaults to remember: the
+earlier model is kept only so that its records (tests, docs/convergence.md's earlier
+tables) reproduce bit for bit; a case that wants one of its pieces (say 0.5 mm edges)
+with the rest converged gives that field with ``model = "converged"``. Its per-node lens
+springs exist only behind the switch, so that ``lens_support`` means one thing: N/mm in
+all."""
+
+LENS_SUPPORT_FIELD = Field(
+    "lens_support", float, CONVERGING_MODEL["lens_support"],
+    "the springs that hold the floating lens in place, N/mm in all, shared by its nodes, "
+    "so the lens is held alike on every mesh level (the springs set the anterior chamber "
+    "depth change; docs/convergence.md, 'The lens's support'); model = 'earlier' puts "
+    "1e-3 N/mm on every lens node instead", lambda v: 1e-4 <= v <= 100, "1e-4 to 100 N/mm")
+"""The surgery's ``lens_support`` (replacing BIOMETRY_FIELDS' own, whose 0 means 1e-3 N/mm
+per node: here that is ``model = "earlier"``)."""
+
+
+def resolve_model(p: dict) -> dict:
+    """The parameters ``p`` (every field filled in) with the ``model`` switch applied: a
+    new dict, with EARLIER_MODEL's values for ``model = "earlier"`` (``p`` unchanged for
+    "converged" or without the field). ValueError, naming the field and the fix, when an
+    earlier-model case gives one of the four fields another value than its default (the
+    switch sets them; a value equal to the default cannot be told from a field left out
+    and is replaced too)."""
+    if p.get("model", "converged") != "earlier":
+        return dict(p)
+    for k, v in CONVERGING_MODEL.items():
+        if k in p and p[k] != v:
+            raise ValueError(f"{k} = {p[k]} with model = 'earlier': the earlier model sets "
+                             f"{k} = {EARLIER_MODEL[k]}; remove {k} or set model = "
+                             "'converged'")
+    return {**p, **EARLIER_MODEL}
+
+
+def model_fields(values: dict) -> dict:
+    """The model fields (CONVERGING_MODEL's names) that apply to the buckle of
+    ``values`` (every field filled in), name -> value in ``values``: lens_support always;
+    buckle_edge for a rigid ring; ridge_flank for a rigid ridged tire; sponge_end for a
+    rigid sponge."""
+    rigid = values.get("buckle_body", "rigid") == "rigid"
+    sponge = values["buckle"].startswith("sponge")
+    applies = {"lens_support": True, "buckle_edge": rigid and values["buckle"] in RING_KINDS,
+               "ridge_flank": rigid and values["buckle"] == "tire_ridged",
+               "sponge_end": rigid and sponge}
+    return {k: values[k] for k in CONVERGING_MODEL if applies[k] and k in values}
+
 
 SURGERY_FIELDS = [
     Field("mesh", str, SURGICAL_LEVEL, LEVEL_HELP, is_level, LEVEL_EXPECTED),
@@ -148,24 +215,33 @@ SURGERY_FIELDS = [
           "sclera: 'facet' (its flat faces) or 'nodal' (the quadratic Nagata patches through "
           "them with the nodes' normals: no jump of the contact normal at facet edges)",
           lambda v: v in ("facet", "nodal"), "'facet' or 'nodal'"),
-    Field("ridge_flank", float, RIDGE_FLANK, "width of each flank of a rigid ridged tire's ridge "
-          "(a quintic shoulder inside the ridge's 3 mm base), mm: narrower flanks have "
-          "shoulders sharper than the scleral elements can follow (docs/surgery.md)",
-          lambda v: 0.05 <= v <= 1.5, "0.05 to 1.5 mm"),
-    Field("buckle_edge", float, EDGE_WIDTH, "width over which each edge of a rigid band or "
-          "tire lifts 0.3 mm off the sclera (a cubic rise whose curvature reaches 1.8 / "
-          "width^2 per mm), mm: narrower edges are sharper than the scleral elements can "
-          "follow, and the outcomes then grow with the mesh (docs/convergence.md, 'The flat "
-          "tire's edges')", lambda v: 0.2 <= v <= 2.0, "0.2 to 2 mm"),
-    Field("sponge_end", float, 0.0, "length over which each end of a rigid sponge rounds "
-          "off, lifting 0.3 mm off the sclera (a cubic rise, twice differentiable), mm; 0: the "
-          "earlier model, a fade-out about 0.1 mm long beyond each end, once differentiable, "
-          "whose outcomes depend on where the ends sit among the nodes (docs/convergence.md, "
-          "'The sponge's ends')", lambda v: v == 0 or 0.2 <= v <= 2.0, "0 or 0.2 to 2 mm"),
+    Field("ridge_flank", float, CONVERGING_MODEL["ridge_flank"], "width of each flank of a "
+          "rigid ridged tire's ridge (a quintic shoulder inside the ridge's 3 mm base), mm: "
+          "narrower flanks have shoulders sharper than the scleral elements can follow "
+          "(docs/surgery.md)", lambda v: 0.05 <= v <= 1.5, "0.05 to 1.5 mm"),
+    Field("buckle_edge", float, CONVERGING_MODEL["buckle_edge"], "width over which each edge "
+          "of a rigid band or tire lifts 0.3 mm off the sclera (a cubic rise whose curvature "
+          "reaches 1.8 / width^2 per mm), mm: narrower edges are sharper than the scleral "
+          "elements can follow, and the outcomes then grow with the mesh "
+          "(docs/convergence.md, 'The flat tire's edges')",
+          lambda v: 0.2 <= v <= 2.0, "0.2 to 2 mm"),
+    Field("sponge_end", float, CONVERGING_MODEL["sponge_end"], "length over which each end "
+          "of a rigid sponge rounds off, lifting 0.3 mm off the sclera (a cubic rise, twice "
+          "differentiable), mm; 0: a fade-out about 0.1 mm long beyond each end, once "
+          "differentiable, whose outcomes depend on where the ends sit among the nodes "
+          "(docs/convergence.md, 'The sponge's ends')",
+          lambda v: v == 0 or 0.2 <= v <= 2.0, "0 or 0.2 to 2 mm"),
+    Field("model", str, "converged", "'converged': the model whose outcomes converge with the "
+          "mesh (the defaults of buckle_edge, ridge_flank, sponge_end and lens_support); "
+          "'earlier': the model of the results recorded before the mesh study (0.5 mm ring "
+          "edges, 1 mm ridge flanks, a sponge's ends fading out, 1e-3 N/mm on every lens "
+          "node), which sets those four fields: leave them out (docs/convergence.md)",
+          lambda v: v in MODELS, f"one of {list(MODELS)}"),
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
     WALL_ELEMENT_FIELD,
-] + BIOMETRY_FIELDS + TIMELINE_FIELDS
+] + [LENS_SUPPORT_FIELD if f.name == "lens_support" else f
+     for f in BIOMETRY_FIELDS] + TIMELINE_FIELDS
 
 
 def _materials(materials, preset: str = "seed"):
@@ -198,8 +274,11 @@ def warn_memory(n_elem: int, level: str) -> bool:
 
 def surgery(p, materials):
     """Build the surgery Setup from case parameters (see SURGERY_FIELDS) and material
-    overrides (name -> MooneyRivlin): the eye, the buckle body, the staged procedure."""
+    overrides (name -> MooneyRivlin): the eye, the buckle body, the staged procedure.
+    The ``model`` switch is applied here (:func:`resolve_model`): the Setup's parts hold
+    the parameters the model was built with."""
     check_parameters(p)
+    p = resolve_model(p)
     buckle = Buckle(p["buckle"], p["buckle_distance"], p["buckle_meridian_deg"], p["n_segments"])
     body = buckle_body(p, buckle)
     body.warn(p, buckle)
@@ -278,8 +357,9 @@ def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
     models = [{**STUDY_MODEL, **m} for m in err.get("model", {}).values()] or [STUDY_MODEL]
     rigid_only = ("buckle_edge", "ridge_flank",  # the rigid buckle's, unused otherwise
                   "contact_quadrature", "sponge_end")
-    changed = [f"{k} = {p[k]!r}" for k in STUDY_MODEL
-               if k in p and all(p[k] != m[k] for m in models)
+    unused = ("sponge_end",) if encircling else ("buckle_edge", "ridge_flank")  # the ring's
+    changed = [f"{k} = {p[k]!r}" for k in STUDY_MODEL  # or the sponge's shape, not both
+               if k in p and all(p[k] != m[k] for m in models) and k not in unused
                and not (k in rigid_only and p.get("buckle_body", "rigid") != "rigid")]
     if changed:
         err["note"] = (err["note"] + " " if err["note"] else "") + (
@@ -378,6 +458,7 @@ def _eye_terms(parts: SurgeryParts) -> tuple:
 def check_parameters(p):
     """Checks across fields (each field alone is checked by its schema): ValueError
     naming the values and the fix. ``eyefem new-case`` runs it before writing a case."""
+    given, p = p, resolve_model(p)
     if p.get("band_tension", 0.0) > 0:
         if p["buckle"].startswith("sponge"):  # as Buckle.encircling
             raise ValueError(f"band_tension = {p['band_tension']} N needs an encircling buckle "
@@ -402,12 +483,13 @@ def check_parameters(p):
         raise ValueError(f"buckle_edge = {edge} mm: the edges of the {p['buckle']} "
                          f"({KINDS[p['buckle']][0]} mm wide) lift over less than half its "
                          f"width; set buckle_edge below {KINDS[p['buckle']][0] / 2} mm")
-    if p.get("sponge_end", 0.0) != 0 and not p["buckle"].startswith("sponge"):
+    if p.get("sponge_end", 0.0) not in (0.0, CONVERGING_MODEL["sponge_end"]) \
+            and not p["buckle"].startswith("sponge"):
         raise ValueError(f"sponge_end = {p['sponge_end']} mm rounds a sponge's ends; the "
-                         f"{p['buckle']} is a ring: set sponge_end = 0 (its edges are "
+                         f"{p['buckle']} is a ring: leave sponge_end out (its edges are "
                          "buckle_edge)")
     if p.get("buckle_body", "rigid") == "deformable":
-        _check_deformable(p)
+        _check_deformable(given)
         if p.get("wall_element", "q1p0") != "q1p0":
             raise ValueError(f"wall_element = '{p['wall_element']}' is implemented with the "
                              "rigid buckle only (a deformable band's model replaces the solid); "
@@ -477,9 +559,9 @@ def _check_deformable(p):
             raise ValueError(f"{name} = {p[name]} {unit} applies to the rigid buckle only; with "
                              f"buckle_body = 'deformable' set {name} = 0")
     for name, default, unit, what, why in (
-            ("buckle_edge", EDGE_WIDTH, " mm", "shapes the rigid ring's edges",
-             "a deformable buckle has its own mesh"),
-            ("sponge_end", 0, " mm", "rounds the rigid sponge's ends",
+            ("buckle_edge", CONVERGING_MODEL["buckle_edge"], " mm",
+             "shapes the rigid ring's edges", "a deformable buckle has its own mesh"),
+            ("sponge_end", CONVERGING_MODEL["sponge_end"], " mm", "rounds the rigid sponge's ends",
              "a deformable sponge has its own mesh"),
             ("contact_quadrature", 0, "", "integrates the rigid buckle's contact over the "
              "scleral faces", "a deformable buckle's contact is node to surface")):
@@ -643,9 +725,24 @@ ADVANCED_FIELDS = frozenset({
     "zonule_insertion_radius", "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
     "sclera_thickness_equator", "sclera_thickness_pole", "wall_element", "lens_support",
-    *(f.name for f in TIMELINE_FIELDS)})
+    "model", *(f.name for f in TIMELINE_FIELDS)})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all
-(``--all``): the orbit's hold, load steps, contact and material details."""
+(``--all``): the orbit's hold, load steps, contact, model and material details, the
+timeline."""
+
+DESCRIBE_FIRST = ("buckle", "buckle_body", "tightening", "band_tension",
+                  "deformable_tightening", "buckle_distance", "buckle_meridian_deg",
+                  "buckle_shift", "suture_width", "n_sutures", "suture_tightening",
+                  "bite_radius", "iop_mmhg", "materials_preset", "drain_volume",
+                  "volume_regulation", "paracentesis_volume", "followup")
+"""The fields ``eyefem describe surgery`` lists first, in this order: what a surgeon or a
+researcher changes first (the buckle and its tightening, the sutures' placement, the
+pressure, the tissues, the drainage, the timeline's switch, paracentesis and follow-up
+times). The other fields outside DESCRIBE_ADVANCED follow (the mesh, the biometry)."""
+
+DESCRIBE_ADVANCED = ADVANCED_FIELDS - set(DESCRIBE_FIRST)
+"""The fields ``eyefem describe surgery`` lists under its "Advanced" heading: the numerical
+settings and model details (ADVANCED_FIELDS, less the timeline's switches listed first)."""
 
 SEGMENTAL_DEFAULTS = {"n_sutures": 2, "suture_width": 8.5, "tightening": 0.0}
 """A segmental sponge's defaults in ``new-case`` (those of cases 5 and 6)."""
@@ -660,36 +757,21 @@ field's own default, for case files that leave it out, stays the seed's, so that
 seed's cases 1-6 reproduce)."""
 
 
-CONVERGING_MODEL = {"lens_support": 0.343, "buckle_edge": 1.0, "ridge_flank": 1.5,
-                    "sponge_end": 1.0}
-"""The model fields of the surgical case files, whose outcomes converge with the mesh
-(docs/convergence.md, "Results: the case files' model"), that ``new-case`` writes into a new
-case: the lens's springs in all (N/mm; on the default level the sum of the per-node
-springs), a rigid band's or tire's edges lifting over 1 mm (the 2.5 mm band is not in the
-study; its 0.5 mm edges are as sharp as the tires' were), the ridged tire's 1.5 mm flanks,
-a rigid sponge's ends rounding off over 1 mm. The fields' own defaults, for case files that
-leave them out, stay the earlier model (0.5 mm edges, 1 mm flanks, 1e-3 N/mm per lens
-node, the sponge's ends fading out over 0.1 mm beyond them), which the recorded results
-and the problems built without a case file use."""
-
-
 def questions(values: dict) -> tuple[frozenset, dict]:
     """What ``eyefem new-case surgery`` asks, given the answers so far (``values``, with
     every field's default filled in): (names of the fields that do not apply to the chosen
     buckle, or are advanced: not asked, kept at their defaults; the chosen buckle's own
     defaults, name -> value: NEW_CASE_DEFAULTS, a sponge's SEGMENTAL_DEFAULTS and the
-    CONVERGING_MODEL's fields that apply to it)."""
+    CONVERGING_MODEL's fields that apply to it (:func:`model_fields`), written into the
+    case so that it states its model)."""
     segmental = values["buckle"].startswith("sponge")
     skip = set(ADVANCED_FIELDS)
     skip |= ({"band_tension", "deformable_tightening"} if segmental
              else {"buckle_meridian_deg"})
     if values["buckle_body"] == "rigid":
         skip.add("deformable_tightening")
-    rigid = values["buckle_body"] == "rigid"
-    applies = {"lens_support": True, "buckle_edge": rigid and values["buckle"] in RING_KINDS,
-               "ridge_flank": rigid and values["buckle"] == "tire_ridged",
-               "sponge_end": rigid and segmental}
-    model = {k: v for k, v in CONVERGING_MODEL.items() if applies[k]}
+    model = ({k: CONVERGING_MODEL[k] for k in model_fields({**values, **CONVERGING_MODEL})}
+             if values.get("model", "converged") == "converged" else {})
     return frozenset(skip), {**NEW_CASE_DEFAULTS, **(SEGMENTAL_DEFAULTS if segmental else {}),
                              **model}
 
@@ -706,7 +788,10 @@ sponge's ends")."""
 def solver_settings(values: dict) -> dict:
     """The ``[solver]`` section ``eyefem new-case surgery`` writes for these parameters
     (``values``: every field, defaults filled in): CURVED_CONTACT_SOLVER for a rigid ridged
-    tire and a rigid sponge with rounded ends, else nothing."""
+    tire and a rigid sponge with rounded ends, else nothing. These are the solver's
+    defaults for such a case: a case file whose ``[solver]`` leaves them out wants them
+    too."""
+    values = resolve_model(values)
     if values["buckle_body"] != "rigid":
         return {}
     curved = (values["buckle"] == "tire_ridged"
@@ -717,4 +802,6 @@ def solver_settings(values: dict) -> dict:
 surgery.check = check_parameters
 surgery.questions = questions
 surgery.solver_settings = solver_settings
+surgery.first = DESCRIBE_FIRST
+surgery.advanced = DESCRIBE_ADVANCED
 PROBLEMS = {"surgery": (SURGERY_FIELDS, surgery)}

@@ -317,11 +317,27 @@ def positive(x) -> bool:
     return x > 0
 
 
-def describe(fields: list[Field]) -> str:
-    """Human-readable table of a schema (for ``eyefem describe``)."""
-    lines = []
-    for f in fields:
-        d = "required" if f.default is REQUIRED else repr(f.default)
-        lines.append(f"  {f.name:<24} {f.type.__name__:<6} default {d:<12} {f.doc}"
-                     + (f" [{f.check_doc}]" if f.check_doc else ""))
+def describe(fields: list[Field], *, first=(), advanced=()) -> str:
+    """Human-readable table of a schema (for ``eyefem describe``): one line per field.
+
+    ``first``: names listed first, in that order (what a user changes first); the other
+    fields follow in schema order, those named in ``advanced`` (numerical settings and
+    model details) last, under the heading ADVANCED_HEADING."""
+    def line(f):
+        d = ("required" if f.default is REQUIRED else format(f.default, ".12g")
+             if isinstance(f.default, float) else repr(f.default))
+        return (f"  {f.name:<24} {f.type.__name__:<6} default {d:<12} {f.doc}"
+                + (f" [{f.check_doc}]" if f.check_doc else ""))
+
+    by_name = {f.name: f for f in fields}
+    head = [by_name[n] for n in first if n in by_name]
+    rest = [f for f in fields if f.name not in first]
+    lines = [line(f) for f in head + [f for f in rest if f.name not in advanced]]
+    more = [line(f) for f in rest if f.name in advanced]
+    if more:
+        lines += ["", ADVANCED_HEADING, *more]
     return "\n".join(lines)
+
+
+ADVANCED_HEADING = "Advanced: numerical settings and model details (rarely changed)"
+"""The heading :func:`describe` puts above a schema's advanced fields."""
