@@ -33,8 +33,8 @@ import scipy.sparse.linalg as spla
 
 from eyefem.solve.errors import LinearSolveError, NegativeCurvature
 
-__all__ = ["LinearSolveError", "NegativeCurvature", "SaddlePointSolver", "available_backends",
-           "default_backend", "factorize"]
+__all__ = ["LinearSolveError", "NegativeCurvature", "SPD", "SaddlePointSolver",
+           "available_backends", "default_backend", "factorize", "positive_definite"]
 
 log = logging.getLogger(__name__)
 
@@ -178,8 +178,9 @@ def _set_reproducible(lib) -> None:
 _MKL_RUNTIME: dict = {}
 
 
-def _new_pardiso(pypardiso):
-    """A Pardiso instance with :data:`PARDISO_IPARM` on the reproducible branch.
+def _new_pardiso(pypardiso, mtype: int = -2):
+    """A Pardiso instance of matrix type ``mtype`` (-2 real symmetric indefinite, 2 real
+    symmetric positive definite) with :data:`PARDISO_IPARM` on the reproducible branch.
 
     pypardiso looks for MKL's runtime library afresh for every instance
     (``ctypes.util.find_library``, which runs ldconfig and the C compiler, then a recursive
@@ -188,12 +189,12 @@ def _new_pardiso(pypardiso):
     ``PYPARDISO_MKL_RT`` for the time of the call, unless the environment sets it."""
     path = None if "PYPARDISO_MKL_RT" in os.environ else _MKL_RUNTIME.get("path")
     if path is None:
-        solver = pypardiso.PyPardisoSolver(mtype=-2)
+        solver = pypardiso.PyPardisoSolver(mtype=mtype)
         _MKL_RUNTIME.setdefault("path", solver.libmkl._name)
     else:
         os.environ["PYPARDISO_MKL_RT"] = path
         try:
-            solver = pypardiso.PyPardisoSolver(mtype=-2)
+            solver = pypardiso.PyPardisoSolver(mtype=mtype)
         finally:
             del os.environ["PYPARDISO_MKL_RT"]
     _set_reproducible(solver.libmkl)
@@ -203,7 +204,9 @@ def _new_pardiso(pypardiso):
 
 
 class _Pardiso:
-    """MKL Pardiso, real symmetric indefinite mode (mtype -2) on the upper triangle.
+    """MKL Pardiso on the upper triangle: real symmetric indefinite (mtype -2, Bunch-Kaufman
+    pivoting) or, with ``mtype`` 2, symmetric positive definite (Cholesky, no pivoting; a
+    matrix that is not positive definite fails with LinearSolveError).
 
     One Pardiso instance is kept per sparsity pattern, so the symbolic analysis
     (ordering, about a third of the factorisation time) is done once per pattern and
@@ -213,16 +216,17 @@ class _Pardiso:
     pivots; the saddle-point solver checks every residual.
     """
 
-    def __init__(self, A):
+    def __init__(self, A, mtype: int = -2):
         import pypardiso
 
         self.A = sp.triu(A, format="csr")
         self.A.sort_indices()
+        self.mtype = mtype
         key = (self.A.shape[0], self.A.nnz, hash(self.A.indptr.tobytes()),
-               hash(self.A.indices.tobytes()))
+               hash(self.A.indices.tobytes()), mtype)
         entry = _PARDISO_BY_PATTERN.get(key)
         if entry is None:
-            entry = {"solver": _new_pardiso(pypardiso), "owner": None, "freed": True}
+            entry = {"solver": _new_pardiso(pypardiso, mtype), "owner": None, "freed": True}
         self.key, self.entry = key, entry
         self._factorize()
 
@@ -257,7 +261,7 @@ class _Pardiso:
             return
         shared = self.entry
         mine = {**shared, "kept": True}
-        shared.update(solver=_new_pardiso(pypardiso), owner=None, freed=True)
+        shared.update(solver=_new_pardiso(pypardiso, self.mtype), owner=None, freed=True)
         self.entry = mine
         if mine["owner"] != id(self):  # overwritten since: factorised again, in its own
             self._factorize()
@@ -278,7 +282,11 @@ class _Pardiso:
             _release_factors(self.entry)
         if self.entry["freed"]:
             self._analyse()
+        self.entry["owner"] = None
         self._call(self.entry["solver"], 22)
+        if self.mtype == 2 and self.entry["solver"].iparm[22] > 0:  # negative pivots
+            raise LinearSolveError(f"Pardiso: {int(self.entry['solver'].iparm[22])} negative "
+                                   "pivots of a matrix factorised as positive definite")
         self.entry["owner"] = id(self)
 
     def solve(self, b):
@@ -288,11 +296,48 @@ class _Pardiso:
         return x.reshape(b.shape)  # b (n,) or (n, k): several right-hand sides at once
 
 
-def factorize(A: sp.spmatrix, backend: str | None = None):
-    """Factorise a square sparse matrix; returns an object with ``solve(b)``."""
-    backend = backend or default_backend()
+SPD = "+spd"
+"""Suffix of a backend name (``"pardiso+spd"``; ``"+spd"`` alone: the default backend) that
+asks :func:`factorize` for a symmetric positive definite factorisation where the backend
+has one (Pardiso's Cholesky, mtype 2), with Pardiso's symmetric indefinite factorisation
+(mtype -2) where the matrix is not positive definite. SuperLU and cuDSS ignore it."""
+
+
+def positive_definite(backend: str | None) -> str:
+    """``backend`` (None: the default) asking for a positive definite factorisation (SPD)."""
+    return backend if backend and backend.endswith(SPD) else f"{backend or ''}{SPD}"
+
+
+FACTORISATIONS = {"cholesky": 0, "indefinite": 0, "cholesky_failed": 0}
+"""Numeric factorisations made through :func:`factorize` since start, by kind (Pardiso:
+``cholesky`` mtype 2, ``indefinite`` mtype -2 and the other backends; a Cholesky that met
+a matrix not positive definite counts in ``cholesky_failed`` and again as the indefinite
+factorisation that replaced it). Read by the benchmarks (eyefem.solve.augmented)."""
+
+
+def factorize(A: sp.spmatrix, backend: str | None = None, on_indefinite: str = "fallback"):
+    """Factorise a square sparse matrix; returns an object with ``solve(b)``.
+
+    ``backend`` with the suffix :data:`SPD` tries a positive definite factorisation first;
+    where the matrix is not positive definite, ``on_indefinite`` = "fallback" factorises it
+    as symmetric indefinite and "raise" raises NegativeCurvature."""
+    backend = backend or ""
+    spd = backend.endswith(SPD)
+    backend = (backend[:-len(SPD)] if spd else backend) or default_backend()
     if backend == "pardiso":
+        if spd:
+            try:
+                fact = _Pardiso(A, mtype=2)
+                FACTORISATIONS["cholesky"] += 1
+                return fact
+            except LinearSolveError as exc:
+                FACTORISATIONS["cholesky_failed"] += 1
+                if on_indefinite == "raise":
+                    raise NegativeCurvature(f"the tangent is not positive definite ({exc})") from exc
+                log.debug("Cholesky factorisation failed (%s): symmetric indefinite instead", exc)
+        FACTORISATIONS["indefinite"] += 1
         return _Pardiso(A)
+    FACTORISATIONS["indefinite"] += 1
     if backend == "superlu":
         return _SuperLU(A)
     if backend == "cudss":
@@ -365,7 +410,8 @@ class SaddlePointSolver:
             if self.extra is not None:
                 K = K + self.extra
             self.K_aug = sp.csr_matrix(K)
-            self.fact = factorize(self.K_aug, self.backend)
+            self.fact = factorize(self.K_aug, self.backend,
+                                  "raise" if self.indefinite == "raise" else "fallback")
         if self.low_rank:
             V = np.stack([v for _, v in self.low_rank], axis=1)  # (n, r)
             a = np.array([al for al, _ in self.low_rank])
@@ -461,7 +507,7 @@ class SaddlePointSolver:
         if getattr(self, "_kkt", None) is None:
             eps = 1e-12 * float(np.abs(self.K_aug.diagonal()).mean())
             A = sp.bmat([[self.K_aug, B], [B.T, -eps * sp.eye(m)]], format="csr")
-            self._kkt = factorize(A, self.backend)
+            self._kkt = factorize(A, (self.backend or "").removesuffix(SPD) or None)
             if self.low_rank:
                 Vk = np.vstack([self.V, np.zeros((m, self.V.shape[1]))])
                 self._kkt_KiV = self._kkt.solve(Vk).reshape(Vk.shape)
@@ -558,7 +604,7 @@ class SaddlePointSolver:
             x, y, res, cres, rel = x + dx, y + dy, res2, cres2, rel2
         if not np.isfinite(rel) or rel > 1e-6:
             raise LinearSolveError(f"linear solve residual {rel:.2e} relative (backend "
-                                   f"{self.backend or default_backend()}): the tangent is singular "
+                                   f"{(self.backend or '').removesuffix(SPD) or default_backend()}): the tangent is singular "
                                    "or badly conditioned")
         if rel > self.tol:
             log.debug("linear solve residual %.2e relative, constraint %.2e",

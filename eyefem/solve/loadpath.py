@@ -151,6 +151,14 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
     ConvergenceError with the last converged state on failure.
     """
     check_x64()
+    if options.incompressibility == "augmented_lagrangian":
+        from eyefem.fem.solid import SolidQ1P0
+        from eyefem.solve.augmented import solve_augmented
+
+        if any(isinstance(t, SolidQ1P0) for t in model.terms):  # (not yet transformed)
+            return solve_augmented(model, stages, q0=q0, theta=theta, options=options,
+                                   on_step=on_step, on_stage_end=on_stage_end,
+                                   completed=completed)
     q = np.zeros(model.n_dof) if q0 is None else np.array(q0, dtype=np.float64)
     theta = model.theta0() if theta is None else theta
     history: list[StepRecord] = []

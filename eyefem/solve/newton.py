@@ -69,6 +69,36 @@ class _Iterate:
 def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOptions,
            active=None, vref=1.0, fscale=0.0, final=True, predictor=None,
            previous=None) -> StepResult:
+    """Solve one load step from q (n_dof,), the state at the previous step (arguments and
+    result: :func:`_newton`). A model with augmented-Lagrangian Q1P0 terms
+    (eyefem.solve.augmented) has its multiplier estimates updated (Uzawa) after each
+    converged solve, and the step solved again from the tangent predictor on its last
+    factorisation, until its volume error is below ``uzawa_tol`` (StepFailed after
+    ``uzawa_max`` updates); the iterations reported are all of them."""
+    from eyefem.solve.augmented import is_augmented, uzawa_update, volume_errors
+
+    done = _newton(model, asm, q, theta, dq_prescribed, opts, active, vref, fscale, final,
+                   predictor, previous)
+    if not is_augmented(done.model, active):
+        return done
+    its, zero = done.iterations, np.zeros_like(dq_prescribed)
+    for _ in range(opts.uzawa_max):
+        updated = uzawa_update(done.model, done.q, opts.uzawa_tol, active)
+        if updated is None:
+            return dataclasses.replace(done, iterations=its)
+        done = _newton(updated, asm, done.q, theta, zero, opts, active, vref,
+                       max(fscale, done.fref), final, done.solver, None)
+        its += done.iterations
+    err = volume_errors(done.model, done.q, active)
+    if err <= opts.uzawa_tol:
+        return dataclasses.replace(done, iterations=its)
+    raise StepFailed(f"volume error max |J - 1| = {err:.2e} after {opts.uzawa_max} Uzawa "
+                     f"updates (uzawa_tol {opts.uzawa_tol:g}; raise penalty_factor)")
+
+
+def _newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOptions,
+            active=None, vref=1.0, fscale=0.0, final=True, predictor=None,
+            previous=None) -> StepResult:
     """Solve one load step from q (n_dof,), the state at the previous step.
 
     dq_prescribed (n_dof,): the increment of the prescribed dofs (zero elsewhere), taken

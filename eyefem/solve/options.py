@@ -8,6 +8,9 @@ import dataclasses
 QUASI_NEWTON = ("off", "bfgs")
 """Values of NewtonOptions.quasi_newton."""
 
+INCOMPRESSIBILITY = ("exact", "augmented_lagrangian")
+"""Values of NewtonOptions.incompressibility."""
+
 
 @dataclasses.dataclass(frozen=True)
 class NewtonOptions:
@@ -43,6 +46,16 @@ class NewtonOptions:
       quasi_newton_updates: updates on one factorisation before it is reformed.
       quasi_newton_ratio: a quasi-Newton step must lower the merit (force and volume
         residual) below this x its start's, else it is not taken and the tangent reformed.
+
+    Incompressibility (the Q1P0 elements' volume constraint):
+      incompressibility: "exact" (one multiplier per element, a saddle-point solve) or
+        "augmented_lagrangian": a penalty kappa = penalty_factor x the element's shear
+        modulus on its volume change plus a multiplier estimate updated (Uzawa) after each
+        converged step until max |Jbar - 1| <= uzawa_tol; one positive definite solve per
+        iteration (eyefem.solve.augmented).
+      penalty_factor: kappa over the shear modulus.
+      uzawa_tol: the largest element volume error |Jbar - 1| a step may leave.
+      uzawa_max: Uzawa updates of one step before it is cut.
 
     Linear solves:
       backend: linear solver backend (None: the default, eyefem.solve.linsolve).
@@ -118,11 +131,16 @@ class NewtonOptions:
     contact_lookahead: bool = True
     max_step: float = 0.5
     contact_curvature: float = 0.0
+    incompressibility: str = "exact"
+    penalty_factor: float = 10.0
+    uzawa_tol: float = 1e-6
+    uzawa_max: int = 20
 
     def __post_init__(self):
         for f in ("rtol", "vtol", "atol", "beta", "cg_rtol", "contact_freeze", "contact_rtol",
                   "contact_cycle_rtol", "modified_newton",
-                  "stall_rtol", "stall_vtol", "stall_repair_rtol", "max_step"):
+                  "stall_rtol", "stall_vtol", "stall_repair_rtol", "max_step", "penalty_factor",
+                  "uzawa_tol"):
             if not getattr(self, f) > 0:
                 raise ValueError(f"NewtonOptions.{f} = {getattr(self, f)}; must be > 0")
         if not self.contact_curvature >= 0:
@@ -131,6 +149,11 @@ class NewtonOptions:
         if self.quasi_newton not in QUASI_NEWTON:
             raise ValueError(f"NewtonOptions.quasi_newton = {self.quasi_newton!r}; choose from "
                              f"{', '.join(map(repr, QUASI_NEWTON))}")
+        if self.incompressibility not in INCOMPRESSIBILITY:
+            raise ValueError(f"NewtonOptions.incompressibility = {self.incompressibility!r}; "
+                             f"choose from {', '.join(map(repr, INCOMPRESSIBILITY))}")
+        if self.uzawa_max < 1:
+            raise ValueError(f"NewtonOptions.uzawa_max = {self.uzawa_max}; must be >= 1")
         if self.quasi_newton_updates < 1 or not 0 < self.quasi_newton_ratio < 1:
             raise ValueError(f"NewtonOptions: quasi_newton_updates = {self.quasi_newton_updates}, "
                              f"quasi_newton_ratio = {self.quasi_newton_ratio}; need updates >= 1 "
