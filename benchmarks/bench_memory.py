@@ -251,7 +251,7 @@ def main(argv=None):
     from eyefem.catalog import problems, schemas
     from eyefem.io.casefile import load_case
     from eyefem.io.output import SeriesWriter
-    from eyefem.io.runner import write_step
+    from eyefem.run.runner import write_step
     from eyefem.solve import assembly, linsolve
     from eyefem.solve.heap import configure_heap
     from eyefem.solve.solver import NewtonOptions, solve

@@ -15,7 +15,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from eyefem.io.runner import run_setup  # noqa: E402
+from eyefem.run.runner import run_setup  # noqa: E402
 from eyefem.problems.verification import DISK_FIELDS, inflated_disk  # noqa: E402
 
 RUNS = [

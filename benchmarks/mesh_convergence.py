@@ -126,7 +126,7 @@ def run_one(case_path: str, level: str, out_dir: Path) -> dict:
     from eyefem.eye.eyemodel import level_spec
     from eyefem.io import manifest
     from eyefem.io.casefile import load_case
-    from eyefem.io.runner import run_setup
+    from eyefem.run.runner import run_setup
     from eyefem.solve.heap import configure_heap
 
     configure_heap()  # EYEFEM_HEAP=lean: the finer levels are limited by memory

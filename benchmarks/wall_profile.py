@@ -101,7 +101,7 @@ def profile(case_path: str, level: str, run_dir: Path) -> dict:
     from eyefem.fem.cavity import face_cone_volume
     from eyefem.io import checkpoint, manifest
     from eyefem.io.casefile import load_case
-    from eyefem.io.runner import checkpoint_key, completed_state
+    from eyefem.run.runner import checkpoint_key, completed_state
 
     case = load_case(case_path, schemas())
     if case.problem != "surgery":

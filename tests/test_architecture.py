@@ -12,10 +12,10 @@ PKG = pathlib.Path(__file__).resolve().parents[1] / "eyefem"
 
 LAYERS = {  # a sub-package may import only from those below it (lower number)
     "fem": 0, "solve": 1, "io": 2, "verify": 1, "eye": 3, "problems": 3, "catalog": 4,
-    "api": 5, "study": 6, "cli": 7,
+    "run": 4, "api": 5, "study": 6, "cli": 7,
 }
 """eyefem/<group>: the layer of each group; a module imports only from its own group or
-a lower layer (fem <- solve <- io <- eye, problems <- catalog <- api <- study <- cli)."""
+a lower layer (fem <- solve <- io <- eye, problems <- catalog, run <- api <- study <- cli)."""
 
 
 def _modules():

@@ -7,7 +7,8 @@ from eyefem.fem import generators
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.terms import NodeSprings
 from eyefem.io import checkpoint
-from eyefem.io.runner import Setup, run_setup
+from eyefem.solve.problem import Setup
+from eyefem.run.runner import run_setup
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage
 

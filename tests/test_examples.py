@@ -13,7 +13,7 @@ from eyefem.fem.mesh import open_edges
 from eyefem.io.casefile import load_case
 
 PROBLEMS = problems()
-from eyefem.io.runner import run_setup
+from eyefem.run.runner import run_setup
 from eyefem.problems.examples import CONTAINER_FIELDS, banded_container, compressed_pipes
 
 ROOT = Path(__file__).resolve().parents[1]

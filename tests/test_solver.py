@@ -27,7 +27,7 @@ from eyefem.solve.model import node_dofs, solid_model
 PROBLEMS = problems()
 from eyefem.fem.surface import PressureLoad, enclosed_volume
 from eyefem.fem.terms import Term
-from eyefem.io.runner import run_setup
+from eyefem.run.runner import run_setup
 from eyefem.solve.solver import ConvergenceError, NewtonOptions, Stage, solve
 
 
@@ -969,7 +969,7 @@ def test_the_predictor_backs_off_to_a_state_without_inverted_elements():
 def test_a_run_summary_counts_the_steps_accepted_out_of_balance():
     """summary.json's unbalanced_steps: how many steps were accepted without converging,
     the largest force they left and where (rows as run_setup records them)."""
-    from eyefem.io.runner import unbalanced_steps
+    from eyefem.run.runner import unbalanced_steps
 
     rows = [{"stage": "tighten", "step": 1, "t": 0.25, "stalled": 0, "contact_cycle": 0,
              "unbalanced_N": 0.0},

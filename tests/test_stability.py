@@ -16,7 +16,7 @@ from eyefem.cli.main import main as cli_main
 from eyefem.fem.bars import Bars
 from eyefem.fem.generators import box
 from eyefem.fem.materials import MooneyRivlin
-from eyefem.io.runner import stage_stability
+from eyefem.run.runner import stage_stability
 from eyefem.solve.assembly import Assembler
 from eyefem.solve.model import Model, node_dofs, solid_model
 from eyefem.solve.solver import NewtonOptions, Stage
@@ -191,7 +191,7 @@ def test_an_unstable_stage_end_is_recorded_and_said(caplog):
     outcomes are not physical."""
     model, theta, held = _string(-0.01)
     stage = Stage("compress", 1, (np.nonzero(held)[0], np.zeros(int(held.sum()))))
-    with caplog.at_level(logging.WARNING, logger="eyefem.io.runner"):
+    with caplog.at_level(logging.WARNING, logger="eyefem.run.runner"):
         rec = stage_stability(model, np.zeros(model.n_dof), theta, stage, NewtonOptions(), 2)
     assert rec["stable"] is False and rec["lowest_mode_rigid_share"] is None
     assert rec["lowest_eigenvalue_N_per_mm"] == pytest.approx(_chain(EA * -0.01 / LENGTH, 1),

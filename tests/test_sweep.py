@@ -82,7 +82,7 @@ def serial_uniaxial(folder: Path, stretch: float, c01: float = 5.0) -> dict:
     from eyefem.catalog import problems, schemas
     from eyefem.io import manifest
     from eyefem.io.casefile import load_case
-    from eyefem.io.runner import run_setup
+    from eyefem.run.runner import run_setup
 
     folder.mkdir(parents=True)
     f = folder / "case.toml"

@@ -17,7 +17,7 @@ from eyefem.eye.presets import (
     preset_terms,
 )
 from eyefem.eye.validation import PALLIKARIS_K, PV_FIELDS, pressure_volume, rigidity
-from eyefem.io.runner import run_setup
+from eyefem.run.runner import run_setup
 
 SEED_K_COARSE = 0.0019290178795776465  # recorded: coarse eye, seed preset, 5 steps
 PHYS_K_COARSE = 0.01261495934527887  # recorded: coarse eye, physiological preset, 5 steps

@@ -18,7 +18,8 @@ from eyefem.fem.materials import mooney_rivlin
 from eyefem.fem.rigid import plane
 from eyefem.fem.rigid_contact import RigidContact
 from eyefem.fem.surface import PressureLoad
-from eyefem.io.runner import Setup, cell_and_point_fields, run_setup
+from eyefem.solve.problem import Setup
+from eyefem.run.runner import cell_and_point_fields, run_setup
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage
 

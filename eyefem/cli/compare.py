@@ -35,7 +35,7 @@ def run_case(path, out_dir, *, mesh=None, reuse=False, vtu=False) -> dict:
     from eyefem.catalog import problems, schemas
     from eyefem.io import manifest
     from eyefem.io.casefile import check_material_names, load_case
-    from eyefem.io.runner import claimed_folder, run_setup, write_summary
+    from eyefem.run.runner import claimed_folder, run_setup, write_summary
 
     case = load_case(path, schemas())
     params = dict(case.parameters)

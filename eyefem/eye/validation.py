@@ -30,7 +30,7 @@ from eyefem.fem.surface import PressureLoad
 from eyefem.fem.units import MMHG
 from eyefem.io.casefile import Field, positive
 from eyefem.io.output import plot_curves, write_csv
-from eyefem.io.runner import Setup
+from eyefem.solve.problem import Setup
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage
 

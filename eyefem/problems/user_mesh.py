@@ -16,7 +16,7 @@ import numpy as np
 from eyefem.fem.surface import pressure_term
 from eyefem.io.casefile import REQUIRED, Field, positive
 from eyefem.io.meshfile import read_hex_mesh
-from eyefem.io.runner import Setup
+from eyefem.solve.problem import Setup
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage
 

@@ -1,7 +1,7 @@
 """One run of a sweep, as executed on a Dask worker (or in this process).
 
 :func:`run_case` writes the run's case file into its folder, runs it as ``eyefem run``
-does (the problem's builder, :func:`eyefem.io.runner.run_setup`, ``summary.json``),
+does (the problem's builder, :func:`eyefem.run.runner.run_setup`, ``summary.json``),
 optionally differentiates the outcomes (:func:`gradients_of`: the adjoint of
 :func:`eyefem.simulate` for a surgery case's design variables, central differences for
 any other real-valued input), and writes ``row.json``: the record that the results table
@@ -76,7 +76,7 @@ def solve_case(case, out: Path, setup=None):
     from eyefem.catalog import problems
     from eyefem.io import manifest
     from eyefem.io.casefile import check_material_names
-    from eyefem.io.runner import run_setup
+    from eyefem.run.runner import run_setup
 
     if setup is None:
         setup = problems()[case.problem][1](case.parameters, case.materials)
@@ -170,7 +170,7 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
     from eyefem.io import manifest
     from eyefem.io.casefile import load_case
     from eyefem.io.output import write_text
-    from eyefem.io.runner import write_summary
+    from eyefem.run.runner import write_summary
     from eyefem.solve.solver import ConvergenceError
 
     out = Path(run_dir)
