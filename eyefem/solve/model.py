@@ -304,8 +304,70 @@ def node_dofs(node_ids, components="xyz") -> np.ndarray:
     return (3 * np.asarray(node_ids, np.int64)[:, None] + np.asarray(comp)).ravel()
 
 
+def prony_tables(material_names, prony: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Prony tables g (n_materials, m) and tau (n_materials, m, minutes) of
+    :class:`eyefem.fem.viscoelastic.ViscoelasticQ1P0`, rows ordered like ``material_names``.
+
+    ``prony``: material -> (g (k,), tau (k,) minutes) for the materials that relax; a
+    material absent from it is elastic (g = 0). Shorter series are padded with g = 0 terms;
+    an elastic row and a padded term take the first relaxing material's time constants, so
+    that an element mixing a relaxing and an elastic tissue (``mesh.material_fractions``)
+    keeps the relaxing tissue's tau_i with its fraction-weighted g_i. ValueError naming the
+    material for a name the mesh lacks or constants that are not a Prony series."""
+    names = list(material_names)
+    unknown = sorted(set(prony) - set(names))
+    if unknown:
+        raise ValueError(f"prony: materials {unknown} are not in the mesh; it has {names}")
+    if not prony:
+        raise ValueError("prony: no material relaxes; give material -> (g, tau) or leave "
+                         "prony out for an elastic solid")
+    rows = {}
+    for m, (g, tau) in prony.items():
+        g = np.atleast_1d(np.asarray(g, np.float64))
+        tau = np.atleast_1d(np.asarray(tau, np.float64))
+        if g.ndim != 1 or g.shape != tau.shape or len(g) == 0:
+            raise ValueError(f"prony['{m}']: g {g.shape} and tau {tau.shape}; expected two "
+                             "equal-length lists (fractions, minutes)")
+        if (not np.all(np.isfinite(g)) or np.any(g < 0) or g.sum() >= 1.0
+                or not np.all(np.isfinite(tau)) or np.any(tau <= 0)):
+            raise ValueError(f"prony['{m}']: g = {g.tolist()}, tau = {tau.tolist()} min; need "
+                             "g_i >= 0 with sum g_i < 1 and tau_i > 0")
+        rows[m] = (g, tau)
+    n_terms = max(len(g) for g, _ in rows.values())
+    first = next(m for m in names if m in rows)
+    tau_fill = np.resize(rows[first][1], n_terms)
+    G = np.zeros((len(names), n_terms))
+    T = np.tile(tau_fill, (len(names), 1))
+    for i, m in enumerate(names):
+        if m in rows:
+            g, tau = rows[m]
+            G[i, :len(g)] = g
+            T[i, :len(tau)] = tau
+    return G, T
+
+
+def with_viscoelastic(model: Model, prony: dict, name: str = "solid") -> Model:
+    """The model with its Q1P0 solid term ``name`` replaced by
+    :class:`eyefem.fem.viscoelastic.ViscoelasticQ1P0` on the same elements, multipliers and
+    elastic coefficients, relaxing as ``prony`` says (:func:`prony_tables`; the materials it
+    leaves out stay elastic). The instantaneous response is the elastic term's. ValueError
+    for a solid term of another element (assumed shear strains, compressible materials)."""
+    from eyefem.fem.solid import SolidQ1P0
+    from eyefem.fem.viscoelastic import ViscoelasticQ1P0
+
+    s = model.term(name)
+    if type(s) is not SolidQ1P0:
+        raise ValueError(f"term '{name}' is a {type(s).__name__}; the viscoelastic element is "
+                         "the Q1P0 brick (wall_element = 'q1p0', exactly incompressible "
+                         "materials)")
+    g, tau = prony_tables(s.mesh.materials, prony)
+    visco = ViscoelasticQ1P0(s.name, s.mesh, s.coeffs, s.multiplier_offset,
+                             elements=s.elements, g=g, tau=tau)
+    return model.with_terms([visco if t is s else t for t in model.terms])
+
+
 def solid_model(mesh: Mesh, materials: dict, extra_terms=(), n_extra_dofs: int = 0,
-                name: str = "solid") -> Model:
+                name: str = "solid", prony: dict | None = None) -> Model:
     """A model of the mesh's Q1P0 solid plus further terms.
 
     Args:
@@ -315,6 +377,10 @@ def solid_model(mesh: Mesh, materials: dict, extra_terms=(), n_extra_dofs: int =
         CoupledMooneyRivlin: the displacement element of eyefem.fem.solid_compressible).
       extra_terms: further Term objects (their dofs index the same q).
       n_extra_dofs: unknowns beyond displacements and multipliers.
+      prony: optional material -> (g (k,), tau (k,) minutes): those materials relax as a
+        quasi-linear viscoelastic Prony series (:func:`with_viscoelastic`; the solid term is
+        then a ViscoelasticQ1P0 whose instantaneous response is the elastic law); None:
+        elastic. Exactly incompressible materials only.
 
     With only incompressible materials (the default of case files and the eye) the model
     is the Q1P0 term ``name`` on every element and one multiplier per element. Otherwise
@@ -334,7 +400,12 @@ def solid_model(mesh: Mesh, materials: dict, extra_terms=(), n_extra_dofs: int =
     comp = np.array([is_compressible(materials[m]) for m in mesh.materials], bool)
     if not comp.any():
         solid = SolidQ1P0(name, mesh, coeffs, multiplier_offset=n_u)
-        return Model(mesh, (solid, *extra_terms), n_u + mesh.n_elem + n_extra_dofs)
+        model = Model(mesh, (solid, *extra_terms), n_u + mesh.n_elem + n_extra_dofs)
+        return model if prony is None else with_viscoelastic(model, prony, name)
+    if prony is not None:
+        raise ValueError(f"prony: materials {[m for m, c in zip(mesh.materials, comp) if c]} "
+                         "have a bulk modulus; the viscoelastic element is the exactly "
+                         "incompressible Q1P0 brick")
     from eyefem.fem.solid_compressible import SolidCompressible
 
     if mesh.material_fractions is not None:
