@@ -185,3 +185,49 @@ def test_segmental_bands_lie_on_the_buckles_side_of_the_globe(sponge_parts):
     for bw in (under, beside):
         assert np.linalg.norm(X[bw.ids] - cen, axis=1).max() < 8.0
 
+
+
+# --------------------------------------------------------------------------- plausibility
+
+def test_plausibility_ratios_of_a_made_up_state():
+    """The peak scleral stress over the sclera's strength and the largest suture force over
+    a tied suture's breaking load: 4.7 MPa is half of 9.4 MPa, 0.75 N a quarter of 3 N."""
+    from eyefem.eye.outcomes import SCLERA_STRENGTH_MPA, SUTURE_BREAK_N, plausibility
+
+    out = plausibility(4700.0, 0.75)
+    assert out == {"scleral_stress_fraction_of_strength": pytest.approx(0.5, rel=1e-14),
+                   "suture_force_fraction_of_break": pytest.approx(0.25, rel=1e-14)}
+    assert (SCLERA_STRENGTH_MPA, SUTURE_BREAK_N) == (9.4, 3.0)
+
+
+def test_the_strength_constants_name_their_sources():
+    """The constants' docstrings (the string literals that follow them) cite the paper and
+    the figure each value is read from."""
+    import inspect
+
+    from eyefem.eye import outcomes as oc
+
+    src = inspect.getsource(oc)
+    i = src.index("SCLERA_STRENGTH_MPA = 9.4")
+    assert "Stapp Car Crash Journal 46" in src[i:i + 800] and "9.4 MPa" in src[i:i + 800]
+    j = src.index("SUTURE_BREAK_N = 3.0")
+    assert "307.6 g" in src[j:j + 900] and "28989101" in src[j:j + 900]
+
+
+def test_outcomes_report_the_ratios_of_their_own_stress_and_force():
+    """outcomes() at a made-up displacement of the coarse eye (seed case 1's model): the
+    two fractions are the reported peak stress and suture force over the constants."""
+    from eyefem.eye.outcomes import outcomes, plausibility
+    from eyefem.eye.surgery import surgery
+    from eyefem.eye.variables import default_parameters
+
+    setup = surgery(default_parameters(mesh="coarse", buckle="tire_flat"), None)
+    model, theta = setup.model, setup.model.theta0()
+    rng = np.random.default_rng(0)
+    q = np.zeros(model.n_dof)
+    q[:model.n_u] = 1e-3 * rng.standard_normal(model.n_u)
+    out = outcomes(setup.parts, model, q, theta)
+    assert out["scleral_stress_kPa"] > 1.0  # a random field strains the sclera
+    want = plausibility(out["scleral_stress_kPa"], out["max_suture_force_N"])
+    for k, v in want.items():
+        assert out[k] == pytest.approx(v, rel=1e-14), k

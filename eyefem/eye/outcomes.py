@@ -230,6 +230,42 @@ def peak_scleral_stress(model, q, theta, patches) -> float:
     return float((patches @ vm).max()) / KPA
 
 
+SCLERA_STRENGTH_MPA = 9.4
+"""The sclera's strength, MPa: the peak wall stress at which human globes ruptured, with
+the cornea's and sclera's properties from uniaxial strip tests taken to rupture (Stitzel,
+Duma, Cormier and Herring, "A nonlinear finite element model of the eye with experimental
+validation for the prediction of globe rupture", Stapp Car Crash Journal 46, 2002, SAE
+2002-22-0005: "globe rupture has previously been shown to occur at peak stresses of
+9.4 MPa"). One figure for a tissue whose strips vary with age, region and strain rate
+(in 36 donor scleras the stress rose 157-203 % from a strain rate of 8 to 200 %/min:
+"Regional variation in the biomechanical properties of the human sclera"); a ratio near 1 means the model's wall is at the
+load at which eyes tear, not a prediction of where."""
+
+SUTURE_BREAK_N = 3.0
+"""A tied scleral suture's breaking load, N: knots of 6-0 braided polyglactin (Vicryl)
+broke at a mean 307.6 g (3.02 N; the strand itself at 623.5 g), J AAPOS 2017,
+"Securing extraocular muscles in strabismus surgery: laboratory analysis of biomechanical
+parameters related to the suture" (PubMed 28989101); a flange of 5-0 polypropylene pulled
+out of human sclera at 3.0 +- 0.5 N (Yuan et al., Am J Ophthalmol, October 2021). No
+figure for tied 5-0 polyester (Mersilene, Ethibond), the buckle's usual suture, was
+found; 4-0 sutures' knots held 8.7-11.9 N (J Mater Sci Mater Med 18:2363, 2007), so 3 N
+is a low (safe-side) figure for 5-0, about the load at which a bite pulls through."""
+
+
+PLAUSIBILITY = ("scleral_stress_fraction_of_strength", "suture_force_fraction_of_break")
+"""The plausibility outcomes (:func:`plausibility`)."""
+
+
+def plausibility(scleral_stress_kpa: float, suture_force_n: float) -> dict:
+    """The plausibility outcomes: the peak scleral stress (kPa) as a fraction of the
+    sclera's strength (SCLERA_STRENGTH_MPA) and the largest suture force (N) as a
+    fraction of a tied suture's breaking load (SUTURE_BREAK_N); above 1: a tissue or a
+    suture the model loads beyond what it bears."""
+    return {"scleral_stress_fraction_of_strength":
+            float(scleral_stress_kpa) * KPA / SCLERA_STRENGTH_MPA,
+            "suture_force_fraction_of_break": float(suture_force_n) / SUTURE_BREAK_N}
+
+
 OUTER_SURFACE = "eye/outer"
 """The eye mesh's node set of its outer surface."""
 
@@ -275,8 +311,9 @@ def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
     (mm^3), axial length and its change from the unloaded eye (mm), indentation (mm),
     largest suture bar force (N), corneal power and astigmatism (D), anterior chamber
     depth (mm), the peak scleral von Mises stress over a patch (kPa; ``patches``: the
-    :func:`stress_patches` of the mesh, built here when not given). A buckle body adds
-    its own (BuckleBody.outcomes)."""
+    :func:`stress_patches` of the mesh, built here when not given), and those two as
+    fractions of the sclera's strength and of a suture's breaking load
+    (:func:`plausibility`). A buckle body adds its own (BuckleBody.outcomes)."""
     X, nodes = model.mesh.nodes, outcome_nodes(parts)
     cav = model.term("cavity")
     _, V = cav.pressures(q, theta["cavity"])
@@ -289,14 +326,15 @@ def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
              if np.any(theta["sutures"]["tightening"]) else 0.0)
     now = {k: float(v) for k, v in eye_optics(X, q, nodes).items()}
     unloaded = eye_optics(X, np.zeros_like(q), nodes)["axial_length_mm"]
+    stress = peak_scleral_stress(model, q, theta,
+                                 stress_patches(model.mesh) if patches is None else patches)
     return {"iop_mmhg": iop, "volume_mm3": float(V[0]),
             "axial_length_mm": now["axial_length_mm"],
             "axial_length_change_unloaded_mm": now["axial_length_mm"] - float(unloaded),
             "indentation_mm": float(indentation(X, q, nodes)),
             "max_suture_force_N": force, **{k: v for k, v in now.items()
                                             if k != "axial_length_mm"},
-            "scleral_stress_kPa": peak_scleral_stress(
-                model, q, theta, stress_patches(model.mesh) if patches is None else patches)}
+            "scleral_stress_kPa": stress, **plausibility(stress, force)}
 
 
 OPTICS = ("axial_length_mm", "corneal_power_D", "corneal_astigmatism_D",
@@ -373,5 +411,6 @@ def stage_summary(rows) -> list[dict]:
                     "max_suture_force_N": r["max_suture_force_N"],
                     "corneal_astigmatism_D": r["corneal_astigmatism_D"],
                     "scleral_stress_kPa": r.get("scleral_stress_kPa"),
+                    **{k: r[k] for k in PLAUSIBILITY if k in r},
                     **{k: float(v) for k, v in changes(r, pre).items()}})
     return out

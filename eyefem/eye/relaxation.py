@@ -19,8 +19,8 @@ tensile creep of human sclera over 1,500 s, Prony series; Downs et al., J Biomec
 125:124, 2003: stress relaxation of rabbit and monkey peripapillary sclera with a
 spectral reduced relaxation function; Downs et al., IOVS 46:540, 2005: monkey; Whitford
 et al., Biomech Model Mechanobiol 17:19, 2018: human cornea at strain rates 0.5-5 %/min;
-Elsheikh et al.: human sclera's stress at a strain rises 157-203 % from 8 % to 200 %
-per minute), but no curve or table of constants could be read, and none are invented.
+"Regional variation in the biomechanical properties of the human sclera": 36 donor
+scleras, the stress at a strain 157-203 % higher at 200 than at 8 %/min), but no curve or table of constants could be read, and none are invented.
 ``tissue_relaxation = "custom"`` takes constants the user supplies (from such a paper,
 or from ``benchmarks/fit_prony.py`` run on a digitised curve). What a relaxation test
 identifies, and what it does not (relaxation slower than the test, which the shape at
