@@ -159,7 +159,7 @@ def run_deck(path, gold: float | None, *, time_cap: float = 120.0,
         finally:
             signal.setitimer(signal.ITIMER_REAL, 0)
             signal.signal(signal.SIGALRM, old)
-        row.eyefem = solution_norm(mesh, stages[-1], q)
+        row.eyefem = solution_norm(mesh, stages[-1], q, loads)
         row.rel_diff = (row.eyefem - gold) / abs(gold) if gold else (
             0.0 if row.eyefem == 0 else float("inf"))
         row.agree = abs(row.rel_diff) <= TOLERANCE or (gold == 0 and row.eyefem < 1e-12)

@@ -27,13 +27,14 @@ import os
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from eyefem.fem.materials import (CoupledMooneyRivlin, MooneyRivlin, UncoupledMooneyRivlin,
                                   febio_neo_hookean)
 from eyefem.fem.mesh import Mesh, hex_geometry
 from eyefem.fem.surface import pressure_term
-from eyefem.fem.terms import NodalForce
+from eyefem.fem.terms import NodalForce, Term
 from eyefem.io.casefile import material_c10_field, unit_slip
 from eyefem.io.febio import SPEC_VERSION, FebError
 from eyefem.io.runner import Setup
@@ -80,6 +81,8 @@ class FebLoads:
         are the first one's).
       forces: (name, dofs (n,), f at t = 0 (n,) N) per nodal force term (nodal loads, and
         body loads as the nodal forces of the element volumes).
+      links: one :class:`FebLinks` per truss domain and per discrete set.
+      rigid: rigid body name -> its node ids (n,) (each moved as the deck prescribes).
     """
 
     prescribed: tuple[np.ndarray, np.ndarray]
@@ -88,6 +91,76 @@ class FebLoads:
     bulk_moduli: dict
     steps: tuple = ()
     forces: tuple = ()
+    links: tuple = ()
+    rigid: dict = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class FebLinks:
+    """Two-node elements of a deck: a truss domain or a discrete set.
+
+    Attributes:
+      name: the domain's or the set's name.
+      kind: "linear truss" (FEBio's truss material: :class:`LinearTruss`), "linear spring"
+        or "tension-only linear spring" (FEBio's discrete springs: eyefem.fem.bars.Bars).
+      nodes: (m, 2) node ids.
+      stiffness: (m,) E x A (N) of a truss; E (N/mm) of a spring.
+    """
+
+    name: str
+    kind: str
+    nodes: np.ndarray
+    stiffness: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LinearTruss(Term):
+    """FEBio's "linear truss" (FELinearTrussMaterial on a linear-truss domain): the
+    Kirchhoff stress tau = E ln(lam), lam = l / L, and the axial force T = tau A L / l
+    (FELinearTrussDomain::ElementInternalForces), i.e. the energy per truss
+
+        e = 1/2 E A L (ln(l / L))^2                                      [N mm]
+
+    It differs from eyefem.fem.bars.Bars (1/2 EA / L (l - L)^2) at second order in the
+    strain (the force EA ln(lam) / lam against EA (lam - 1): 1.5 % apart at 1 % strain), so
+    a deck's trusses are this term. FEBio's Poisson's ratio <v> changes only the reported
+    stress, not the force.
+
+    Args: name; nodes (m, 2) node ids; node_xyz (n_nodes, 3) reference positions, mm;
+      EA (m,) E x cross-sectional area, N (params {"EA"}).
+    """
+
+    name: str
+    nodes: np.ndarray
+    node_xyz: np.ndarray
+    EA: np.ndarray
+
+    def __post_init__(self):
+        n = np.asarray(self.nodes, np.int64).reshape(-1, 2)
+        X = np.asarray(self.node_xyz, np.float64)[n]
+        L = np.linalg.norm(X[:, 1] - X[:, 0], axis=1)
+        EA = np.broadcast_to(np.asarray(self.EA, np.float64), (len(n),)).copy()
+        if np.any(L <= 0) or np.any(EA <= 0):
+            raise ValueError(f"truss '{self.name}': every truss needs two distinct nodes and "
+                             "E A > 0")
+        object.__setattr__(self, "dofs", (3 * n[:, :, None] + np.arange(3)).reshape(-1, 6))
+        object.__setattr__(self, "params", {"EA": EA})
+        object.__setattr__(self, "data", {"X": X.reshape(-1, 6), "L0": L})
+
+    def local_energy(self, q_loc, params, data):
+        x = (data["X"] + q_loc).reshape(-1, 2, 3)
+        l = jnp.sqrt(jnp.sum((x[:, 1] - x[:, 0]) ** 2, axis=1))
+        return 0.5 * params["EA"] * data["L0"] * jnp.log(l / data["L0"]) ** 2
+
+    def forces(self, q, params):
+        """Axial force per truss (m,), N (positive in tension): EA ln(lam) / lam."""
+        x = (self.data["X"] + np.asarray(q)[self.dofs]).reshape(-1, 2, 3)
+        lam = np.linalg.norm(x[:, 1] - x[:, 0], axis=1) / self.data["L0"]
+        return np.asarray(params["EA"]) * np.log(lam) / lam
+
+    def report(self, q, params):
+        f = self.forces(q, params)
+        return {"max_force_N": float(np.abs(f).max()) if len(f) else 0.0}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -194,7 +267,7 @@ def _child_float(el, tag, path, where, default=None, hint="give a finite number"
 
 
 _IGNORED = {"Globals", "Output", "Module", "Control", "Material", "Mesh", "MeshDomains",
-            "Boundary", "Loads", "LoadData", "Step"}
+            "Boundary", "Loads", "LoadData", "Step", "Discrete", "Rigid"}
 
 
 def read_feb(path) -> tuple[Mesh, dict, FebLoads]:
@@ -250,16 +323,28 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
         if st.tag != "step":
             raise _err(path, f"<Step><{st.tag}> is not supported; give each step as <step>")
         for child in st:
-            if isinstance(child.tag, str) and child.tag not in ("Control", "Boundary", "Loads") \
-                    and len(child):
+            if isinstance(child.tag, str) and child.tag not in (
+                    "Control", "Boundary", "Loads", "Rigid") and len(child):
                 raise _err(path, f"<step name=\"{st.get('name')}\"><{child.tag}> is not "
-                           "supported (eyefem reads a step's Control, Boundary and Loads)")
+                           "supported (eyefem reads a step's Control, Boundary, Loads and "
+                           "Rigid)")
         _check_analysis(st.find("Control"), path)
 
     materials, bulk, by_id = _read_materials(root, path)
     nodes, node_index = _read_nodes(root, path)
-    hexes, blocks, elem_ids = _read_elements(root, path, node_index)
-    mat_of_block = _read_domains(root, path, blocks, materials, by_id)
+    hexes, blocks, elem_ids, lines = _read_elements(root, path, node_index)
+    mat_of_block, truss_of_block = _read_domains(root, path, blocks, materials, by_id, lines)
+    _check_jacobians(nodes, hexes, elem_ids, path)
+    # a rigid body's elements leave the solid: their nodes move as the deck prescribes
+    rigid, keep, start = {}, np.ones(len(hexes), bool), 0
+    for b, n in blocks:
+        if isinstance(materials[mat_of_block[b]], _Special):
+            rigid.setdefault(mat_of_block[b], set()).update(hexes[start:start + n].ravel().tolist())
+            keep[start:start + n] = False
+        start += n
+    hexes = hexes[keep]
+    elem_ids = [e for e, k in zip(elem_ids, keep) if k]
+    blocks = [(b, n) for b, n in blocks if not isinstance(materials[mat_of_block[b]], _Special)]
     used = sorted({mat_of_block[b] for b, _ in blocks}, key=list(materials).index)
     for ctrl in [root.find("Control")] + [st.find("Control") for st in step_els]:
         flag = None if ctrl is None else ctrl.findtext("use_three_field_hex")
@@ -268,14 +353,25 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
             raise _err(path, "<Control><use_three_field_hex> = 0 is not supported; eyefem "
                        "evaluates an uncoupled material's U(J) on the element's volume ratio "
                        "(FEBio's default three-field hex8)")
-    mids = np.concatenate([np.full(n, used.index(mat_of_block[b])) for b, n in blocks])
-    _check_jacobians(nodes, hexes, elem_ids, path)
-    face_sets, node_sets = _read_sets(root, path, node_index)
+    mids = np.concatenate([np.full(n, used.index(mat_of_block[b]), np.int64)
+                           for b, n in blocks] + [np.zeros(0, np.int64)])
+    face_sets, node_sets, discrete_sets = _read_sets(root, path, node_index)
     mesh = Mesh(nodes, hexes, mids, tuple(used), node_sets, face_sets)
     density = _densities(root, path, mesh, used, blocks, mat_of_block)
 
     curves = _read_curves(root, path)
-    top = _Sources(root.find("Boundary"), root.find("Loads"))
+    top = _Sources(root.find("Boundary"), root.find("Loads"), root.find("Rigid"))
+    for b in [] if top.boundary is None else top.boundary:
+        if isinstance(b.tag, str) and b.get("type") == "rigid":
+            rb = _rigid_name(b, path, f"<bc name=\"{b.get('name')}\" type=\"rigid\">",
+                             materials, by_id)
+            rigid.setdefault(rb, set()).update(
+                _nodes_of(mesh, b.get("node_set"), path, f"<bc name=\"{b.get('name')}\">")
+                .tolist())
+    rigid = {k: np.array(sorted(v), np.int64) for k, v in rigid.items()}
+    links = _read_links(root, path, nodes, materials, lines, truss_of_block, discrete_sets)
+    if not mesh.n_elem and not links:
+        raise _err(path, "<Mesh> has no <Elements> of a solid, truss or spring")
     if not step_els:
         specs = [("step_1", root.find("Control"), None)]
     else:
@@ -287,9 +383,12 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
         n, dt = _read_control(ctrl, root.find("Control") if st is not None else None, path)
         t0, t = t, t + n * dt
         own = _Sources(None if st is None else st.find("Boundary"),
-                       None if st is None else st.find("Loads"))
+                       None if st is None else st.find("Loads"),
+                       None if st is None else st.find("Rigid"))
         prescribed = _read_boundary([top.boundary, own.boundary], path, mesh, curves, t,
-                                    relative_ok=(k == 0))
+                                    relative_ok=(k == 0),
+                                    rigid=_read_rigid([top.rigid, own.rigid], path, rigid,
+                                                      curves, t, k == 0, materials, by_id))
         params = {}
         for scope, src in (("", top.loads), (f"{name}:" if st is not None else "", own.loads)):
             for tname, kind, dat, value in _read_loads(src, path, mesh, curves, scope,
@@ -308,10 +407,11 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
     forces = tuple((tn, dat, np.asarray(v0, np.float64))
                    for tn, (kind, dat, v0) in terms.items() if kind == "force")
     loads = FebLoads(out_steps[0].prescribed, pressures, out_steps[0].n_steps,
-                     {m: bulk[m] for m in used}, tuple(out_steps), forces)
+                     {m: bulk[m] for m in used}, tuple(out_steps), forces, links, rigid)
     log.info("read %s: %d nodes, %d hex8, materials %s, %d step(s), %d pressure loads, "
-             "%d nodal force terms", path, mesh.n_nodes, mesh.n_elem, list(used),
-             len(out_steps), len(pressures), len(forces))
+             "%d nodal force terms, %d truss / spring sets, %d rigid bodies", path,
+             mesh.n_nodes, mesh.n_elem, list(used), len(out_steps), len(pressures),
+             len(forces), len(links), len(rigid))
     return mesh, {m: materials[m] for m in used}, loads, hashlib.sha256(data).hexdigest()
 
 
@@ -319,6 +419,7 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
 class _Sources:
     boundary: object
     loads: object
+    rigid: object = None
 
 
 def _check_analysis(ctrl, path) -> None:
@@ -359,6 +460,8 @@ _MATERIAL_PARAMETERS = {
                       "minaug", "maxaug"},
     "neo-hookean": {"E", "v", "density"},
     "coupled mooney-rivlin": {"c1", "c2", "k", "density"},
+    "rigid body": {"density", "E", "v", "center_of_mass"},
+    "linear truss": {"E", "v", "density"},
 }
 """The material types the reader implements (FEBio's names, case-insensitive) and the
 parameters each may carry; any other type or parameter is refused by name. <density>
@@ -393,14 +496,23 @@ def _read_materials(root, path):
         kind = (el.get("type") or "").lower()
         if kind not in _MATERIAL_PARAMETERS:
             raise _err(path, f"{where}: type '{el.get('type')}' is not supported; eyefem "
-                       "reads \"Mooney-Rivlin\" (c1, c2, k), \"neo-Hookean\" (E, v) and "
-                       "\"coupled Mooney-Rivlin\" (c1, c2, k)")
+                       "reads \"Mooney-Rivlin\" (c1, c2, k), \"neo-Hookean\" (E, v), "
+                       "\"coupled Mooney-Rivlin\" (c1, c2, k), \"rigid body\" and \"linear "
+                       "truss\" (E)")
         for child in el:
             if isinstance(child.tag, str) and child.tag not in _MATERIAL_PARAMETERS[kind]:
                 raise _err(path, f"{where}: parameter <{child.tag}> of '{el.get('type')}' is "
                            "not supported (eyefem reads "
                            f"{', '.join(sorted(_MATERIAL_PARAMETERS[kind]))}); remove it or "
                            "run the deck in FEBio")
+        by_id[el.get("id")] = name
+        if kind in _SPECIAL:
+            E = 0.0 if kind == "rigid body" else _child_float(
+                el, "E", path, where, hint="give Young's modulus, e.g. <E>1e3</E>")
+            if kind == "linear truss" and not E > 0:
+                raise _err(path, f"{where} <E> = {E:g}: must be > 0")
+            materials[name], bulk[name] = _Special(kind, E), 0.0
+            continue
         try:
             if kind == "neo-hookean":
                 materials[name], bulk[name] = _neo_hookean(el, name, where, path), 0.0
@@ -410,8 +522,19 @@ def _read_materials(root, path):
             if isinstance(exc, FebError):
                 raise
             raise _err(path, f"{where}: {exc}") from None
-        by_id[el.get("id")] = name
     return materials, bulk, by_id
+
+
+@dataclasses.dataclass(frozen=True)
+class _Special:
+    """A material that is not a solid's strain energy: "rigid body" (its elements move as
+    the deck prescribes) or "linear truss" (E: Young's modulus, MPa)."""
+
+    kind: str
+    E: float
+
+
+_SPECIAL = ("rigid body", "linear truss")
 
 
 def _neo_hookean(el, name, where, path):
@@ -489,9 +612,24 @@ def _read_nodes(root, path):
 
 
 def _read_elements(root, path, node_index):
-    hexes, blocks, elem_ids = [], [], []
+    """(hex8 connectivity (e, 8), [(block name, count)], element ids, two-node blocks
+    {name: (m, 2) node indices})."""
+    hexes, blocks, elem_ids, lines = [], [], [], {}
     for block in root.find("Mesh").findall("Elements"):
         etype, name = block.get("type"), block.get("name")
+        if etype in ("line2", "truss2"):
+            conn = []
+            for e in block.findall("elem"):
+                c = _ints(e.text, path, f"element {e.get('id')}", len(node_index))
+                if len(c) != 2:
+                    raise _err(path, f"element {e.get('id')}: {len(c)} nodes; {etype} needs 2")
+                try:
+                    conn.append([node_index[i] for i in c])
+                except KeyError as exc:
+                    raise _err(path, f"element {e.get('id')}: node {exc.args[0]} is not in "
+                               "<Nodes>") from None
+            lines[name] = np.array(conn, np.int64).reshape(-1, 2)
+            continue
         if etype != "hex8":
             kind = ("tetrahedra" if (etype or "").startswith("tet") else f"'{etype}' elements")
             raise _err(path, f"<Elements name=\"{name}\"> holds {kind}: hexahedra are needed "
@@ -509,27 +647,53 @@ def _read_elements(root, path, node_index):
             elem_ids.append(e.get("id"))
             n += 1
         blocks.append((name, n))
-    if not hexes:
-        raise _err(path, "<Mesh> has no <Elements>")
-    return np.array(hexes, np.int64), blocks, elem_ids
+    return np.array(hexes, np.int64).reshape(-1, 8), blocks, elem_ids, lines
 
 
-def _read_domains(root, path, blocks, materials, by_id):
+def _read_domains(root, path, blocks, materials, by_id, lines):
+    """{hex block: material name}, {two-node block: (material name, cross-sectional area
+    mm^2)}: SolidDomains (a "rigid body" material's block: a rigid body) and the
+    BeamDomains / TrussDomains of type "linear-truss" with a "linear truss" material."""
     doms = root.find("MeshDomains")
     if doms is None:
         raise _err(path, "no <MeshDomains> section; assign a material to every element block")
-    out = {}
+    out, trusses = {}, {}
     for d in doms:
         if not isinstance(d.tag, str):
             continue
-        if d.tag != "SolidDomain":
-            raise _err(path, f"<MeshDomains><{d.tag} name=\"{d.get('name')}\">: only "
-                       "SolidDomain is supported (no shells, beams or rigid bodies)")
         mat = d.get("mat")
         mat = by_id.get(mat, mat)
+        if d.tag in ("BeamDomain", "TrussDomain"):
+            where = f"<{d.tag} name=\"{d.get('name')}\">"
+            if d.get("name") not in lines:
+                raise _err(path, f"{where}: no line2 <Elements> block of that name")
+            spec = materials.get(mat)
+            if d.get("type") != "linear-truss" or not (
+                    isinstance(spec, _Special) and spec.kind == "linear truss"):
+                raise _err(path, f"{where}: type=\"{d.get('type')}\" with material "
+                           f"'{d.get('mat')}' is not supported; eyefem reads type="
+                           "\"linear-truss\" with a \"linear truss\" material (no beams, no "
+                           "elastic-truss)")
+            for child in d:
+                if isinstance(child.tag, str) and child.tag != "cross_sectional_area":
+                    raise _err(path, f"{where}: <{child.tag}> is not supported "
+                               "(cross_sectional_area)")
+            area = _child_float(d, "cross_sectional_area", path, where,
+                                hint="give the truss's area, mm^2")
+            if not area > 0:
+                raise _err(path, f"{where} <cross_sectional_area> = {area:g}: must be > 0")
+            trusses[d.get("name")] = (mat, area)
+            continue
+        if d.tag != "SolidDomain":
+            raise _err(path, f"<MeshDomains><{d.tag} name=\"{d.get('name')}\">: not "
+                       "supported (eyefem reads SolidDomain and linear-truss BeamDomain; no "
+                       "shells, beams or discrete domains)")
         if mat not in materials:
             raise _err(path, f"SolidDomain '{d.get('name')}': material '{d.get('mat')}' is not "
                        f"defined in <Material>")
+        if isinstance(materials[mat], _Special) and materials[mat].kind != "rigid body":
+            raise _err(path, f"SolidDomain '{d.get('name')}': material '{d.get('mat')}' is a "
+                       f"{materials[mat].kind}; give it a linear-truss BeamDomain")
         etype = (d.get("elem_type") or "HEX8G8").upper()
         if etype != "HEX8G8":
             raise _err(path, f"SolidDomain '{d.get('name')}': elem_type=\"{d.get('elem_type')}\""
@@ -544,10 +708,16 @@ def _read_domains(root, path, blocks, materials, by_id):
     for name, _ in blocks:
         if name not in out:
             raise _err(path, f"element block '{name}' has no SolidDomain in <MeshDomains>")
-    return out
+    for name in lines:
+        if name not in trusses:
+            raise _err(path, f"element block '{name}' (line2) has no linear-truss BeamDomain "
+                       "in <MeshDomains>")
+    return out, trusses
 
 
 def _check_jacobians(nodes, hexes, elem_ids, path):
+    if not len(hexes):
+        return
     _, _, det = hex_geometry(nodes, hexes)
     bad = np.nonzero(np.min(det, axis=1) <= 0)[0]
     if bad.size:
@@ -559,7 +729,7 @@ def _check_jacobians(nodes, hexes, elem_ids, path):
 
 def _read_sets(root, path, node_index):
     mesh = root.find("Mesh")
-    faces, nsets = {}, {}
+    faces, nsets, dsets = {}, {}, {}
 
     def nid(i, where):
         try:
@@ -587,10 +757,21 @@ def _read_sets(root, path, node_index):
             nsets[name] = np.array([nid(i, f"node set '{name}'") for i in ids], np.int64)
         elif el.tag == "ElementSet":
             continue
+        elif el.tag == "DiscreteSet":
+            pairs = []
+            for d in el:
+                if not isinstance(d.tag, str):
+                    continue
+                conn = _ints(d.text, path, f"discrete set '{name}'", len(node_index))
+                if d.tag != "delem" or len(conn) != 2:
+                    raise _err(path, f"discrete set '{name}': give each spring as "
+                               "<delem>node,node</delem>")
+                pairs.append([nid(i, f"discrete set '{name}'") for i in conn])
+            dsets[name] = np.array(pairs, np.int64).reshape(-1, 2)
         else:
             raise _err(path, f"<Mesh><{el.tag} name=\"{name}\"> is not supported (contact "
-                       "pairs, edges and discrete sets have no eyefem reader)")
-    return faces, nsets
+                       "pairs and edges have no eyefem reader)")
+    return faces, nsets, dsets
 
 
 def _read_control(ctrl, fallback, path):
@@ -775,12 +956,13 @@ def _relative(el, path, where) -> bool:
     return raw in ("1", "true")
 
 
-def _read_boundary(secs, path, mesh, curves, t, relative_ok):
+def _read_boundary(secs, path, mesh, curves, t, relative_ok, rigid=None):
     """(dofs, targets at FEBio time t) of the boundary conditions of ``secs`` (the model's
     and the step's <Boundary>). A prescribed displacement is FEBio's u = value x lc(t)
     (relative = 1 adds the displacement when the condition becomes active: the same in
-    the first step, where it starts from the undeformed state; refused in later steps)."""
-    dofs, vals = [], []
+    the first step, where it starts from the undeformed state; refused in later steps).
+    ``rigid``: (dofs, targets) of the rigid bodies' nodes (:func:`_read_rigid`), added."""
+    dofs, vals = ([], []) if rigid is None else ([rigid[0]], [rigid[1]])
     for sec in secs:
         for bc in ([] if sec is None else sec):
             if not isinstance(bc.tag, str):
@@ -789,6 +971,12 @@ def _read_boundary(secs, path, mesh, curves, t, relative_ok):
             where = f"<bc name=\"{bc.get('name')}\" type=\"{kind}\">"
             if bc.tag != "bc":
                 raise _err(path, f"<Boundary><{bc.tag}> is not supported; give <bc>")
+            if kind == "rigid":
+                if sec is not secs[0]:
+                    raise _err(path, f"{where} in a step: a node set joined to a rigid body "
+                               "after the first step is not supported; give it in the "
+                               "model's <Boundary>")
+                continue
             if kind not in ("zero displacement", "prescribed displacement"):
                 raise _err(path, f"{where}: boundary condition type '{kind}' is not supported "
                            "(zero displacement, prescribed displacement)")
@@ -825,6 +1013,121 @@ def _read_boundary(secs, path, mesh, curves, t, relative_ok):
         _, first = np.unique(d, return_index=True)
         d, v = d[np.sort(first)], v[np.sort(first)]
     return d, v
+
+
+_RIGID_DOFS = ("Rx", "Ry", "Rz", "Ru", "Rv", "Rw")
+
+
+def _rigid_name(el, path, where, materials, by_id) -> str:
+    """The rigid body (a "rigid body" material's name) an element's <rb> names (by name or
+    by FEBio id)."""
+    rb = (el.findtext("rb") or el.get("rb") or "").strip()
+    rb = by_id.get(rb, rb)
+    spec = materials.get(rb)
+    if not (isinstance(spec, _Special) and spec.kind == "rigid body"):
+        raise _err(path, f"{where}: <rb> '{rb}' is not a \"rigid body\" material of <Material>")
+    return rb
+
+
+def _read_rigid(secs, path, rigid, curves, t, first, materials, by_id):
+    """(dofs, targets at FEBio time t) of every rigid body's nodes.
+
+    eyefem's rigid bodies move as prescribed only: each body's six degrees of freedom
+    must all be held by <rigid_bc>s of the model and the step ("rigid_fixed" Rx_dof ..
+    Rw_dof, "rigid_displacement" x, y, z with a value and a load curve, "rigid_rotation"
+    of value zero). Its nodes then translate by the prescribed displacement (a rotation
+    held at zero: no turn). A body with a free degree of freedom, a non-zero rotation, a
+    rigid load or a rigid connector is refused by name."""
+    held = {rb: {} for rb in rigid}  # rb -> dof -> value at t
+    for sec in secs:
+        for el in ([] if sec is None else sec):
+            if not isinstance(el.tag, str):
+                continue
+            kind = el.get("type")
+            where = f"<{el.tag} name=\"{el.get('name')}\" type=\"{kind}\">"
+            if el.tag != "rigid_bc" or kind not in ("rigid_fixed", "rigid_displacement",
+                                                     "rigid_rotation"):
+                raise _err(path, f"{where} is not supported (eyefem reads rigid_bc "
+                           "rigid_fixed, rigid_displacement and a zero rigid_rotation: rigid "
+                           "bodies that move as prescribed; no rigid loads or connectors)")
+            rb = _rigid_name(el, path, where, materials, by_id)
+            if rb not in held:  # a body without elements or nodes moves nothing
+                continue
+            if kind == "rigid_fixed":
+                for d in _RIGID_DOFS:
+                    if _child_float(el, f"{d}_dof", path, where, default=0.0) != 0:
+                        held[rb][d] = 0.0
+                continue
+            comp = (el.findtext("dof") or "").strip()
+            allowed = ("x", "y", "z") if kind == "rigid_displacement" else ("Ru", "Rv", "Rw")
+            if comp not in allowed:
+                raise _err(path, f"{where}: <dof> '{comp}'; expected {', '.join(allowed)}")
+            if _relative(el, path, where) and not first and sec is secs[-1]:
+                raise _err(path, f"{where}: relative = 1 in a later step is not supported; "
+                           "give the absolute displacement")
+            val = el.find("value")
+            if val is None:
+                raise _err(path, f"{where}: <value> is missing")
+            v = _value(val, path, curves, where)(t)
+            d = "R" + comp if kind == "rigid_displacement" else comp
+            if kind == "rigid_rotation" and v != 0.0:
+                raise _err(path, f"{where}: a prescribed rotation ({comp} = {v:g} rad) is not "
+                           "supported; eyefem's rigid bodies translate (rotations held at 0)")
+            held[rb][d] = v
+    dofs, vals = [np.zeros(0, np.int64)], [np.zeros(0)]
+    for rb, h in held.items():
+        free = [d for d in _RIGID_DOFS if d not in h]
+        if free:
+            raise _err(path, f"rigid body '{rb}': degrees of freedom {', '.join(free)} are "
+                       "free; eyefem's rigid bodies move as prescribed only (fix or prescribe "
+                       "all six with <rigid_bc>, or run the deck in FEBio)")
+        for c in range(3):
+            d = node_dofs(rigid[rb], _XYZ[c])
+            dofs.append(d)
+            vals.append(np.full(len(d), h[_RIGID_DOFS[c]]))
+    return np.concatenate(dofs), np.concatenate(vals)
+
+
+_SPRINGS = ("linear spring", "tension-only linear spring")
+
+
+def _read_links(root, path, nodes, materials, lines, truss_of_block, discrete_sets):
+    """:class:`FebLinks` of the truss domains and of <Discrete>'s springs."""
+    out = []
+    for name, conn in lines.items():
+        mat, area = truss_of_block[name]
+        out.append(FebLinks(name, "linear truss", conn,
+                            np.full(len(conn), materials[mat].E * area)))
+    sec = root.find("Discrete")
+    dmats = {}
+    for el in ([] if sec is None else sec):
+        if not isinstance(el.tag, str):
+            continue
+        where = f"<{el.tag} name=\"{el.get('name')}\" type=\"{el.get('type')}\">"
+        if el.tag == "discrete_material":
+            if el.get("type") not in _SPRINGS:
+                raise _err(path, f"{where}: discrete material type '{el.get('type')}' is not "
+                           f"supported (eyefem reads {', '.join(_SPRINGS)})")
+            for child in el:
+                if isinstance(child.tag, str) and child.tag != "E":
+                    raise _err(path, f"{where}: <{child.tag}> is not supported (E)")
+            E = _child_float(el, "E", path, where, hint="give the spring's stiffness, N/mm")
+            if not E > 0:
+                raise _err(path, f"{where} <E> = {E:g} N/mm: must be > 0")
+            dmats[el.get("id")] = dmats[el.get("name")] = (el.get("type"), E)
+        elif el.tag == "discrete":
+            dm, ds = el.get("dmat"), el.get("discrete_set")
+            where = f"<discrete dmat=\"{dm}\" discrete_set=\"{ds}\">"
+            if dm not in dmats:
+                raise _err(path, f"{where}: discrete material '{dm}' is not defined above it")
+            if ds not in discrete_sets:
+                raise _err(path, f"{where}: discrete set '{ds}' is not defined in <Mesh>")
+            conn = discrete_sets[ds]
+            out.append(FebLinks(ds, dmats[dm][0], conn, np.full(len(conn), dmats[dm][1])))
+        else:
+            raise _err(path, f"<Discrete><{el.tag}> is not supported (discrete_material, "
+                       "discrete)")
+    return tuple(out)
 
 
 def _densities(root, path, mesh, used, blocks, mat_of_block):
@@ -927,11 +1230,82 @@ def build_stages(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, l
     the state at a step's end depends on the loads there only, not on the path)."""
     terms = [pressure_term(name, mesh, surf, p0) for name, surf, p0, _ in loads.pressures]
     terms += [NodalForce(name, dofs, {"f": f0}) for name, dofs, f0 in loads.forces]
-    model = solid_model(mesh, materials, tuple(terms))
+    terms += [link_term(lk, mesh.nodes) for lk in loads.links]
+    if mesh.n_elem:
+        model = solid_model(mesh, materials, tuple(terms))
+    else:  # trusses and springs only
+        model = Model(mesh, tuple(terms), 3 * mesh.n_nodes)
     steps = loads.steps or (FebStep("load", loads.n_steps, 1.0, loads.prescribed,
                                     {n: {"p": p1} for n, _, _, p1 in loads.pressures}),)
     stages = [Stage(st.name, st.n_steps, st.prescribed, params=st.params) for st in steps]
     return model, stages
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LinearSpring(Term):
+    """FEBio's "linear spring" between two nodes (FELinearSpring on a discrete set): the
+    force E (l - L0) along the spring, the energy
+
+        e = 1/2 E (l - L0)^2                                             [N mm]
+
+    with E in N/mm: eyefem.fem.bars.Bars with node ends and EA = E L0 where L0 > 0 (the
+    same energy; tests/test_febio_links.py), and also a spring of zero length (L0 = 0: e =
+    1/2 E |x_b - x_a|^2, a node tied to another; Bars refuses it). ``tension_only``:
+    FEBio's "tension-only linear spring", E max(l - L0, 0).
+
+    Args: name; nodes (m, 2) node ids; node_xyz (n_nodes, 3), mm; E (m,) N/mm (params
+      {"E"}); tension_only.
+    """
+
+    name: str
+    nodes: np.ndarray
+    node_xyz: np.ndarray
+    E: np.ndarray
+    tension_only: bool = False
+
+    def __post_init__(self):
+        n = np.asarray(self.nodes, np.int64).reshape(-1, 2)
+        X = np.asarray(self.node_xyz, np.float64)[n]
+        E = np.broadcast_to(np.asarray(self.E, np.float64), (len(n),)).copy()
+        if np.any(E <= 0):
+            raise ValueError(f"spring '{self.name}': stiffness E must be > 0 N/mm")
+        object.__setattr__(self, "dofs", (3 * n[:, :, None] + np.arange(3)).reshape(-1, 6))
+        object.__setattr__(self, "params", {"E": E})
+        object.__setattr__(self, "data", {"X": X.reshape(-1, 6),
+                                          "L0": np.linalg.norm(X[:, 1] - X[:, 0], axis=1)})
+
+    def static_key(self):
+        return (self.tension_only,)
+
+    def local_energy(self, q_loc, params, data):
+        x = (data["X"] + q_loc).reshape(-1, 2, 3)
+        dd = jnp.sum((x[:, 1] - x[:, 0]) ** 2, axis=1)
+        L0 = data["L0"]
+        pos = L0 > 0
+        s = jnp.sqrt(jnp.where(pos, dd, 1.0)) - L0  # the safe branch: no NaN slope at l = 0
+        if self.tension_only:
+            s = jnp.maximum(s, 0.0)
+        return 0.5 * params["E"] * jnp.where(pos, s * s, dd)
+
+    def forces(self, q, params):
+        """Spring force per spring (m,), N (positive in tension)."""
+        x = (self.data["X"] + np.asarray(q)[self.dofs]).reshape(-1, 2, 3)
+        s = np.linalg.norm(x[:, 1] - x[:, 0], axis=1) - self.data["L0"]
+        return np.asarray(params["E"]) * (np.maximum(s, 0.0) if self.tension_only else s)
+
+    def report(self, q, params):
+        f = self.forces(q, params)
+        return {"max_force_N": float(np.abs(f).max()) if len(f) else 0.0}
+
+
+def link_term(link: FebLinks, node_xyz) -> Term:
+    """The eyefem term of a truss domain (:class:`LinearTruss`) or a discrete set
+    (:class:`LinearSpring`)."""
+    name = f"{link.kind.replace(' ', '_')}:{link.name}"
+    if link.kind == "linear truss":
+        return LinearTruss(name, link.nodes, node_xyz, link.stiffness)
+    return LinearSpring(name, link.nodes, node_xyz, link.stiffness,
+                        tension_only=link.kind.startswith("tension-only"))
 
 
 def build_model(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, Stage]:
@@ -963,13 +1337,16 @@ def feb_setup(path) -> Setup:
     return Setup(path.stem, model, stages, probe, finish)
 
 
-def solution_norm(mesh, stage, q) -> float:
+def solution_norm(mesh, stage, q, loads: FebLoads | None = None) -> float:
     """FEBio's ``solution_norm`` at the end of ``stage`` (its TestSuite's gold standard):
-    |u| (mm) over the dofs of nodes in elements that the stage neither fixes nor
-    prescribes. Args: mesh; stage (its ``prescribed``); q (n_dof,) the state."""
+    |u| (mm) over the dofs of nodes in elements (solids; with ``loads``, also its trusses
+    and springs) that the stage neither fixes nor prescribes (a rigid body's nodes are
+    prescribed). Args: mesh; stage (its ``prescribed``); q (n_dof,) the state."""
     free = np.ones(3 * mesh.n_nodes, bool)
     free[stage.prescribed[0]] = False
     used = np.zeros(mesh.n_nodes, bool)
     used[np.unique(mesh.hexes)] = True
+    for lk in () if loads is None else loads.links:
+        used[np.asarray(lk.nodes).ravel()] = True
     free &= np.repeat(used, 3)
     return float(np.linalg.norm(np.asarray(q)[: 3 * mesh.n_nodes][free]))
