@@ -82,12 +82,12 @@ every lens node (a sum that follows the lens mesh: 0.125 N/mm on coarse, 0.729 o
 fading out over about 0.1 mm beyond each end."""
 
 MODELS = ("converged", "earlier")
-"""The values of the ``model`` switch. One switch, not four defaults to remember: the
-earlier model is kept only so that its records (tests, docs/convergence.md's earlier
-tables) reproduce bit for bit; a case that wants one of its pieces (say 0.5 mm edges)
-with the rest converged gives that field with ``model = "converged"``. Its per-node lens
-springs exist only behind the switch, so that ``lens_support`` means one thing: N/mm in
-all."""
+"""The values of the ``model`` switch. One switch, not four earlier values to remember:
+the earlier model is kept only so that the results recorded with it reproduce bit for
+bit; a case that wants one of its pieces (say 0.5 mm edges) with the rest converged gives
+that field with ``model = "converged"``. Its per-node lens springs exist only behind the
+switch, so that ``lens_support`` means one thing, N/mm in all (the price: per-node springs
+combine with the earlier shapes only)."""
 
 LENS_SUPPORT_FIELD = Field(
     "lens_support", float, CONVERGING_MODEL["lens_support"],
