@@ -6,7 +6,8 @@ Input: a CSV with columns ``time_s`` (seconds from the end of the loading ramp) 
 comment header (lines starting with '#') naming its source: the figure or table it was
 read from, the species, tissue, strain level and ramp time. No curve is shipped yet
 (docs/formulation.md, "Quasi-linear viscoelastic tissue": the published curves were not
-reachable when this was written); the script runs on any such file:
+reachable; eyefem/eye/relaxation.py lists what was searched); the script runs on any such
+file:
 
     python benchmarks/fit_prony.py curve.csv [--per-decade 1] [--out fit.json]
 
@@ -23,6 +24,19 @@ sum g_i is only the fraction left at t_max: every relaxation slower than t_max
 (hours to months, what the eye's shape at three months depends on) is an extrapolation
 the test does not constrain. The script reports the singular values of the fit's
 sensitivity matrix and the parameter standard errors from the residual.
+
+Why scipy's bounded linear least squares and not optimize.calibrate's adjoint: a uniaxial
+relaxation test at a held stretch is the Prony series itself (G(t) times the elastic
+stress; tests/test_viscoelastic.py checks the finite-element relaxation against it to
+1e-9), so a finite-element model of the strip adds nothing to the fit, and with the time
+constants fixed the fractions enter linearly: the least-squares problem is convex with a
+unique minimiser, which the adjoint's gradient descent would only approximate. The
+adjoint through time (eyefem.solve.transient) is the tool where the data are not a
+strip's relaxation (an inflation creep test of a whole globe: python -m optimize.calibrate
+fits through the eye model).
+
+The fitted (g_i, tau_i in minutes) go into a case as tissue_relaxation = "custom",
+relaxation_g and relaxation_tau_min (eyefem/eye/relaxation.py).
 """
 
 from __future__ import annotations
@@ -36,8 +50,12 @@ from scipy.optimize import lsq_linear
 
 
 def read_curve(path: str):
-    src = [ln[1:].strip() for ln in open(path) if ln.startswith("#")]
-    data = np.genfromtxt(path, delimiter=",", names=True, comments="#")
+    lines = open(path).read().splitlines()
+    src = [ln[1:].strip() for ln in lines if ln.startswith("#")]
+    # the column names: the first line that is not a comment (np.genfromtxt would read
+    # them from the source comment above it)
+    data = np.genfromtxt([ln for ln in lines if not ln.startswith("#")], delimiter=",",
+                         names=True)
     return np.asarray(data["time_s"], float), np.asarray(data["G"], float), src
 
 
