@@ -118,13 +118,14 @@ def test_uniaxial_case_exports(tmp_path):
 
 def test_skipped_terms_are_named(tmp_path):
     setup = _block_setup()
-    springs = __import__("eyefem.fem.terms", fromlist=["NodeSprings"]).NodeSprings(
-        "springs", setup.model.mesh.node_set("x1"), k=1e-3)
-    model = setup.model.with_terms((*setup.model.terms, springs))
+    x1 = setup.model.mesh.node_set("x1")
+    orbit = __import__("eyefem.fem.terms", fromlist=["OrbitSpring"]).OrbitSpring(
+        "orbit", x1, setup.model.mesh.nodes[x1])
+    model = setup.model.with_terms((*setup.model.terms, orbit))
     warnings = write_feb(Setup("b", model, setup.stages, setup.probe, setup.finish),
                          tmp_path / "b.feb")
-    assert any("'springs'" in w for w in warnings)
-    assert "not exported: term 'springs'" in (tmp_path / "b.feb").read_text()
+    assert any("'orbit'" in w for w in warnings)
+    assert "not exported or approximated: term 'orbit'" in (tmp_path / "b.feb").read_text()
 
 
 _DECK = """<?xml version="1.0"?>

@@ -37,10 +37,14 @@ from pathlib import Path
 
 import numpy as np
 
+from eyefem.fem.bars import Bars
+from eyefem.fem.buckle_contact import BuckleContact
+from eyefem.fem.cavity import FluidCavity
 from eyefem.fem.mesh import Mesh
 from eyefem.fem.solid import SolidQ1P0
 from eyefem.fem.solid_compressible import SolidCompressible
 from eyefem.fem.surface import PressureLoad
+from eyefem.fem.terms import NodeSprings
 from eyefem.io.runner import Setup
 from eyefem.solve.solver import Stage
 
@@ -86,47 +90,54 @@ def _ids(values) -> str:
     return ",".join(str(int(v) + 1) for v in values)
 
 
-def write_feb(setup: Setup, path, *, stages: int = 1,
+def write_feb(setup: Setup, path, *, stages: int | None = None,
               bulk_factor: float = BULK_FACTOR) -> list[str]:
-    """Write the first stage of a Setup as an FEBio 4 input deck.
+    """Write a Setup's stages as an FEBio 4 input deck: one <step> per stage.
 
     Args:
-      setup: a problem's Setup (its model and stages; the stage's active terms are
-        exported, from the default design ``model.theta0()``).
+      setup: a problem's Setup (its model and stages; the terms active in any exported
+        stage are written, from the default design ``model.theta0()``, with each param's
+        value at every stage's end on a load curve).
       path: the .feb file to write.
-      stages: how many stages to export; only 1 is supported (later stages of the
-        surgery need contact, sutures and a closed cavity, which FEBio decks from here
-        cannot carry).
+      stages: how many stages to export (default: all); one stage is written without
+        <Step> (FEBio's single analysis).
       bulk_factor: FEBio's k = bulk_factor (c10 + c01) per exactly incompressible
         material (a material with its own k, or a coupled one, is written as it is).
-    Returns: the warnings (terms and coefficients not exported), also logged.
-    Raises: ValueError for stages != 1 or a model without solid elements; OSError.
+    Returns: the omissions (what FEBio cannot be given, or is given approximately), also
+      written in the deck's header comment and logged.
+    Raises: ValueError for a stage count outside 1..len(setup.stages) or a model without
+      solid elements; OSError.
     """
-    if stages != 1:
-        raise ValueError(f"write_feb: stages = {stages}; only the first stage can be exported "
-                         "(stages=1)")
+    n_all = len(setup.stages)
+    stages = n_all if stages is None else stages
+    if not 1 <= stages <= n_all:
+        raise ValueError(f"write_feb: stages = {stages}; '{setup.name}' has {n_all} stage(s) "
+                         f"(give 1..{n_all}, or leave it out for all)")
     if not bulk_factor > 0:
         raise ValueError(f"write_feb: bulk_factor = {bulk_factor}; must be > 0")
-    model, stage = setup.model, setup.stages[0]
+    exp = list(setup.stages[:stages])
+    model, stage = setup.model, exp[0]
     mesh, theta = model.mesh, model.theta0()
-    active = [t for t in model.terms if stage.active is None or t.name in stage.active]
+
+    def on(t, st):
+        return st.active is None or t.name in st.active
+
+    active = [t for t in model.terms if any(on(t, st) for st in exp)]
     warnings: list[str] = []
     solids = [t for t in active if isinstance(t, (SolidQ1P0, SolidCompressible))]
     if not solids:
         raise ValueError(f"write_feb: '{setup.name}' stage '{stage.name}' has no active solid "
                          "elements to export")
     loads = [t for t in active if isinstance(t, PressureLoad)]
-    for t in model.terms:
-        if type(t).__name__ == "FluidCavity" and t not in active:
-            log.info("export-feb: fluid cavity '%s' is open (inactive) in stage '%s': the "
-                     "stage's surface pressure is the whole fluid load", t.name, stage.name)
+    links = [t for t in active if type(t) is Bars]
+    springs = [t for t in active if isinstance(t, NodeSprings)]
+    cavities = [t for t in active if isinstance(t, FluidCavity)]
+    buckles = [t for t in active if isinstance(t, BuckleContact)]
     for t in active:
-        if t in solids or t in loads:
+        if t in solids or t in loads or t in links or t in springs or t in cavities \
+                or t in buckles:
             continue
-        what = ("a fluid cavity: FEBio 4.0 has no equivalent checked here; its pressure is "
-                "not applied" if type(t).__name__ == "FluidCavity"
-                else f"{type(t).__name__}: no FEBio equivalent exported")
-        warnings.append(f"term '{t.name}' skipped ({what})")
+        warnings.append(f"term '{t.name}' skipped ({_SKIPPED.get(type(t).__name__, type(t).__name__ + ': no FEBio equivalent exported')})")
 
     # materials: one per (name) used by the exported elements
     elem_mat = np.full(mesh.n_elem, -1, np.int64)
@@ -144,18 +155,11 @@ def write_feb(setup: Setup, path, *, stages: int = 1,
     mat_ids = sorted(coeffs)
 
     root = ET.Element("febio_spec", version=SPEC_VERSION)
-    root.append(ET.Comment(f" written by eyefem from '{setup.name}', stage '{stage.name}' "
-                           f"({stage.n_steps} steps); units mm, N, MPa "))
+    header = ET.Comment("")
+    root.append(header)
     ET.SubElement(root, "Module", type="solid")
-    ctrl = ET.SubElement(root, "Control")
-    ET.SubElement(ctrl, "analysis").text = "STATIC"
-    ET.SubElement(ctrl, "time_steps").text = str(stage.n_steps)
-    ET.SubElement(ctrl, "step_size").text = _fmt(1.0 / stage.n_steps)
-    ts = ET.SubElement(ctrl, "time_stepper", type="default")
-    ET.SubElement(ts, "max_retries").text = "5"
-    ET.SubElement(ts, "opt_iter").text = "10"
-    ET.SubElement(ts, "dtmin").text = "0"
-    ET.SubElement(ts, "dtmax").text = _fmt(1.0 / stage.n_steps)
+    if len(exp) == 1:
+        _write_control(ET.SubElement(root, "Control"), stage.n_steps)
 
     mat_names = safe_names([mesh.materials[m] for m in mat_ids])
     mats = ET.SubElement(root, "Material")
@@ -182,10 +186,37 @@ def write_feb(setup: Setup, path, *, stages: int = 1,
         ET.SubElement(el, "k").text = _fmt(k)
         ET.SubElement(el, "laugon").text = "1"
         ET.SubElement(el, "atol").text = _fmt(AUGMENTATION_TOL)
+    n_mat = len(mat_ids)
+
+    # extra nodes: the springs' fixed ground nodes, the buckle's rigid segments
+    extra_xyz: list[np.ndarray] = []
+
+    def add_nodes(x):
+        first = mesh.n_nodes + sum(len(a) for a in extra_xyz)
+        extra_xyz.append(np.asarray(x, float).reshape(-1, 3))
+        return first + np.arange(len(extra_xyz[-1]))
+
+    discrete = []  # (set name, (m, 2) node ids, type, E N/mm)
+    for t in links:
+        discrete += _bar_springs(t, theta, exp, mesh, warnings)
+    ground = []
+    for t in springs:
+        g = add_nodes(mesh.nodes[t.nodes])
+        ground.append(g)
+        discrete.append((f"{t.name}", np.stack([t.nodes, g], 1), "linear spring",
+                         np.full(len(g), float(theta[t.name]["k"]))))
+        if any(float(st.params.get(t.name, {}).get("k", theta[t.name]["k"]))
+               != float(theta[t.name]["k"]) for st in exp):
+            warnings.append(f"springs '{t.name}': a stiffness changed by a stage is written "
+                            "at its initial value")
+    segments = []  # (name, quads (f, 4) node ids, direction (3,), d per stage end)
+    for t in buckles:
+        segments += _buckle_segments(t, theta, exp, add_nodes, warnings)
 
     xml_mesh = ET.SubElement(root, "Mesh")
     nodes = ET.SubElement(xml_mesh, "Nodes", name="nodes")
-    for i, x in enumerate(mesh.nodes, start=1):
+    all_xyz = np.concatenate([mesh.nodes] + extra_xyz)
+    for i, x in enumerate(all_xyz, start=1):
         ET.SubElement(nodes, "node", id=str(i)).text = ",".join(_fmt(v) for v in x)
     order = exported[np.argsort(elem_mat[exported], kind="stable")]
     eid = 0
@@ -195,32 +226,65 @@ def write_feb(setup: Setup, path, *, stages: int = 1,
         for e in order[elem_mat[order] == m]:
             eid += 1
             ET.SubElement(block, "elem", id=str(eid)).text = _ids(mesh.hexes[e])
+    for name, quads, _, _ in segments:
+        block = ET.SubElement(xml_mesh, "Elements", type="quad4", name=name)
+        for f in quads:
+            eid += 1
+            ET.SubElement(block, "elem", id=str(eid)).text = _ids(f)
     surf_names = safe_names(mesh.face_sets)
     for name, faces in mesh.face_sets.items():
         s = ET.SubElement(xml_mesh, "Surface", name=surf_names[name])
         for j, f in enumerate(faces, start=1):
             ET.SubElement(s, "quad4", id=str(j)).text = _ids(f)
+    taken = set(surf_names.values())
+    contact_pairs = []
+    for t in buckles:
+        nm = _unique(f"{t.name}_surface", taken)
+        s = ET.SubElement(xml_mesh, "Surface", name=nm)
+        j = 0
+        for seg in segments:
+            if seg[0].startswith(f"{t.name}_segment"):
+                for f in seg[1]:
+                    j += 1
+                    ET.SubElement(s, "quad4", id=str(j)).text = _ids(f)
+        pair = _unique(f"{t.name}_contact", taken)
+        sp = ET.SubElement(xml_mesh, "SurfacePair", name=pair)
+        ET.SubElement(sp, "primary").text = surf_names.get(t.node_set, t.node_set)
+        ET.SubElement(sp, "secondary").text = nm
+        contact_pairs.append((t, pair))
     set_names = safe_names(mesh.node_sets)
     for name, ids in mesh.node_sets.items():
         ET.SubElement(xml_mesh, "NodeSet", name=set_names[name]).text = _ids(ids)
-    bcs = _boundary_sets(stage, mesh.n_nodes, warnings)
-    _warn_unheld(mesh, exported, np.concatenate([b[1] for b in bcs]) if bcs else [], warnings)
-    taken = set(set_names.values()) | set(surf_names.values())
+    taken |= set(set_names.values())
+    bcs = _boundary_sets(exp, mesh.n_nodes, warnings)
+    held = [b[1] for b in bcs] + [np.asarray(t.nodes, np.int64) for t in springs] + [
+        np.zeros(0, np.int64)]
+    _warn_unheld(mesh, exported, np.concatenate(held), warnings)
     bc_sets = []
     for label, nodes_, spec in bcs:
-        nm, k = label, 1
-        while nm in taken:
-            k += 1
-            nm = f"{label}_{k}"
-        taken.add(nm)
+        nm = _unique(label, taken)
         ET.SubElement(xml_mesh, "NodeSet", name=nm).text = _ids(nodes_)
         bc_sets.append((nm, spec))
+    ground_set = None
+    if ground:
+        ground_set = _unique("spring_ground", taken)
+        ET.SubElement(xml_mesh, "NodeSet", name=ground_set).text = _ids(np.concatenate(ground))
+    for name, conn, _, _ in discrete:
+        ds = ET.SubElement(xml_mesh, "DiscreteSet", name=name)
+        for a, b in conn:
+            ET.SubElement(ds, "delem").text = f"{a + 1},{b + 1}"
 
     doms = ET.SubElement(root, "MeshDomains")
     for m in mat_ids:
         nm = mat_names[mesh.materials[m]]
         ET.SubElement(doms, "SolidDomain", name=f"part_{nm}", mat=nm)
+    for i, (name, _, _, _) in enumerate(segments, start=n_mat + 1):
+        el = ET.SubElement(mats, "material", id=str(i), name=name, type="rigid body")
+        ET.SubElement(el, "density").text = "1"
+        dom = ET.SubElement(doms, "ShellDomain", name=name, mat=name)
+        ET.SubElement(dom, "shell_thickness").text = "0"
 
+    curves = _Curves(len(exp))
     boundary = ET.SubElement(root, "Boundary")
     for nm, spec in bc_sets:
         if spec[0] == "zero":
@@ -228,53 +292,320 @@ def write_feb(setup: Setup, path, *, stages: int = 1,
             for c in _XYZ:
                 ET.SubElement(bc, f"{c}_dof").text = "1" if c in spec[1] else "0"
         else:
-            _, comp, value = spec
+            _, comp, path_ = spec
+            lc, value = curves.scaled([0.0, *path_])
             bc = ET.SubElement(boundary, "bc", name=nm, node_set=nm,
                                type="prescribed displacement")
             ET.SubElement(bc, "dof").text = comp
-            ET.SubElement(bc, "value", lc="1").text = _fmt(value)
+            ET.SubElement(bc, "value", lc=str(lc)).text = _fmt(value)
             ET.SubElement(bc, "relative").text = "0"
+    if ground_set:
+        bc = ET.SubElement(boundary, "bc", name=ground_set, node_set=ground_set,
+                           type="zero displacement")
+        for c in _XYZ:
+            ET.SubElement(bc, f"{c}_dof").text = "1"
+
+    if segments:
+        rigid = ET.SubElement(root, "Rigid")
+        for name, _, direction, d in segments:
+            fx = ET.SubElement(rigid, "rigid_bc", name=f"{name}_turn", type="rigid_fixed")
+            ET.SubElement(fx, "rb").text = name
+            for dof in ("Ru", "Rv", "Rw"):
+                ET.SubElement(fx, f"{dof}_dof").text = "1"
+            lc = curves.add(d)
+            for c, comp in enumerate(_XYZ):
+                rd = ET.SubElement(rigid, "rigid_bc", name=f"{name}_{comp}",
+                                   type="rigid_displacement")
+                ET.SubElement(rd, "rb").text = name
+                ET.SubElement(rd, "dof").text = comp
+                ET.SubElement(rd, "value", lc=str(lc)).text = _fmt(direction[c])
+                ET.SubElement(rd, "relative").text = "0"
 
     xml_loads = ET.SubElement(root, "Loads")
-    curves = [(0.0, 1.0)]  # load controller 1: the stage's linear ramp
     for t in loads:
-        p0 = float(theta[t.name]["p"])
-        p1 = float(stage.params.get(t.name, {}).get("p", p0))
-        if p0 == 0.0:
-            lc, value = 1, p1
-        else:
-            curves.append((p0, p1))
-            lc, value = len(curves), 1.0
+        vals = [float(theta[t.name]["p"])]
+        for st in exp:
+            held_by_cavity = any(on(c, st) and t.face_set in c.face_sets[0] for c in cavities)
+            if on(t, st):
+                vals.append(float(st.params.get(t.name, {}).get("p", vals[-1])))
+            else:  # a closed cavity takes over at the pressure it closed at
+                vals.append(vals[-1] if held_by_cavity else 0.0)
+        lc, value = curves.scaled(vals)
         sl = ET.SubElement(xml_loads, "surface_load", name=t.name, type="pressure",
                            surface=surf_names[t.face_set])
-        sl.append(ET.Comment(f" eyefem PressureLoad '{t.name}': {p0:g} -> {p1:g} MPa "))
+        sl.append(ET.Comment(f" eyefem PressureLoad '{t.name}': "
+                             f"{' -> '.join(f'{v:g}' for v in vals)} MPa at the stages' ends "))
         ET.SubElement(sl, "pressure", lc=str(lc)).text = _fmt(value)
         ET.SubElement(sl, "symmetric_stiffness").text = "0"
-    for w in warnings:
-        root.append(ET.Comment(f" not exported: {w} "))
+
+    if discrete:
+        dis = ET.SubElement(root, "Discrete")
+        for i, (name, _, kind, E) in enumerate(discrete, start=1):
+            dm = ET.SubElement(dis, "discrete_material", id=str(i), name=name, type=kind)
+            ET.SubElement(dm, "E").text = _fmt(E[0])
+        for i, (name, _, _, _) in enumerate(discrete, start=1):
+            ET.SubElement(dis, "discrete", dmat=str(i), discrete_set=name)
+
+    if contact_pairs:
+        con = ET.SubElement(root, "Contact")
+        for t, pair in contact_pairs:
+            area = float(np.mean(t.node_area))
+            eps = float(np.mean(np.asarray(t.data["alpha"]))) / area
+            c = ET.SubElement(con, "contact", name=t.name, surface_pair=pair,
+                              type="sliding-elastic")
+            c.append(ET.Comment(f" eyefem's penalty {np.mean(t.data['alpha']):.6g} N/mm per "
+                                f"node over the mean nodal area {area:.6g} mm^2 "))
+            for tag, v in (("laugon", "0"), ("penalty", _fmt(eps)), ("auto_penalty", "0"),
+                           ("two_pass", "0"), ("tension", "0"), ("fric_coeff", "0"),
+                           ("symmetric_stiffness", "0"), ("search_tol", "0.01")):
+                ET.SubElement(c, tag).text = v
+
+    for t in cavities:
+        if all(on(t, st) for st in exp):
+            _write_volume_constraint(root, t, theta, exp, surf_names, warnings)
+    if len(exp) > 1:
+        steps = ET.SubElement(root, "Step")
+        for k, st in enumerate(exp):
+            se = ET.SubElement(steps, "step", id=str(k + 1), name=st.name)
+            _write_control(ET.SubElement(se, "Control"), st.n_steps)
+            for t in cavities:
+                if on(t, st) and not all(on(t, s_) for s_ in exp) and (
+                        k == 0 or not on(t, exp[k - 1])):
+                    _write_volume_constraint(se, t, theta, exp, surf_names, warnings)
+                    later = [s_.name for s_ in exp[k + 1:] if on(t, s_)]
+                    if later:
+                        warnings.append(
+                            f"cavity '{t.name}': FEBio's constraint in step '{st.name}' acts "
+                            f"in that step only; in {', '.join(repr(n) for n in later)} the "
+                            "cavity's volume is not held (a constraint written again would "
+                            "take the volume at that step's start)")
 
     data = ET.SubElement(root, "LoadData")
-    for i, (a, b) in enumerate(curves, start=1):
+    for i, pts in enumerate(curves.points, start=1):
         lc = ET.SubElement(data, "load_controller", id=str(i), type="loadcurve")
         ET.SubElement(lc, "interpolate").text = "LINEAR"
         ET.SubElement(lc, "extend").text = "CONSTANT"
-        pts = ET.SubElement(lc, "points")
-        ET.SubElement(pts, "pt").text = f"0,{_fmt(a)}"
-        ET.SubElement(pts, "pt").text = f"1,{_fmt(b)}"
+        xp = ET.SubElement(lc, "points")
+        for t_, v in pts:
+            ET.SubElement(xp, "pt").text = f"{_fmt(t_)},{_fmt(v)}"
     out = ET.SubElement(root, "Output")
     plot = ET.SubElement(out, "plotfile", type="febio")
     for var in ("displacement", "stress", "relative volume"):
         ET.SubElement(plot, "var", type=var)
 
+    names = ", ".join(f"'{st.name}' ({st.n_steps} steps)" for st in exp)
+    lines = [f" written by eyefem from '{setup.name}': {len(exp)} stage(s) {names}; units mm, "
+             "N, MPa. A run in FEBio is not verified here (no FEBio binary). "]
+    lines += [f" not exported or approximated: {w} " for w in warnings]
+    header.text = "\n".join(lines) if len(lines) > 1 else lines[0]
     ET.indent(root, space="  ")
     path = Path(path)
     path.write_bytes(ET.tostring(root, encoding="ISO-8859-1", xml_declaration=True) + b"\n")
     for w in warnings:
         log.warning("export-feb: %s", w)
     log.info("wrote %s: %d nodes, %d hex8 in %d materials, %d boundary conditions, %d "
-             "pressure loads", path, mesh.n_nodes, len(exported), len(mat_ids), len(bc_sets),
-             len(loads))
+             "pressure loads, %d spring sets, %d rigid segments, %d step(s)", path,
+             len(all_xyz), len(exported), len(mat_ids), len(bc_sets), len(loads),
+             len(discrete), len(segments), len(exp))
     return warnings
+
+
+_SKIPPED = {
+    "AnchoredBars": "sutures from scleral bites to anchors on a rigid buckle: each is tied "
+                    "at a length L0 in a later stage and shortened by its tightening; FEBio's "
+                    "springs and trusses rest at their nodes' reference distance and act from "
+                    "the first step, so the sutures and their tightening are not written",
+    "TiedBars": "sutures over a deformable buckle, tied at a length in a later stage and "
+                "shortened: no FEBio equivalent (springs rest at their reference length)",
+    "OrbitSpring": "springs on the best-fit rigid motion of a ring of nodes (the orbit's "
+                   "support): no FEBio discrete element; FEBio holds the eye by its "
+                   "boundary conditions only",
+    "RigidContact": "contact with triangulated rigid bodies: not written",
+}
+
+
+def _unique(label, taken: set) -> str:
+    nm, k = label, 1
+    while nm in taken:
+        k += 1
+        nm = f"{label}_{k}"
+    taken.add(nm)
+    return nm
+
+
+def _write_control(ctrl, n_steps: int) -> None:
+    ET.SubElement(ctrl, "analysis").text = "STATIC"
+    ET.SubElement(ctrl, "time_steps").text = str(n_steps)
+    ET.SubElement(ctrl, "step_size").text = _fmt(1.0 / n_steps)
+    ts = ET.SubElement(ctrl, "time_stepper", type="default")
+    ET.SubElement(ts, "max_retries").text = "5"
+    ET.SubElement(ts, "opt_iter").text = "10"
+    ET.SubElement(ts, "dtmin").text = "0"
+    ET.SubElement(ts, "dtmax").text = _fmt(1.0 / n_steps)
+
+
+class _Curves:
+    """FEBio load curves over the stages: stage k (1-based) spans FEBio time [k - 1, k];
+    a curve is its values at t = 0, 1, ..., K, linear between (identical curves shared)."""
+
+    def __init__(self, n_stages: int):
+        self.n, self.points = n_stages, []
+
+    def add(self, values) -> int:
+        pts = [(float(k), float(v)) for k, v in enumerate(values)]
+        if len(pts) != self.n + 1:
+            raise ValueError(f"a load curve needs {self.n + 1} values, got {len(pts)}")
+        while len(pts) > 2 and pts[-1][1] == pts[-2][1]:
+            pts.pop()  # held at the end: CONSTANT extension
+        if pts not in self.points:
+            self.points.append(pts)
+        return self.points.index(pts) + 1
+
+    def scaled(self, values) -> tuple[int, float]:
+        """(curve id, scale) with curve x scale = values (the curve's largest value 1)."""
+        big = max(values, key=abs)
+        scale = big if big != 0 else 1.0
+        return self.add([v / scale for v in values]), scale
+
+
+def _trajectory(theta, exp, name, key):
+    """A term param's value at t = 0 and at each stage's end (carried where not given)."""
+    v = np.asarray(theta[name][key], float)
+    out = [v]
+    for st in exp:
+        v = np.asarray(st.params.get(name, {}).get(key, v), float)
+        out.append(v)
+    return out
+
+
+def _bar_springs(t, theta, exp, mesh, warnings) -> list:
+    """eyefem.fem.bars.Bars as FEBio linear springs (FELinearSpring, force E (l - L0)):
+    E = EA / L0 gives Bars' energy EA / (2 L0) (l - L0)^2 exactly (FEBio's linear truss,
+    E A ln(lam) / lam, differs at second order). An end inside a face (xi not at a node)
+    moves to the face's node of largest shape function (listed); one set per distinct E."""
+    from eyefem.fem.bars import bilinear
+
+    na, nb = np.asarray(t.nodes_a).reshape(-1, 4), np.asarray(t.nodes_b).reshape(-1, 4)
+    xi = np.asarray(theta[t.name]["xi"], float)
+    ends, moved = [], 0.0
+    for nodes4, x in ((na, xi[:, 0]), (nb, xi[:, 1])):
+        w = bilinear(x)
+        pick = nodes4[np.arange(len(nodes4)), np.argmax(w, axis=1)]
+        pos = np.einsum("na,nai->ni", w, mesh.nodes[nodes4])
+        moved = max(moved, float(np.max(np.linalg.norm(mesh.nodes[pick] - pos, axis=1))))
+        ends.append(pick)
+    conn = np.stack(ends, 1)
+    if moved > 1e-9:
+        warnings.append(f"bars '{t.name}': ends inside faces moved to the faces' nearest "
+                        f"nodes (by at most {moved:.3g} mm) for FEBio's node-to-node springs")
+    if any(np.any(v != 0) for v in _trajectory(theta, exp, t.name, "shortening")):
+        warnings.append(f"bars '{t.name}': their shortening (a change of rest length) is not "
+                        "written; FEBio's springs rest at their reference length")
+    if t.tension_only:
+        kind = "tension-only linear spring"
+    else:
+        kind = "linear spring"
+    L0 = np.linalg.norm(mesh.nodes[conn[:, 1]] - mesh.nodes[conn[:, 0]], axis=1)
+    E = np.asarray(theta[t.name]["EA"], float) / L0
+    out = []
+    for j, e in enumerate(np.unique(E)):
+        sel = E == e
+        out.append((f"{t.name}_{j + 1}" if len(np.unique(E)) > 1 else t.name, conn[sel],
+                    kind, E[sel]))
+    return out
+
+
+BUCKLE_SEGMENTS = 24
+"""Rigid segments an encircling buckle is written as: each translates along the inward
+radius through its middle, so their surface stays within d (1 - cos(pi / 24)) = 0.86 % of
+the radial tightening d of eyefem's uniformly shrinking ring."""
+
+
+def _buckle_segments(t, theta, exp, add_nodes, warnings) -> list:
+    """An encircling eyefem.fem.buckle_contact.BuckleContact (its analytic inner surface)
+    as BUCKLE_SEGMENTS rigid bodies of quad4 facets: [(name, quads (f, 4) node ids,
+    inward unit direction (3,), the radial motion d at t = 0 and each stage's end)]."""
+    extra = [0.0]  # the ring's own radial unknown, where a stage prescribes it
+    for st in exp if t.extra_dof >= 0 else ():
+        hit = np.nonzero(np.asarray(st.prescribed[0]) == t.extra_dof)[0]
+        extra.append(float(np.asarray(st.prescribed[1])[hit[0]]) if hit.size else np.nan)
+    if t.shape != "ring" or np.isnan(extra).any():
+        warnings.append(f"buckle '{t.name}': a {t.shape} buckle"
+                        f"{' with a free radial motion' if np.isnan(extra).any() else ''} is "
+                        "not written (only an encircling ring moved as prescribed is)")
+        return []
+    traj = {k: _trajectory(theta, exp, t.name, k) for k in ("d", "s", "ridge", "dr", "rot")}
+    if t.extra_dof >= 0:
+        traj["d"] = [v + e for v, e in zip(traj["d"], extra)]
+    for k in ("s", "dr", "rot"):
+        if any(np.any(v != 0) for v in traj[k]):
+            warnings.append(f"buckle '{t.name}': its motion '{k}' is not written (the "
+                            "segments translate radially only)")
+    ridge = float(traj["ridge"][-1][0])
+    if any(float(v[0]) != ridge for v in traj["ridge"][1:]) and ridge != 0.0:
+        warnings.append(f"buckle '{t.name}': its ridge is written at its final height "
+                        f"{ridge:g} mm from the start (eyefem raises it over a stage)")
+    params = {k: np.zeros(1) for k in ("d", "s", "dr", "rot")}
+    params["ridge"] = np.array([ridge])
+    n_seg, per = BUCKLE_SEGMENTS, 4
+    P, _ = t.surface(np.zeros(max(3 * t.mesh.n_nodes, t.extra_dof + 1)), params,
+                     n_around=n_seg * per,
+                     n_across=6)
+    nu, nv = n_seg * per + 1, 7
+    grid = np.arange(nu * nv).reshape(nu, nv)
+    warnings.append(f"buckle '{t.name}': written as {n_seg} rigid segments translated along "
+                    "their middle's inward radius (eyefem shrinks the ring uniformly), in "
+                    "sliding-elastic contact with a penalty per area from eyefem's per-node "
+                    "penalty, from the first step (eyefem's from its stage), without "
+                    "eyefem's smoothed penetration")
+    out = []
+    for j in range(n_seg):
+        cols = grid[j * per:(j + 1) * per + 1]
+        pts = P[cols.ravel()]
+        ids = add_nodes(pts).reshape(cols.shape)
+        a, b, c, d = ids[:-1, :-1], ids[1:, :-1], ids[1:, 1:], ids[:-1, 1:]
+        quads = np.stack([a, b, c, d], -1).reshape(-1, 4)
+        mid = P[cols[per // 2, nv // 2]]
+        inward = -mid / np.linalg.norm(mid)
+        x = pts.reshape(cols.shape + (3,))
+        nrm = np.cross(x[1, 0] - x[0, 0], x[0, 1] - x[0, 0])
+        if nrm @ inward < 0:
+            quads = quads[:, ::-1]  # facets face the eye (toward the axis)
+        out.append((f"{t.name}_segment_{j + 1}", quads, inward,
+                    [float(v[0]) for v in traj["d"]]))
+    return out
+
+
+def _write_volume_constraint(parent, t, theta, exp, surf_names, warnings) -> None:
+    """A closed fluid cavity (eyefem.fem.cavity.FluidCavity, P = P_ini - K_eff (V - V_ini) /
+    V_ini) as FEBio's volume constraint (FEVolumeConstraint: penalty, laugon 0): FEBio's
+    multiplier p = eps (V - V0) pushes along the faces' normals, so eps = -K_eff / V_ini
+    reproduces the liquid's stiffness on either orientation of the faces; V0 is the volume
+    when the step activates it (eyefem's closing) and P_ini is the pressure load held."""
+    p = theta[t.name]
+    K = float(np.ravel(p["bulk"])[0])
+    c = float(np.ravel(p["c_out"])[0])
+    V = float(np.ravel(p["v_ini"])[0])
+    keff = K / (1.0 + K * c / V)
+    if len(t.face_sets) != 1 or len(t.face_sets[0]) != 1:
+        warnings.append(f"cavity '{t.name}': several cavities or face sets are not written")
+        return
+    if t.symmetry_planes or t.regulation is not None:
+        warnings.append(f"cavity '{t.name}': symmetry planes and volume regulation are not "
+                        "written")
+        return
+    if any(np.any(v != 0) for v in _trajectory(theta, exp, t.name, "dv")):
+        warnings.append(f"cavity '{t.name}': an exchanged volume dv is not written")
+    cons = ET.SubElement(parent, "Constraints")
+    el = ET.SubElement(cons, "constraint", name=t.name, type="volume",
+                       surface=surf_names[t.face_sets[0][0]])
+    el.append(ET.Comment(f" eyefem FluidCavity '{t.name}': K = {K:g} MPa, V_ini ~ {V:.6g} mm^3 "
+                         "(the reference volume; eyefem's is the volume when it closes) "))
+    ET.SubElement(el, "laugon").text = "0"
+    ET.SubElement(el, "penalty").text = _fmt(-keff / V)
+    warnings.append(f"cavity '{t.name}': FEBio's volume constraint with the penalty "
+                    f"-K / V_ini = {-keff / V:.4g} MPa/mm^3 from the reference volume (eyefem "
+                    "takes V_ini when the cavity closes)")
 
 
 def _warn_unheld(mesh: Mesh, elements, held_nodes, warnings: list):
@@ -337,19 +668,32 @@ def _write_febio_law(mats, i, febio_name, c, k, cc, name, warnings) -> None:
         ET.SubElement(el, tag).text = _fmt(v)
 
 
-def _boundary_sets(stage: Stage, n_nodes: int, warnings: list) -> list:
-    """Group a stage's prescribed dofs into node sets: [(label, nodes, spec)] with spec
-    ("zero", components) for held components or ("value", component, mm) for each
-    distinct non-zero target of a component."""
-    dofs, vals = stage.prescribed
+def _boundary_sets(stages, n_nodes: int, warnings: list) -> list:
+    """Group the stages' prescribed dofs into node sets: [(label, nodes, spec)] with spec
+    ("zero", components) for components held at zero in every stage or ("value",
+    component, (target at each stage's end, mm)) for each distinct path of a component.
+    The dofs are the first stage's; a later stage that prescribes others is listed."""
+    first = stages[0]
+    dofs = np.asarray(first.prescribed[0])
     keep = dofs < 3 * n_nodes
     if not np.all(keep):
-        warnings.append(f"{int(np.sum(~keep))} prescribed dofs beyond the nodal displacements "
-                        "(extra unknowns such as a rigid buckle's motion) skipped")
-    dofs, vals = dofs[keep], vals[keep]
+        log.info("export-feb: %d prescribed dofs beyond the nodal displacements (extra "
+                 "unknowns such as a rigid buckle's motion: written with its body)",
+                 int(np.sum(~keep)))
+    dofs = dofs[keep]
+    paths = np.zeros((len(dofs), len(stages)))
+    for k, st in enumerate(stages):
+        d, v = np.asarray(st.prescribed[0]), np.asarray(st.prescribed[1])
+        if not np.array_equal(np.sort(d[d < 3 * n_nodes]), np.sort(dofs)):
+            warnings.append(f"stage '{st.name}': it prescribes other dofs than stage "
+                            f"'{first.name}'; the first stage's dofs are written for all")
+            paths[:, k] = paths[:, k - 1] if k else 0.0
+            continue
+        where = dict(zip(d.tolist(), v.tolist()))
+        paths[:, k] = [where[int(i)] for i in dofs]
     node, comp = dofs // 3, dofs % 3
     out = []
-    zero = vals == 0.0
+    zero = np.all(paths == 0.0, axis=1)
     mask = np.zeros(n_nodes, np.int64)
     np.add.at(mask, node[zero], 1 << comp[zero])
     for bits in range(1, 8):
@@ -359,8 +703,9 @@ def _boundary_sets(stage: Stage, n_nodes: int, warnings: list) -> list:
             out.append((f"fixed_{comps}", sel, ("zero", comps)))
     for c in range(3):
         on = (~zero) & (comp == c)
-        for v in np.unique(vals[on]):
-            sel = np.sort(node[on & (vals == v)])
+        for path in np.unique(paths[on], axis=0) if on.any() else []:
+            sel = np.sort(node[on & np.all(paths == path, axis=1)])
             k = sum(1 for o in out if o[0].startswith(f"prescribed_{_XYZ[c]}"))
-            out.append((f"prescribed_{_XYZ[c]}_{k + 1}", sel, ("value", _XYZ[c], float(v))))
+            out.append((f"prescribed_{_XYZ[c]}_{k + 1}", sel,
+                        ("value", _XYZ[c], tuple(float(v) for v in path))))
     return out

@@ -311,8 +311,10 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
         if not isinstance(el.tag, str):
             continue
         if el.tag not in _IGNORED and len(el):
-            raise _err(path, f"<{el.tag}> is not supported (eyefem reads hex8 Mooney-Rivlin "
-                       "solids with displacement and pressure loads; remove it)")
+            raise _err(path, f"<{el.tag}> is not supported (eyefem reads hex8 solids, "
+                       "linear trusses, linear springs and rigid bodies moved as prescribed, "
+                       "with displacement, pressure, nodal and body loads; remove it or run "
+                       "the deck in FEBio)")
     module = root.find("Module")
     if module is not None and module.get("type", "solid") != "solid":
         raise _err(path, f"<Module type=\"{module.get('type')}\">; only 'solid' is supported")
@@ -1315,6 +1317,46 @@ def build_model(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, St
         raise FebError(f"the deck has {len(stages)} steps; use build_stages (one Stage per "
                        "step)")
     return model, stages[0]
+
+
+def deck_pieces(path) -> dict:
+    """What a deck holds, counted from its XML without building a model (a deck that
+    :func:`read_feb` refuses, e.g. one with contact, can still be checked piece by piece):
+    {"nodes": int, "elements": {type: count}, "springs": {discrete material type: count},
+    "rigid_bodies": int, "contacts": {type: count}, "constraints": {type: count} (the
+    model's and the steps'), "steps": [names], "surface_loads": int, "omissions": [the
+    header's 'not exported or approximated' lines]}."""
+    import collections
+    import re
+
+    path = Path(path)
+    try:
+        root = ET.parse(path, ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))
+                        ).getroot()
+    except ET.ParseError as exc:
+        raise _err(path, f"not valid XML ({exc})") from None
+    nodes, _ = _read_nodes(root, path)
+    elements = collections.Counter()
+    for block in root.iterfind("Mesh/Elements"):
+        elements[block.get("type")] += len(block.findall("elem"))
+    dsets = {d.get("name"): len(d.findall("delem")) for d in root.iterfind("Mesh/DiscreteSet")}
+    dmat = {m.get("id"): m.get("type") for m in root.iterfind("Discrete/discrete_material")}
+    springs = collections.Counter()
+    for d in root.iterfind("Discrete/discrete"):
+        springs[dmat.get(d.get("dmat"))] += dsets.get(d.get("discrete_set"), 0)
+    contacts = collections.Counter(c.get("type") for c in root.iter("contact"))
+    constraints = collections.Counter(c.get("type") for c in root.iter("constraint"))
+    omissions = []
+    for el in root:
+        if el.tag is ET.Comment and el.text:
+            omissions += [m.strip() for m in re.findall(r"not exported or approximated: (.*)", el.text)]
+    return {"nodes": len(nodes), "elements": dict(elements), "springs": dict(springs),
+            "rigid_bodies": sum(m.get("type") == "rigid body"
+                                for m in root.iterfind("Material/material")),
+            "contacts": dict(contacts), "constraints": dict(constraints),
+            "steps": [st.get("name") for st in root.iterfind("Step/step")],
+            "surface_loads": len(root.findall("Loads/surface_load")),
+            "omissions": omissions}
 
 
 def feb_setup(path) -> Setup:

@@ -1,0 +1,127 @@
+"""The whole model exported to FEBio 4 (eyefem.io.febio.write_feb): every stage a <step>,
+bars and node springs as FEBio's linear springs, a closed cavity as FEBio's volume
+constraint, the encircling buckle as rigid segments in sliding contact; what FEBio cannot
+be given is listed in the deck's header. There is no FEBio binary here: a run in FEBio is
+not verified; the decks are read back with eyefem's own reader."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eyefem.fem import generators
+from eyefem.fem.bars import Bars
+from eyefem.fem.materials import mooney_rivlin
+from eyefem.fem.terms import NodeSprings
+from eyefem.io.febio import write_feb
+from eyefem.io.febio_read import FebError, build_stages, deck_pieces, read_feb
+from eyefem.io.runner import Setup
+from eyefem.solve.model import node_dofs, solid_model
+from eyefem.solve.solver import Stage, solve
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _linked_block():
+    """A 2 x 1 x 1 mm block (3 x 2 x 2 hexahedra) clamped at x0, two bars (EA 0.3 N)
+    between nodes of its x1 face, whose nodes node springs (0.02 N/mm) hold; stage 1 pulls
+    z1 up 0.05 mm, stage 2 to 0.1 mm."""
+    mat = mooney_rivlin("rubber", 0.25, 0.05)
+    mesh = generators.box(2.0, 1.0, 1.0, 3, 2, 2, material=mat.name)
+    x1 = mesh.node_set("x1")
+    a, b = x1[:2], x1[-2:]
+    bars = Bars("ties", np.repeat(a[:, None], 4, 1), np.repeat(b[:, None], 4, 1),
+                np.zeros((2, 2)), np.zeros((2, 2)), mesh.nodes, EA=0.3)
+    springs = NodeSprings("hold", x1, k=0.02)
+    model = solid_model(mesh, {mat.name: mat}, (bars, springs))
+    clamp = node_dofs(mesh.node_set("x0"), "xyz")
+    lift = node_dofs(np.setdiff1d(mesh.node_set("z1"), mesh.node_set("x0")), "z")
+    dofs = np.r_[clamp, lift]
+
+    def stage(name, h):
+        return Stage(name, 2, (dofs, np.r_[np.zeros(len(clamp)), np.full(len(lift), h)]))
+    return Setup("linked", model, [stage("up", 0.05), stage("more", 0.1)],
+                 lambda *a: {}, lambda *a: {})
+
+
+def test_steps_bars_and_springs_round_trip_to_the_same_solution(tmp_path):
+    """Two stages become two <step>s; the bars become linear springs with E = EA / L0 and
+    the node springs zero-length springs to fixed ground nodes (FEBio's E (l - L0): the
+    same energies). Read back and solved by eyefem, the deck gives the native solution
+    (the one part checkable without FEBio)."""
+    setup = _linked_block()
+    deck = tmp_path / "linked.feb"
+    assert write_feb(setup, deck) == []
+    pieces = deck_pieces(deck)
+    n = setup.model.mesh.n_nodes
+    assert pieces["steps"] == ["up", "more"]
+    assert pieces["nodes"] == n + len(setup.model.mesh.node_set("x1"))  # + ground nodes
+    assert pieces["springs"] == {"linear spring": 2 + len(setup.model.mesh.node_set("x1"))}
+    mesh, mats, loads = read_feb(deck)
+    model, stages = build_stages(mesh, mats, loads)
+    assert [s.n_steps for s in stages] == [2, 2]
+    native = np.asarray(solve(setup.model, setup.stages).q)[: 3 * n]
+    back = np.asarray(solve(model, stages).q)[: 3 * n]
+    assert np.max(np.abs(native)) > 0.05
+    # mm: the deck's k = 1000 (c10 + c01) with laugon = 1 is read back as exactly
+    # incompressible, so the two solutions are the same model
+    assert np.max(np.abs(back - native)) <= 1e-8
+
+
+@pytest.fixture(scope="module")
+def surgery_deck(tmp_path_factory):
+    from eyefem.catalog import problems, schemas
+    from eyefem.io.casefile import load_case
+
+    case = load_case(ROOT / "cases/surgery/case1.toml", schemas())
+    case.parameters["mesh"] = "coarse"
+    setup = problems()[case.problem][1](case.parameters, case.materials)
+    deck = tmp_path_factory.mktemp("feb") / "case1.feb"
+    warnings = write_feb(setup, deck)
+    return setup, deck, warnings
+
+
+def test_surgery_exports_every_stage_and_its_pieces(surgery_deck):
+    """Case 1 on the coarse mesh: three steps, the zonule's 16 bars and the lens's
+    springs as linear springs, the buckle as 24 rigid segments with one sliding-elastic
+    contact, the cavity as one volume constraint."""
+    setup, deck, _ = surgery_deck
+    model = setup.model
+    pieces = deck_pieces(deck)
+    assert pieces["steps"] == [s.name for s in setup.stages]
+    lens = len(model.term("lens_springs").nodes)
+    zonule = len(model.term("zonule").params["EA"])
+    assert pieces["springs"] == {"linear spring": zonule + lens}
+    assert pieces["elements"]["hex8"] == model.mesh.n_elem
+    assert pieces["rigid_bodies"] == 24 and pieces["contacts"] == {"sliding-elastic": 1}
+    assert pieces["constraints"] == {"volume": 1} and pieces["surface_loads"] == 1
+    # nodes: the mesh's, a ground node per lens spring, the segments' facets (5 x 7 each)
+    assert pieces["nodes"] == model.mesh.n_nodes + lens + 24 * 5 * 7
+
+
+def test_surgery_deck_lists_what_febio_is_not_given(surgery_deck):
+    """The sutures (tied in a later stage and tightened) and the orbit's springs cannot be
+    written; the buckle's segments, the zonule's moved ends and the cavity's penalty are
+    approximations: all are in the header and returned (the command prints them)."""
+    _, deck, warnings = surgery_deck
+    listed = deck_pieces(deck)["omissions"]
+    assert listed == warnings
+    text = " ".join(listed)
+    for name in ("'sutures'", "'orbit'", "'zonule'", "buckle 'buckle'", "cavity 'cavity'"):
+        assert name in text
+    assert "not verified" in deck.read_text()[:400]
+
+
+def test_surgery_deck_refused_by_eyefem_reader_by_name(surgery_deck):
+    """eyefem's reader does not map FEBio's contact: it refuses the deck naming it."""
+    _, deck, _ = surgery_deck
+    with pytest.raises(FebError, match="<Contact> is not supported"):
+        read_feb(deck)
+
+
+def test_stage_count_out_of_range_is_refused(tmp_path):
+    setup = _linked_block()
+    with pytest.raises(ValueError, match="stages = 3; 'linked' has 2 stage"):
+        write_feb(setup, tmp_path / "x.feb", stages=3)
+    write_feb(setup, tmp_path / "one.feb", stages=1)
+    assert deck_pieces(tmp_path / "one.feb")["steps"] == []
