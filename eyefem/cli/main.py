@@ -417,10 +417,10 @@ def cmd_export_feb(args) -> int:
         print(f"eyefem export-feb: {msg}", file=sys.stderr)
         return 2
     mesh = setup.model.mesh
-    print(f"wrote {args.output}: FEBio 4 deck of '{setup.name}', stage "
-          f"'{setup.stages[0].name}' ({mesh.n_nodes} nodes, {mesh.n_elem} elements)")
+    print(f"wrote {args.output}: FEBio 4 deck of '{setup.name}', {len(setup.stages)} stage(s) "
+          f"as steps ({mesh.n_nodes} mesh nodes, {mesh.n_elem} elements); not run in FEBio")
     for w in skipped:
-        print(f"  not exported: {w}")
+        print(f"  not exported or approximated: {w}")
     return 0
 
 
@@ -633,7 +633,7 @@ def main(argv=None) -> int:
     p.add_argument("--all", action="store_true", help="ask every field, the advanced ones and "
                    "those that do not apply to the chosen buckle too")
     p.set_defaults(fn=cmd_new_case)
-    p = sub.add_parser("export-feb", help="write a case's first stage as an FEBio 4 deck")
+    p = sub.add_parser("export-feb", help="write a case's stages as an FEBio 4 deck")
     p.add_argument("case", help="case file")
     p.add_argument("-o", "--output", required=True, help="the .feb file to write")
     p.add_argument("--mesh", help="override the case's mesh level (surgery: coarse, medium, "
