@@ -17,7 +17,8 @@ backward sweep over the stages, eyefem.solve.staged, three adjoint solves on the
 last factorisations, whatever the cotangent), so
 ``jax.grad`` of any scalar of the outcomes costs one forward solve and three adjoint
 solves; ``jax.jacrev`` one backward pass per outcome. Forward-mode (``jax.jvp``, ``jax.jacfwd``) is not
-supported (custom_vjp). A call without traced values runs the host solve directly and
+supported (custom_vjp). On the surgery's timeline the backward pass is one adjoint per
+load step (eyefem.eye.design.TimelineSimulator). A call without traced values runs the host solve directly and
 returns floats.
 
 One SurgerySimulator is kept per (case, mesh) - keyed by the parsed case's contents, so a
@@ -99,7 +100,13 @@ def simulate(case: str | Path | Case, design: dict | None = None, *,
       outcome name (OUTCOMES: iop_mmhg, indentation_mm, axial_length_change_mm,
       max_suture_force_N, refraction_change_D, corneal_power_change_D,
       corneal_astigmatism_D, anterior_chamber_depth_change_mm) -> float, or 0-d float64
-      array when the design is traced.
+      array when the design is traced. A case on the surgery's timeline
+      (``volume_regulation = true``: eyefem.eye.design.TimelineSimulator) reports these at
+      its last follow-up time and then its timeline outcomes (peak_iop_on_table_mmhg,
+      minutes_above_cra_closing, iop_end_of_surgery_mmhg, iop_48h_mmhg, ...,
+      refraction_change_1w_D, ...: eyefem.eye.timeline.outcome_names), all
+      differentiable; its design may also set paracentesis_volume (uL) and
+      paracentesis_delay_minutes.
 
     Raises ValueError for a case simulate cannot run, an unknown design variable or mesh
     level, or a variable the case cannot vary; RuntimeError when x64 is off (call
@@ -115,11 +122,11 @@ def simulate(case: str | Path | Case, design: dict | None = None, *,
     host = _host(case, mesh)
     if not any(isinstance(v, jax.core.Tracer) for v in design.values()):
         values = host.outcomes({k: float(v) for k, v in design.items()})
-        return {k: float(v) for k, v in zip(OUTCOMES, values)}
+        return {k: float(v) for k, v in zip(host.names, values)}
     names = tuple(design)
     x = jnp.stack([jnp.asarray(design[k], dtype=jnp.float64) for k in names])
     y = host.differentiable(names)(x)
-    return {k: y[i] for i, k in enumerate(OUTCOMES)}
+    return {k: y[i] for i, k in enumerate(host.names)}
 
 
 def _check_design(design: dict) -> None:
@@ -191,6 +198,7 @@ class _Host:
 
     def __init__(self, sim: SurgerySimulator):
         self.sim = sim
+        self.names = tuple(getattr(sim, "outcome_names", OUTCOMES))  # the outcomes, in order
         self.lock = threading.RLock()
         self.memo: collections.OrderedDict = collections.OrderedDict()
         self.functions: dict = {}
@@ -207,16 +215,16 @@ class _Host:
             return self.memo[key]
 
     def outcomes(self, design: dict) -> np.ndarray:
-        """Outcome values (n_outcomes,) in the order of OUTCOMES."""
+        """Outcome values (n_outcomes,) in the order of self.names."""
         res = self._entry(design)["result"]
-        return np.array([res.outcomes[k] for k in OUTCOMES], dtype=np.float64)
+        return np.array([res.outcomes[k] for k in self.names], dtype=np.float64)
 
     def cotangent_gradient(self, design: dict, cotangent) -> np.ndarray:
         """d (cotangent . outcomes) / d design (len(design),): three adjoint solves. The
         gradient of a single outcome (a one-hot cotangent: jax.grad of one outcome, a row of
         jax.jacrev) is remembered with the design, so a jitted or repeated call reuses it."""
         entry = self._entry(design)
-        weights = {k: float(w) for k, w in zip(OUTCOMES, np.asarray(cotangent, np.float64)) if w}
+        weights = {k: float(w) for k, w in zip(self.names, np.asarray(cotangent, np.float64)) if w}
         with self.lock:
             if len(weights) == 1:
                 (name, w), = weights.items()
@@ -232,7 +240,7 @@ class _Host:
         """x (len(names),) -> outcomes (n_outcomes,): a custom_vjp over host callbacks."""
         if names in self.functions:
             return self.functions[names]
-        out = jax.ShapeDtypeStruct((len(OUTCOMES),), jnp.float64)
+        out = jax.ShapeDtypeStruct((len(self.names),), jnp.float64)
 
         def design_of(x):
             return dict(zip(names, (float(v) for v in np.asarray(x, dtype=np.float64))))

@@ -9,6 +9,9 @@ outcomes with respect to the design (SurgerySimulator.weighted_gradient). Scales
 every term about 1 when the miss is about one tolerance: 0.05 mm of indentation, 1 mmHg,
 0.1 mm of axial length, 10% of a suture force limit. The soft limits (iop_window, ...)
 are penalties, for objectives that want them; the planner treats limits as constraints.
+A case on the surgery's timeline (volume_regulation = true) adds its timeline outcomes
+(eyefem.eye.timeline.outcome_names): limits on the peak IOP on the table and the minutes
+above the central retinal artery's closing pressure, targets at a follow-up time.
 """
 
 from __future__ import annotations
@@ -118,3 +121,48 @@ def suture_force_at_most(max_n: float) -> Constraint:
     return Constraint(f"suture force <= {max_n:g} N",
                       lambda o: (max_n - o["max_suture_force_N"]) / (0.1 * max_n),
                       ("max_suture_force_N",))
+
+
+# --- the surgery's timeline (cases with volume_regulation = true) -----------------------
+
+def iop_peak_at_most(max_mmhg: float, tol_mmhg: float = 1.0) -> Constraint:
+    """Peak IOP on the table <= max_mmhg (the central retinal artery's perfusion during the
+    tightening; eyefem.eye.timeline: the largest step's IOP)."""
+    key = "peak_iop_on_table_mmhg"
+    return Constraint(f"peak iop <= {max_mmhg:g} mmHg", lambda o: (max_mmhg - o[key]) / tol_mmhg,
+                      (key,))
+
+
+def minutes_above_at_most(max_min: float, tol_min: float = 1.0) -> Constraint:
+    """Minutes above the central retinal artery's closing pressure <= max_min (the smooth
+    count of eyefem.eye.timeline.smooth_minutes_above); one unit: a minute."""
+    if not max_min > 0:
+        raise ValueError(f"minutes above the closing pressure limit {max_min} min; must be > 0 "
+                         "(the smooth count is never exactly 0)")
+    key = "minutes_above_cra_closing"
+    return Constraint(f"minutes above closing <= {max_min:g}",
+                      lambda o: (max_min - o[key]) / tol_min, (key,))
+
+
+def target_at(outcome: str, when: str, target: float, tol: float, unit: str) -> Objective:
+    """((outcome at a follow-up time - target) / tol)^2 for a shape outcome of the timeline
+    (eyefem.eye.timeline.shape_name: ("indentation_mm", "1w") reads indentation_1w_mm)."""
+    from eyefem.eye.timeline import shape_name
+
+    key = shape_name(outcome, when)
+    label = outcome.rsplit("_", 1)[0].replace("_change", "")
+    return Objective(f"{label} at {when}={target:g}{unit}",
+                     lambda o: ((o[key] - target) / tol) ** 2, (key,))
+
+
+def target_indentation_at(when: str, target_mm: float, tol_mm: float = 0.05) -> Objective:
+    """((buckle height at a follow-up time - target) / tol)^2 (e.g. when = "1w")."""
+    if not target_mm > 0:
+        raise ValueError(f"target indentation {target_mm} mm; must be > 0")
+    return target_at("indentation_mm", when, target_mm, tol_mm, "mm")
+
+
+def target_refraction_at(when: str, target_d: float, tol_d: float = 0.25) -> Objective:
+    """((refraction change at a follow-up time - target) / tol)^2, dioptres (negative:
+    myopic; tol a quarter dioptre, a spectacle step)."""
+    return target_at("refraction_change_D", when, target_d, tol_d, "D")

@@ -3,6 +3,14 @@
     python -m optimize.plan cases/surgery/case1.toml --mesh coarse \\
         --target-indentation 1.0 --iop-max 21 --vars tightening,suture_width
 
+A case on the surgery's timeline (``volume_regulation = true``) is planned on its outcomes
+over time (eyefem.eye.design.TimelineSimulator): limits on the peak IOP on the table
+(--iop-peak-max) and on the minutes above the central retinal artery's closing pressure
+(--minutes-above-max), targets on the buckle height or the refraction change a week after
+surgery (--target-indentation-1w, --target-refraction-1w), and the paracentesis's volume
+and time as variables (--vars tightening,paracentesis_volume,paracentesis_delay_minutes);
+each evaluation then solves the whole timeline and one adjoint per load step.
+
 Sequential quadratic programming (scipy's SLSQP) on the design variables scaled to
 [0, 1] by their bounds: the objective (an indentation target) is minimised subject to
 the limits as constraints (IOP, axial length change, suture force), with exact
@@ -43,7 +51,11 @@ BOUNDS = {  # default bounds of the design variables
     "drain_volume": (0.0, 200.0),
     "band_tension": (0.0, 1.0),  # N; only in cases whose band is pulled (band_tension > 0)
     "buckle_meridian_deg": (None, None),  # segmental only: the case's meridian +- 20 degrees
+    "paracentesis_volume": (0.0, 200.0),  # uL; timeline cases (a 30-gauge needle: 50-200)
+    "paracentesis_delay_minutes": (0.0, 30.0),  # min after the tightening; timeline cases
 }
+TIMELINE_ONLY = ("paracentesis_volume", "paracentesis_delay_minutes")
+"""Design variables of the surgery's timeline: a case with volume_regulation = true."""
 
 
 FEASIBLE = 0.5
@@ -236,7 +248,41 @@ def _objectives_from_args(a) -> tuple[list, list]:
         cons += obj.axial_change_within(a.axial_max)
     if a.suture_force_max is not None:
         cons.append(obj.suture_force_at_most(a.suture_force_max))
+    if a.target_indentation_1w is not None:
+        terms.append(obj.target_indentation_at("1w", a.target_indentation_1w))
+    if a.target_refraction_1w is not None:
+        terms.append(obj.target_refraction_at("1w", a.target_refraction_1w))
+    if a.iop_peak_max is not None:
+        cons.append(obj.iop_peak_at_most(a.iop_peak_max))
+    if a.minutes_above_max is not None:
+        cons.append(obj.minutes_above_at_most(a.minutes_above_max))
     return terms, cons
+
+
+TIMELINE_FLAGS = ("iop_peak_max", "minutes_above_max", "target_indentation_1w",
+                  "target_refraction_1w")
+"""Options that read the outcomes of the surgery's timeline."""
+
+
+def _check_timeline(a, params: dict, names) -> None:
+    """ValueError for a timeline option or variable on a case off the timeline, or a
+    target a week after surgery where the case's follow-up has no week."""
+    flags = [f"--{f.replace('_', '-')}" for f in TIMELINE_FLAGS if getattr(a, f) is not None]
+    wanted = flags + [n for n in names if n in TIMELINE_ONLY]
+    if not params.get("volume_regulation", False):
+        if wanted:
+            raise ValueError(f"{', '.join(wanted)}: outcomes and variables of the surgery's "
+                             "timeline; the case has volume_regulation = false (its cavity is "
+                             "closed, no time passes): set volume_regulation = true in its "
+                             "[parameters] (cases/surgery/timeline_case1.toml)")
+        return
+    from eyefem.eye.timeline import parse_followup
+
+    week = [f for f in ("target_indentation_1w", "target_refraction_1w")
+            if getattr(a, f) is not None]
+    if week and "1w" not in dict(parse_followup(params["followup"])):
+        raise ValueError(f"--{week[0].replace('_', '-')}: the case's followup = "
+                         f"\"{params['followup']}\" has no 1w; add 1w to it")
 
 
 TARGET_INDENTATION_MAX = 5.0
@@ -258,7 +304,12 @@ def _check_args(a) -> dict:
               ("--iop-max", a.iop_max, 0.0, 200.0, "mmHg"),
               ("--iop-min", a.iop_min, 0.0, 200.0, "mmHg"),
               ("--axial-max", a.axial_max, 0.0, 5.0, "mm"),
-              ("--suture-force-max", a.suture_force_max, 0.0, 50.0, "N"))
+              ("--suture-force-max", a.suture_force_max, 0.0, 50.0, "N"),
+              ("--iop-peak-max", a.iop_peak_max, 0.0, 200.0, "mmHg"),
+              ("--minutes-above-max", a.minutes_above_max, 0.0, 600.0, "min"),
+              ("--target-indentation-1w", a.target_indentation_1w, 0.0,
+               TARGET_INDENTATION_MAX, "mm"),
+              ("--target-refraction-1w", a.target_refraction_1w, -15.0, 15.0, "D"))
     for flag, v, lo, hi, unit in limits:
         if v is None:
             continue
@@ -328,6 +379,17 @@ def main(argv=None) -> int:
     ap.add_argument("--iop-min", type=float, help="lower IOP limit, mmHg")
     ap.add_argument("--axial-max", type=float, help="limit on |axial length change|, mm")
     ap.add_argument("--suture-force-max", type=float, help="limit on the largest suture force, N")
+    ap.add_argument("--iop-peak-max", type=float, metavar="MMHG",
+                    help="limit on the peak IOP on the table, mmHg (a case on the timeline)")
+    ap.add_argument("--minutes-above-max", type=float, metavar="MIN",
+                    help="limit on the minutes above the central retinal artery's closing "
+                    "pressure (cra_closing_mmhg), min (a case on the timeline)")
+    ap.add_argument("--target-indentation-1w", type=float, metavar="MM",
+                    help="buckle height target a week after surgery, mm (a case on the "
+                    "timeline)")
+    ap.add_argument("--target-refraction-1w", type=float, metavar="D",
+                    help="refraction change target a week after surgery, dioptres (negative: "
+                    "myopic; a case on the timeline)")
     ap.add_argument("--iterations", type=int, default=20, help="the most simulations")
     ap.add_argument("--tol", type=float, default=1e-2,
                     help="stop when the objective is below this with every limit met")
@@ -366,6 +428,7 @@ def main(argv=None) -> int:
         if not terms and not cons:
             raise CaseError("give an objective: --target-indentation and/or limits (--iop-max ...)")
         names = [v.strip() for v in a.vars.split(",") if v.strip()]
+        _check_timeline(a, params, names)
         log.info("planning %s on the %s mesh: %s subject to %s over %s", case.path,
                  params["mesh"], " + ".join(t.name for t in terms) or "no objective",
                  ", ".join(c.name for c in cons) or "no limit", ", ".join(names))
@@ -393,10 +456,14 @@ def main(argv=None) -> int:
         beat.news()
         rows.append(row)
         write_csv(out / "plan_history.csv", rows)
+        peak = (f"  peak IOP {row['peak_iop_on_table_mmhg']:.2f} mmHg, "
+                f"{row['minutes_above_cra_closing']:.2f} min above closing"
+                if "peak_iop_on_table_mmhg" in row else "")
         log.info("sim %2d  objective %.4g  violation %.3g  %s  IOP %.2f mmHg  indentation %.3f "
-                 "mm  (%d Newton its, %.1f s)", row["iteration"], row["objective"],
+                 "mm%s  (%d Newton its, %.1f s)", row["iteration"], row["objective"],
                  row["constraint_violation"], "  ".join(f"{n} {row[n]:.3f}" for n in names),
-                 row["iop_mmhg"], row["indentation_mm"], row["newton_iterations"], row["wall_s"])
+                 row["iop_mmhg"], row["indentation_mm"], peak, row["newton_iterations"],
+                 row["wall_s"])
 
     beat = Heartbeat(lambda: f"simulation {len(rows)} (with its adjoints)", interval=60.0,
                      logger=log)

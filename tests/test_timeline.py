@@ -120,15 +120,100 @@ def test_coarse_case1_on_the_timeline(tmp_path, capsys):
     assert not math.isnan(s["refraction_change_1w_D"])
 
 
-def test_the_planner_refuses_a_case_on_the_timeline(tmp_path, capsys):
-    """The design gradients solve the closed cavity's three stages: a timeline case is
-    refused by name (exit 2), not planned on another model."""
+def test_the_paracentesis_after_a_wait_and_as_events():
+    """A paracentesis delay puts a wait of WAIT_STEPS held steps between the tightening and
+    the paracentesis; ``events`` keeps both stages at a zero volume and delay (the design
+    gradients' load path has the same steps at every design)."""
+    from eyefem.eye.timeline import WAIT_STEPS
+
+    stages = _stages()
+    p = {**P, "volume_regulation": True, "paracentesis_volume": 80.0,
+         "paracentesis_delay_minutes": 4.0, "followup": "1h"}
+    out = timed_stages(stages, p)
+    assert [s.name for s in out] == ["pressurise", "tighten", "wait", "paracentesis", "suture",
+                                     "follow-up"]
+    wait = out[2]
+    assert wait.duration == 4.0 and wait.n_steps == WAIT_STEPS and wait.params == {}
+    assert wait.before is None and wait.active == stages[1].active
+    none = {**p, "paracentesis_volume": 0.0, "paracentesis_delay_minutes": 0.0}
+    assert [s.name for s in timed_stages(stages, none)] == ["pressurise", "tighten", "suture",
+                                                           "follow-up"]
+    events = timed_stages(stages, none, events=True)
+    assert [s.name for s in events] == ["pressurise", "tighten", "wait", "paracentesis",
+                                        "suture", "follow-up"]
+    assert events[2].duration == 0.0 and events[3].params == {"cavity": {"paracentesis": 0.0}}
+
+
+def test_the_timeline_outcome_names():
+    from eyefem.eye.timeline import outcome_names, shape_name
+
+    p = {**P, "volume_regulation": True, "followup": "1h, 48h, 1w"}
+    names = outcome_names(p)
+    assert names[:3] == ("peak_iop_on_table_mmhg", "minutes_above_cra_closing",
+                         "iop_end_of_surgery_mmhg")
+    assert {"iop_1h_mmhg", "iop_48h_mmhg", "iop_1w_mmhg", "indentation_1w_mm",
+            "refraction_change_1w_D"} <= set(names)
+    assert "indentation_48h_mm" not in names  # shapes from a week on
+    assert shape_name("axial_length_change_mm", "3mo") == "axial_length_change_3mo_mm"
+
+
+def test_the_table_outcomes_are_one_definition_for_numpy_and_jax():
+    """timeline_outcomes (summary.json) and the design gradients read the on-table
+    outcomes from one function; with JAX arrays it is differentiable (the peak's
+    derivative is its step's)."""
+    import jax
+    import jax.numpy as jnp
+
+    from eyefem.eye.timeline import table_outcomes
+
+    jax.config.update("jax_enable_x64", True)
+    p = {**P, "volume_regulation": True, "cra_closing_mmhg": 60.0}
+    t = np.array([0.0, 5.0, 10.0, 25.0])
+    iop = np.array([15.0, 50.0, 90.0, 30.0])
+    a = table_outcomes(t, iop, p)
+    b = table_outcomes(jnp.asarray(t), jnp.asarray(iop), p)
+    for k in a:
+        assert float(b[k]) == pytest.approx(float(a[k]), rel=1e-14)
+    g = jax.grad(lambda x: table_outcomes(jnp.asarray(t), x, p)["peak_iop_on_table_mmhg"])(
+        jnp.asarray(iop))
+    np.testing.assert_array_equal(np.asarray(g), [0.0, 0.0, 1.0, 0.0])
+    h = 1e-3  # mmHg: the count's roundoff (1e-15 x 10 min / h) and h^2 truncation below 1e-9
+    gm = jax.grad(lambda x: table_outcomes(jnp.asarray(t), x, p)["minutes_above_cra_closing"])(
+        jnp.asarray(iop))
+    for i in range(4):
+        e = np.eye(4)[i] * h
+        fd = (table_outcomes(t, iop + e, p)["minutes_above_cra_closing"]
+              - table_outcomes(t, iop - e, p)["minutes_above_cra_closing"]) / (2 * h)
+        assert float(gm[i]) == pytest.approx(fd, rel=1e-6, abs=1e-9)
+
+
+def _plan(tmp_path, capsys, case_text, *flags):
     from optimize.plan import main as plan_main
 
     case = tmp_path / "t.toml"
-    case.write_text('[case]\nproblem = "surgery"\n[parameters]\nmesh = "coarse"\n'
-                    "volume_regulation = true\n")
-    rc = plan_main([str(case), "--target-indentation", "1.0", "--vars", "tightening",
-                    "--out", str(tmp_path / "p")])
-    err = capsys.readouterr().err
-    assert rc == 2 and "do not follow the surgery's timeline yet" in err
+    case.write_text('[case]\nproblem = "surgery"\n[parameters]\nmesh = "coarse"\n' + case_text)
+    rc = plan_main([str(case), *flags, "--out", str(tmp_path / "p")])
+    return rc, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("case_text, flags, words", [
+    ("", ("--iop-peak-max", "40", "--vars", "tightening"),
+     "--iop-peak-max: outcomes and variables of the surgery's timeline"),
+    ("", ("--target-indentation", "1.0", "--vars", "tightening,paracentesis_volume"),
+     "paracentesis_volume: outcomes and variables of the surgery's timeline"),
+    ("volume_regulation = true\nfollowup = \"1h, 48h\"\n",
+     ("--target-refraction-1w", "-1", "--vars", "tightening"), "has no 1w; add 1w"),
+    ("volume_regulation = true\n", ("--iop-peak-max", "0", "--vars", "tightening"),
+     "--iop-peak-max 0 mmHg cannot be reached"),
+    ("volume_regulation = true\n", ("--minutes-above-max", "nan", "--vars", "tightening"),
+     "--minutes-above-max nan: need a finite number"),
+    ("volume_regulation = true\n", ("--target-indentation-1w", "9", "--vars", "tightening"),
+     "--target-indentation-1w 9 mm cannot be reached"),
+    ("volume_regulation = true\n", ("--iop-peak-max", "40", "--vars", "paracentesis_volum"),
+     "unknown design variable"),
+])
+def test_the_planners_timeline_options_are_checked(tmp_path, capsys, case_text, flags, words):
+    """The timeline's limits, targets and variables are refused by name (exit 2) on a case
+    off the timeline, without a week in its follow-up, or out of range, before any solve."""
+    rc, err = _plan(tmp_path, capsys, case_text, *flags)
+    assert rc == 2 and words in err, err

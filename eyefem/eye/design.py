@@ -44,10 +44,12 @@ import dataclasses
 import logging
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.eye.outcomes import eye_optics, outcome_data, outcome_function, outcome_nodes
+from eyefem.eye.outcomes import (changes, eye_optics, indentation, outcome_data,
+                                 outcome_function, outcome_nodes)
 from eyefem.eye.parts import snug_node, snug_scale
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.rigid_buckle import BiteRays, bite_rays, rigid_design_params, suture_term
@@ -61,11 +63,17 @@ from eyefem.eye.variables import (  # noqa: F401 - the design's names, re-export
     STAGE1_VARIABLES,
     STAGE_PARAMS,
     SURGICAL_VARIABLES,
+    TIMELINE_VARIABLES,
     default_parameters,
 )
+from eyefem.eye import timeline
 from eyefem.fem.cavity import cavity_pressures, close_cavity
+from eyefem.fem.regulation import HISTORY_KEYS, advanced_history
+from eyefem.fem.units import MMHG
+from eyefem.solve.assembly import Assembler
 from eyefem.solve.solver import ConvergenceError, NewtonOptions, Solution, Stage, solve
 from eyefem.solve.staged import StageMap, StageRecord, hand_on, stage_params, staged_gradients
+from eyefem.solve.transient import Recorder
 
 log = logging.getLogger(__name__)
 
@@ -141,10 +149,18 @@ class SurgerySimulator:
       options: Newton options.
     """
 
+    def __new__(cls, params: dict, *args, **kwargs):
+        # a case on the surgery's timeline is simulated by its own class (same interface)
+        if cls is SurgerySimulator and dict(params).get("volume_regulation", False):
+            cls = TimelineSimulator
+        return super().__new__(cls)
+
+    outcome_names = tuple(OUTCOMES)
+    """The outcomes run() reports and gradients() differentiates, in order."""
+
     def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
         self.params = dict(params)
         self.options = options
-        _refuse_timeline(self.params)
         if self.params.get("buckle_body", "rigid") != "rigid":
             raise ValueError(f"buckle_body = '{self.params['buckle_body']}': the design gradients "
                              "and the planner move the rigid buckle's exact surface by its "
@@ -152,7 +168,9 @@ class SurgerySimulator:
                              "tire: RingSimulator)")
         setup = surgery(self.params, materials)
         self.setup, self.parts = setup, setup.parts
-        self.stage1, self.stage2, self.stage3 = setup.stages
+        # pressurise, tighten (or place), suture (on the timeline, more stages between)
+        self.stage1, self.stage2 = setup.stages[:2]
+        self.stage3 = next(s for s in setup.stages if s.name == "suture")
         self.model1 = setup.model
         mesh = self.parts.eye.mesh
         self._mat_row = {m: mesh.materials.index(m) for m in SEED_MATERIALS if m in mesh.materials}
@@ -320,10 +338,17 @@ class SurgerySimulator:
                "spread evenly around it)"}
         if self.parts.buckle.encircling:
             fixed.append("buckle_meridian_deg")
+        if not self.params.get("volume_regulation", False):
+            fixed += list(TIMELINE_VARIABLES)
+            why.update({k: "it belongs to the surgery's timeline; set volume_regulation = "
+                        "true in the case (eyefem.eye.timeline)" for k in TIMELINE_VARIABLES})
         for k in fixed:
             if design[k] != d0[k]:
                 raise ValueError(f"design variable '{k}' = {design[k]} cannot vary in this "
                                  f"case: {why[k]}")
+        for k in TIMELINE_VARIABLES:
+            if not design[k] >= 0:
+                raise ValueError(f"design variable '{k}' = {design[k]}; must be >= 0")
         for k in MATERIAL_VARIABLES:
             if k in design and not design[k] > 0:
                 raise ValueError(f"design variable '{k}' = {design[k]}; a material constant "
@@ -449,6 +474,305 @@ class SurgerySimulator:
         grads = self.gradients(res, names)
         jac = [[grads[o][v] for v in variables] for o in names]
         return np.array(jac, dtype=float).reshape(len(names), len(variables))
+
+
+@dataclasses.dataclass(frozen=True)
+class TimelineResult(Result):
+    """A converged design on the surgery's timeline: as :class:`Result`, its ``stages`` the
+    pre-operative eye's and then one StageRecord per step after the closing (tightening,
+    wait, paracentesis, suturing, follow-up), and ``steps``: per step its stage, clock
+    (minutes from the closing, at its end) and IOP (mmHg)."""
+
+    steps: tuple = ()
+    layout: tuple = ()
+
+    @property
+    def sol2(self) -> Solution:
+        return self._last_of("tighten")
+
+    @property
+    def sol3(self) -> Solution:
+        return self.stages[-1].solution
+
+    def _last_of(self, stage: str) -> Solution:
+        i = max(i for i, s in enumerate(self.steps) if s[0] == stage)
+        return self.stages[1 + i].solution
+
+
+class TimelineSimulator(SurgerySimulator):
+    """A rigid-buckle case on the surgery's timeline (``volume_regulation = true``,
+    eyefem.eye.timeline): its outcomes at named times and their adjoint gradients.
+
+    ``SurgerySimulator(params)`` of such a case is one of these. The forward run is the
+    timeline's load path (eyefem.eye.timeline.timed_stages, with ``events``: a wait and a
+    paracentesis at every design): the tightening ramps T_2's params, the wait holds them,
+    the paracentesis removes ``paracentesis_volume`` at one instant, the sutures are tied
+    at the state it leaves (C: their lengths) and tightened, and the follow-up holds
+    everything; the cavity's volume regulation runs at every step (a backward-Euler step of
+    its duration). The timeline is path-dependent (what flowed out and when), so every
+    design is solved from the pre-operative eye with the case's steps (no warm start).
+
+    Each step after the closing is one stage of eyefem.solve.staged (one StageRecord): its
+    params T(design, carry) are the stage's ramp of T_2 / T_3 at the step's load factor,
+    the paracentesis, the step's duration (the wait's: delay x its share: so the time's
+    derivative is exact, eyefem.eye.timeline.timed_stages) and the regulation's history
+    handed on by the step before; its carry C(q, theta) is that history after the step
+    (eyefem.fem.regulation.advanced_history), the IOP, and where needed the tied suture
+    lengths or the eye's optics and indentation. The timeline outcomes are JAX functions
+    of the carried IOPs, clocks and optics, with the definitions summary.json reports
+    (eyefem.eye.timeline.table_outcomes, followup_steps): the peak IOP on the table is the
+    largest step's, and its derivative that step's (the max is not differentiable where
+    two steps tie); the minutes above the closing pressure are the smooth count. One
+    backward sweep (eyefem.solve.staged.staged_gradients) gives every outcome's gradient:
+    one factorisation and one block adjoint solve per step, the history chained back.
+
+    The outcomes (:attr:`outcome_names`): OUTCOMES at the run's last step (the last
+    follow-up time, as summary.json's), then eyefem.eye.timeline.outcome_names.
+    """
+
+    def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
+        if params.get("buckle_body", "rigid") != "rigid":
+            _refuse_timeline(params)
+        super().__init__(params, materials, options)
+        self.outcome_names = tuple(OUTCOMES) + timeline.outcome_names(self.params)
+
+    def run(self, design: dict | None = None, *, warm: bool = True) -> TimelineResult:
+        """Solve the timeline for a design (missing variables: the case's values), from the
+        pre-operative eye (``warm`` is ignored: the timeline is path-dependent)."""
+        return self._run(design, warm=False)
+
+    # --- the forward run -----------------------------------------------------------
+    def _run(self, design, *, warm=False):
+        design = {**self.design0(), **(design or {})}
+        self._check(design)
+        pre = self._stage1(design)
+        sut = suture_term(self.parts, self.scale0, design["suture_width"],
+                          design["buckle_meridian_deg"])
+        model = self._model(sut)
+        bites = bite_rays(self.parts, design["suture_width"], design["buckle_meridian_deg"])
+        maps = self.maps(sut)
+        th2 = self._theta2(design, sut, pre, bites)
+        ramped = {k: th2[k] for k in self._ramped}
+        start = {**th2, **{k: pre.theta2[k] for k in self._ramped if k not in ("solid", "zonule")}}
+        start["cavity"] = {**start["cavity"], "bulk": th2["cavity"]["bulk"]}
+        # the ramped params' start values (constants of the pre-operative eye): the buckle's
+        # motion, the drained volume, a band's pull; the other params of T_2 start at T_2's
+        first = {t: {k: np.asarray(pre.theta2[t][k]) for k in th2[t]
+                     if t != "cavity" or k == "dv"} for t in ("buckle", "cavity", "band_pull")
+                 if t in th2 and t in pre.theta2}
+        p = {**self.params, **{k: float(design[k]) for k in TIMELINE_VARIABLES}}
+        stages = timeline.timed_stages(
+            [self.stage1, Stage("tighten", self.stage2.n_steps, self.stage2.prescribed,
+                                params=ramped, active=self.stage2.active),
+             Stage("suture", self.stage3.n_steps, self.stage3.prescribed,
+                   active=self.stage3.active)], p, events=True)[1:]
+        rec = Recorder(stages, beta=self.options.beta)
+        q, theta, carry2, tie = pre.sol1.q, start, {}, None
+        sut_data = (sut.data, sut.dofs)
+        for st in stages:
+            if st.name == "suture":  # tie the sutures at the state the paracentesis left
+                tie = len(rec.steps) - 1
+                carry2 = hand_on(maps[1], q, theta, sut_data)
+                th3 = self._with(theta, stage_params(maps[2], design, {**pre.carry, **carry2},
+                                                     bites))
+                theta = {**th3, "sutures": {**th3["sutures"],
+                                            "tightening": 0 * th3["sutures"]["tightening"]}}
+                st = dataclasses.replace(st, params={"sutures": th3["sutures"]})
+            sol = solve(model, [st], q0=q, theta=theta, options=self.options, on_step=rec)
+            q, theta = sol.q, sol.theta
+        its = sum(r.iterations for r in rec.records)
+        records, steps, layout = self._records(rec, stages, model, sut, bites, pre, first, p,
+                                               tie)
+        cav = self.model.term("cavity")
+        pre_rec = StageRecord(maps[0], pre.sol1, None, {"cavity": (cav.data, cav.dofs),
+                                                        "node": pre.node}, pre.carry)
+        res = TimelineResult(design, {}, (pre_rec,) + records, sut, bites, its, pre, steps,
+                             layout)
+        f, data = self.outcome_vector(res, self.outcome_names)
+        values = f(jnp.asarray(q), records[-1].solution.theta,
+                   _carries((pre_rec,) + records[:-1]), data)
+        res = dataclasses.replace(res, outcomes=dict(zip(self.outcome_names,
+                                                         map(float, values))))
+        self.last = res
+        return res
+
+    def _records(self, rec: Recorder, stages, model, sut, bites, pre, first, p, tie):
+        """One StageRecord per recorded step, the steps' (stage, clock, IOP) and the layout
+        (which steps are on the table, which at each follow-up time, which is last)."""
+        by_name = {s.name: s for s in stages}
+        cav = model.term("cavity")
+        clock = [float(th["cavity"]["time"]) + float(th["cavity"]["dt"])
+                 for *_, th in rec.steps]
+        table = tuple(i for i, s in enumerate(rec.steps) if s[0] != "follow-up")
+        follow = [i for i, s in enumerate(rec.steps) if s[0] == "follow-up"]
+        end = clock[table[-1]]
+        hits = timeline.followup_steps([clock[i] - end for i in follow], p)
+        minutes = dict(timeline.parse_followup(p["followup"]))
+        at = tuple((name, follow[j], timeline.shape_at_week(minutes[name]))
+                   for name, j in hits.items())
+        shape = {i for _, i, s in at if s}
+        last = len(rec.steps) - 1
+        kinds = tuple("tie" if i == tie else "shape" if i in shape else "plain"
+                      for i in range(len(rec.steps)))
+        asms, out, steps = {}, [], []
+        for i, (name, t, model_i, q_i, th_i) in enumerate(rec.steps):
+            stage = by_name[name]
+            if name not in asms:
+                mask = np.zeros(model_i.n_dof, bool)
+                mask[stage.prescribed[0]] = True
+                asms[name] = Assembler(model_i, mask, beta=self.options.beta)
+            t0 = rec.steps[i - 1][1] if i and rec.steps[i - 1][0] == name else 0.0
+            data = {"stage": name, "t": float(t), "t0": float(t0), "bites": bites,
+                    "minutes": float(stage.duration or 0.0), "start": first,
+                    "history": f"history/{i - 1}" if i else None,
+                    "h0": None if i else {k: np.asarray(th_i["cavity"][k]) for k in HISTORY_KEYS}}
+            smap = self._step_map(kinds[i], sut)
+            cdata = self._carry_data(kinds[i], model_i)
+            values = self._kept_fn(("carry_jit", kinds[i], term_kind(sut)),
+                                   lambda fn=smap.carry: jax.jit(fn))(
+                jnp.asarray(q_i), jax.tree_util.tree_map(jnp.asarray, th_i), cdata)
+            names = {k: k if k == "L0" else f"{k}/{i}" for k in values}
+            carry = {names[k]: jax.tree_util.tree_map(np.asarray, v) for k, v in values.items()}
+            sol = Solution(model_i, q_i, th_i, [rec.records[i]], asms[name], None, stage.active)
+            out.append(StageRecord(smap, sol, data, cdata, carry, names))
+            steps.append((name, clock[i], float(values["iop"])))
+        layout = (table, at, last, kinds)
+        return tuple(out), tuple(steps), layout
+
+    # --- each step as a stage: its params and what it hands on ------------------------
+    def _step_params(self, design, carry, data) -> dict:
+        """T of one step (JAX): the stage's params at the step's load factor t, the
+        paracentesis, the step's duration dt and the history the step starts from."""
+        stage, t, bites = data["stage"], data["t"], data["bites"]
+        if stage in ("suture", "follow-up"):
+            out = self._tied(design, carry, bites)
+        else:
+            out = self.design_map(design, carry, bites)
+        out = {term: dict(ps) for term, ps in out.items()}
+        if stage == "tighten":  # the ramp from the pre-operative eye's values
+            for term, ps in data["start"].items():
+                for k, s0 in ps.items():
+                    if k in out.get(term, {}):
+                        out[term][k] = (1.0 - t) * jnp.asarray(s0) + t * out[term][k]
+        elif stage == "suture":  # tied at 0, tightened along the stage
+            out["sutures"]["tightening"] = t * out["sutures"]["tightening"]
+        vp = design["paracentesis_volume"]
+        removed = {"tighten": 0.0 * vp, "wait": 0.0 * vp, "paracentesis": t * vp}.get(stage, vp)
+        minutes = design["paracentesis_delay_minutes"] if stage == "wait" else data["minutes"]
+        h = carry[data["history"]] if data["history"] is not None else data["h0"]
+        full = self._full
+        out["cavity"] = {**out["cavity"], "paracentesis": full("cavity", "paracentesis", removed),
+                         "dt": full("cavity", "dt", (t - data["t0"]) * minutes),
+                         **{k: full("cavity", k, h[k]) for k in HISTORY_KEYS}}
+        return out
+
+    def _step_map(self, kind: str, sut) -> StageMap:
+        """The StageMap of a step of ``kind`` ("plain", "tie": also the tied suture lengths
+        L0, "shape": also the optics and the indentation), one per kind and suture term
+        (its carry compiled once)."""
+        def build():
+            X, nodes = self.parts.eye.mesh.nodes, self._nodes
+
+            def carry(q, theta, data):
+                P = cavity_pressures(q, theta["cavity"], *data["cavity"])[0][0]
+                h = advanced_history(P, theta["cavity"])
+                out = {"history": {k: h[k] for k in HISTORY_KEYS}, "iop": P / MMHG}
+                if kind == "tie":
+                    sut_data, sut_dofs = data["sutures"]
+                    out["L0"] = sut.lengths(q[sut_dofs], theta["sutures"], sut_data)
+                if kind == "shape":
+                    out["optics"] = eye_optics(X, q, nodes)
+                    out["indentation"] = indentation(X, q, nodes)
+                return out
+
+            return StageMap(f"step ({kind})", self._step_params, carry)
+        return self._kept_fn(("step_map", kind, term_kind(sut)), build)
+
+    @staticmethod
+    def _carry_data(kind: str, model) -> dict:
+        cav = model.term("cavity")
+        out = {"cavity": (cav.data, cav.dofs)}
+        if kind == "tie":
+            sut = model.term("sutures")
+            out["sutures"] = (sut.data, sut.dofs)
+        return out
+
+    # --- outcomes ---------------------------------------------------------------------
+    def outcome_vector(self, res: TimelineResult, names, weights=None) -> tuple[Callable, dict]:
+        """(f, data) as :meth:`SurgerySimulator.outcome_vector`, for the names of
+        :attr:`outcome_names`: f(q, theta, carry, data) at the last step, the timeline
+        outcomes read from the carries of the steps (the last step's from q, theta). One
+        f per outcome list, suture term kind and layout of the steps."""
+        names, sut = tuple(names), res.sutures
+        unknown = [n for n in names if n not in self.outcome_names]
+        if unknown:
+            raise KeyError(f"unknown outcomes {unknown}; known: {list(self.outcome_names)}")
+        table, at, last, kinds = res.layout
+        p = self.params
+
+        def build():
+            std = tuple(n for n in names if n in OUTCOMES)
+            f_std = outcome_function(std, self.parts.eye.mesh.nodes, self._nodes, sut)
+            own = self._step_map(kinds[last], sut).carry
+
+            def f(q, theta, carry, data):
+                mine = own(q, theta, {"cavity": data["cavity"]})
+
+                def get(key, i):
+                    return mine[key] if i == last else carry[f"{key}/{i}"]
+
+                vals = dict(zip(std, f_std(q, theta, carry, {**data, "weights": None}))) \
+                    if std else {}
+                t = jnp.stack([jnp.zeros(())] + [get("history", i)["time"] for i in table])
+                iop = jnp.stack([jnp.asarray(p["iop_mmhg"], jnp.float64)]
+                                + [get("iop", i) for i in table])
+                vals.update(timeline.table_outcomes(t, iop, p))
+                for name, i, shape in at:
+                    vals[f"iop_{name}_mmhg"] = get("iop", i)
+                    if shape:
+                        ch = {**changes(get("optics", i), carry["optics"]),
+                              "indentation_mm": get("indentation", i)}
+                        vals.update({timeline.shape_name(k, name): ch[k]
+                                     for k in timeline.SHAPE_OUTCOMES})
+                values = jnp.stack([vals[n] for n in names])
+                w = data["weights"]
+                return values if w is None else jnp.reshape(jnp.dot(w, values), (1,))
+            return f
+
+        f = self._kept_fn(("timeline outcomes", names, term_kind(sut), res.layout), build)
+        sol = res.stages[-1].solution
+        return f, outcome_data(sol.model, sol.q, sol.theta, weights)
+
+    def gradients(self, res: TimelineResult, outcomes=None) -> dict[str, dict[str, float]]:
+        """d outcome / d design variable for the named outcomes (default: every one of
+        :attr:`outcome_names`): one backward sweep over the steps."""
+        names = list(self.outcome_names) if outcomes is None else list(outcomes)
+        return dict(zip(names, self._gradients(res, *self.outcome_vector(res, names))))
+
+    def params_mismatch(self, res: TimelineResult) -> float:
+        """The largest difference, relative to the param's size, between each step's
+        params as T gives them (JAX, what the adjoint differentiates) and those the load
+        path solved with: roundoff where the two agree (a check of the step maps)."""
+        worst, carry = 0.0, {}
+        for r in res.stages:
+            if r.map.params is self._step_params:
+                got = stage_params(r.map, res.design, carry, r.params_data)
+                for term, ps in got.items():
+                    for k, v in ps.items():
+                        ref = np.asarray(r.solution.theta[term][k])
+                        scale = max(float(np.max(np.abs(ref), initial=0.0)), 1e-12)
+                        worst = max(worst, float(np.max(np.abs(np.asarray(v) - ref),
+                                                        initial=0.0)) / scale)
+            carry.update(r.carry)
+        return worst
+
+
+def _carries(records) -> dict:
+    """The carries the records handed on, by name (a later one's over an earlier one's)."""
+    out: dict = {}
+    for r in records:
+        out.update(r.carry)
+    return jax.tree_util.tree_map(jnp.asarray, out)
 
 
 def _kept(sol: Solution) -> Solution:
@@ -614,10 +938,11 @@ class RingSimulator:
 
 
 def _refuse_timeline(params: dict):
-    """ValueError for a case on the surgery's timeline: the simulators solve the closed
-    cavity's three stages (eyefem.eye.timeline is not differentiated by them yet)."""
+    """ValueError for a deformable ring on the surgery's timeline: RingSimulator solves the
+    closed cavity's three stages (the timeline's gradients are the rigid buckle's,
+    TimelineSimulator)."""
     if params.get("volume_regulation", False):
-        raise ValueError("volume_regulation = true: the design gradients and the planner do "
-                         "not follow the surgery's timeline yet (they solve the closed "
-                         "cavity's three stages); plan the case without it, or run the "
-                         "timeline with eyefem run")
+        raise ValueError("volume_regulation = true with a deformable band or tire: the design "
+                         "gradients follow the surgery's timeline for the rigid buckle only "
+                         "(TimelineSimulator); set buckle_body = 'rigid', or run the "
+                         "deformable ring's timeline with eyefem run")

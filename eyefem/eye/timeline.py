@@ -20,6 +20,8 @@ from __future__ import annotations
 import dataclasses
 import re
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from eyefem.eye.outcomes import changes
@@ -97,6 +99,13 @@ TIMELINE_FIELDS = [
           "aqueous removed by an anterior chamber paracentesis after the tightening, uL "
           "(a 30-gauge needle takes 50-200 uL); 0: none",
           lambda v: 0 <= v <= 300, "0 to 300 uL (the anterior chamber holds about 250)"),
+    Field("paracentesis_delay_minutes", float, 0.0,
+          "when the paracentesis is done: minutes after the end of the tightening, min (the "
+          "surgeon watches the central retinal artery meanwhile; the suturing follows the "
+          "paracentesis, so the surgery lasts this much longer); 0: right after the "
+          "tightening. A design variable: the wait's steps stretch with it, so the outcomes "
+          "are smooth in it (eyefem.eye.timeline.timed_stages)",
+          lambda v: 0 <= v <= 60, "0 to 60 min"),
     Field("tighten_minutes", float, 10.0, "duration of the tightening (or placing) stage, min",
           lambda v: 0 < v <= 240, "above 0, at most 240 min"),
     Field("suture_minutes", float, 15.0, "duration of the suturing stage, min",
@@ -129,12 +138,27 @@ def regulation(p: dict) -> Regulation | None:
                                p["choroid_blood_scale"])
 
 
-def timed_stages(stages: list, p: dict) -> list:
+WAIT_STEPS = 2
+"""Steps of the wait between the tightening and a paracentesis (backward Euler over the
+paracentesis_delay_minutes)."""
+
+
+def timed_stages(stages: list, p: dict, *, events: bool = False) -> list:
     """The procedure's stages on the timeline: the tightening (the stage that closes the
-    cavity) and the suturing take their minutes, a paracentesis (if any) follows the
-    tightening at one instant, and a follow-up stage holds everything as it ends the
-    surgery and runs to the follow-up times. ``stages``: the buckle body's, unchanged
-    without volume_regulation."""
+    cavity) and the suturing take their minutes; a paracentesis (if any) removes its volume
+    at one instant after the tightening, ``paracentesis_delay_minutes`` after it (a
+    "wait" stage of WAIT_STEPS steps in between, held, the regulation going on); a
+    follow-up stage holds everything as it ends the surgery and runs to the follow-up
+    times. ``stages``: the buckle body's, unchanged without volume_regulation.
+
+    The paracentesis's time moves the wait's step ends with it (WAIT_STEPS equal steps of
+    delay / WAIT_STEPS minutes) and the later steps by the same minutes; no step end is
+    crossed, so every outcome is a smooth function of the delay and its adjoint derivative
+    (through each step's duration, eyefem.eye.design) is exact at every delay >= 0, the
+    one-sided derivative at 0. The paracentesis cannot move into the tightening: that would
+    cut its ramp at a time between two steps. ``events``: the wait and the paracentesis
+    stages even where the volume and the delay are 0 (trivial steps; the design
+    gradients need them at every design)."""
     if not p.get("volume_regulation", False):
         return list(stages)
     if len(stages) < 3:
@@ -142,7 +166,11 @@ def timed_stages(stages: list, p: dict) -> list:
                          f"tighten or place, suture); this one has {len(stages)}")
     first, tighten, *rest = stages
     out = [first, dataclasses.replace(tighten, duration=p["tighten_minutes"])]
-    if p["paracentesis_volume"] > 0:
+    delay = float(p.get("paracentesis_delay_minutes", 0.0))
+    if events or (p["paracentesis_volume"] > 0 and delay > 0):
+        out.append(dataclasses.replace(tighten, name="wait", n_steps=WAIT_STEPS, before=None,
+                                       duration=delay, times=None, params={}))
+    if events or p["paracentesis_volume"] > 0:
         out.append(dataclasses.replace(
             tighten, name="paracentesis", n_steps=1, before=None, duration=None, times=None,
             params={"cavity": {"paracentesis": float(p["paracentesis_volume"])}}))
@@ -162,15 +190,30 @@ def _time(row: dict) -> float:
     return np.nan
 
 
-def smooth_minutes_above(t, iop, threshold: float, width: float = SMOOTH_MMHG) -> float:
+def smooth_minutes_above(t, iop, threshold: float, width: float = SMOOTH_MMHG):
     """Minutes the IOP spends above ``threshold`` (mmHg): the trapezoidal integral over
     the steps' times t (minutes) of the logistic 1 / (1 + exp(-(IOP - threshold) / width)),
-    a differentiable count."""
-    t, iop = np.asarray(t, float), np.asarray(iop, float)
+    a differentiable count. numpy in, float out; JAX in (the design gradients), JAX out."""
+    xp = jnp if any(isinstance(a, jax.Array) for a in (t, iop)) else np
+    t, iop = xp.asarray(t, float), xp.asarray(iop, float)
     if len(t) < 2:
         return 0.0
-    s = 0.5 * (1.0 + np.tanh((iop - threshold) / (2.0 * width)))
-    return float(np.sum(0.5 * (s[1:] + s[:-1]) * np.diff(t)))
+    s = 0.5 * (1.0 + xp.tanh((iop - threshold) / (2.0 * width)))
+    out = xp.sum(0.5 * (s[1:] + s[:-1]) * xp.diff(t))
+    return float(out) if xp is np else out
+
+
+def table_outcomes(t, iop, p: dict) -> dict:
+    """The on-table outcomes of the clock t (k,) (minutes from the closing, 0 first) and
+    the IOP (k,) (mmHg, the pre-operative IOP first) of the steps from the closing to the
+    end of surgery: the peak (the largest step's: its derivative is that step's), the
+    smooth minutes above the closing pressure and the IOP at the end of surgery. numpy or
+    JAX (the one definition of :func:`timeline_outcomes` and the design gradients)."""
+    xp = jnp if any(isinstance(a, jax.Array) for a in (t, iop)) else np
+    iop = xp.asarray(iop, float)
+    return {"peak_iop_on_table_mmhg": xp.max(iop),
+            "minutes_above_cra_closing": smooth_minutes_above(t, iop, p["cra_closing_mmhg"]),
+            "iop_end_of_surgery_mmhg": iop[-1]}
 
 
 SHAPE_OUTCOMES = ("axial_length_change_mm", "refraction_change_D",
@@ -178,11 +221,48 @@ SHAPE_OUTCOMES = ("axial_length_change_mm", "refraction_change_D",
 """The shape outcomes reported at the follow-up times of a week and more."""
 
 
+def shape_name(outcome: str, when: str) -> str:
+    """The name of a shape outcome at a follow-up time: ("axial_length_change_mm", "1w")
+    -> "axial_length_change_1w_mm"."""
+    stem, unit = outcome.rsplit("_", 1)
+    return f"{stem}_{when}_{unit}"
+
+
+def followup_steps(minutes_after_end, p: dict) -> dict:
+    """Follow-up name -> the index of the step (of ``minutes_after_end``, minutes from the
+    end of surgery of each follow-up step) that ends at that time; names no step reaches
+    are left out."""
+    t = np.asarray(minutes_after_end, float)
+    out = {}
+    for name, minutes in parse_followup(p["followup"]):
+        hit = np.nonzero(np.abs(t - minutes) <= 1e-6 * max(minutes, 1.0))[0]
+        if len(hit):
+            out[name] = int(hit[-1])
+    return out
+
+
+def outcome_names(p: dict) -> tuple:
+    """The timeline outcomes the design gradients report, in order: the on-table three,
+    the IOP at each follow-up time, the shape outcomes at those of a week or more."""
+    names = ["peak_iop_on_table_mmhg", "minutes_above_cra_closing", "iop_end_of_surgery_mmhg"]
+    follow = parse_followup(p["followup"])
+    names += [f"iop_{name}_mmhg" for name, _ in follow]
+    names += [shape_name(k, name) for name, minutes in follow if minutes >= _UNITS["w"]
+              for k in SHAPE_OUTCOMES]
+    return tuple(names)
+
+
+def shape_at_week(minutes: float) -> bool:
+    """Whether the shape outcomes are reported at a follow-up time (a week or more)."""
+    return minutes >= _UNITS["w"]
+
+
 def timeline_outcomes(rows: list[dict], p: dict) -> dict:
     """summary.json's timeline outcomes of a run's history rows: the peak IOP on the table,
     the minutes above the central retinal artery's closing pressure (smooth), the IOP at
     the end of surgery and at each follow-up time, and the shape outcomes at the follow-up
-    times of a week or more. Empty without volume_regulation."""
+    times of a week or more (:func:`table_outcomes`, :func:`followup_steps`: the
+    definitions the design gradients differentiate). Empty without volume_regulation."""
     if not p.get("volume_regulation", False):
         return {}
     table = [r for r in rows if r["stage"] != "follow-up" and np.isfinite(_time(r))]
@@ -191,23 +271,21 @@ def timeline_outcomes(rows: list[dict], p: dict) -> dict:
     if table:
         t = [0.0] + [_time(r) for r in table]  # from the closing, at the pre-operative IOP
         iop = [p["iop_mmhg"]] + [r["iop_mmhg"] for r in table]
-        out["peak_iop_on_table_mmhg"] = float(max(iop))
-        out["minutes_above_cra_closing"] = smooth_minutes_above(t, iop, p["cra_closing_mmhg"])
-        out["iop_end_of_surgery_mmhg"] = float(table[-1]["iop_mmhg"])
+        out.update({k: float(v) for k, v in table_outcomes(t, iop, p).items()})
         out["surgery_minutes"] = float(_time(table[-1]))
     end = _time(table[-1]) if table else 0.0
     first = rows[0]["stage"] if rows else None
     pre = [r for r in rows if r["stage"] == first][-1:] if rows else []
+    hits = followup_steps([_time(r) - end for r in after], p)
     for name, minutes in parse_followup(p["followup"]):
-        hit = [r for r in after if abs(_time(r) - end - minutes) <= 1e-6 * max(minutes, 1.0)]
-        if not hit:
+        if name not in hits:
             continue
-        r = hit[-1]
+        r = after[hits[name]]
         out[f"iop_{name}_mmhg"] = float(r["iop_mmhg"])
-        if minutes >= _UNITS["w"] and pre:
+        if shape_at_week(minutes) and pre:
             shape = {"indentation_mm": r["indentation_mm"],
                      **{k: float(v) for k, v in changes(r, pre[0]).items()}}
-            out.update({f"{k.rsplit('_', 1)[0]}_{name}_{k.rsplit('_', 1)[1]}": float(shape[k])
+            out.update({shape_name(k, name): float(shape[k])
                         for k in SHAPE_OUTCOMES if k in shape})
     return out
 

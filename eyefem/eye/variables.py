@@ -5,6 +5,15 @@ from __future__ import annotations
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.surgery import SURGERY_FIELDS
 
+TIMELINE_VARIABLES = {
+    "paracentesis_volume": "aqueous removed by the anterior chamber paracentesis, uL (= mm^3; "
+                           "cases on the timeline, volume_regulation = true)",
+    "paracentesis_delay_minutes": "when the paracentesis is done, minutes after the end of the "
+                                  "tightening (cases on the timeline; the outcomes are smooth "
+                                  "in it: eyefem.eye.timeline.timed_stages)",
+}
+"""The surgical variables of the surgery's timeline (eyefem.eye.timeline): they vary only
+in cases with volume_regulation = true (eyefem.eye.design.TimelineSimulator)."""
 SURGICAL_VARIABLES = {
     "tightening": "band circumference shortening (segmental: radial push x 2 pi), mm",
     "buckle_shift": "posterior shift of the fitted buckle along the meridian, mm",
@@ -13,6 +22,7 @@ SURGICAL_VARIABLES = {
     "suture_tightening": "shortening of each suture loop when tied, mm",
     "drain_volume": "fluid drained during stage 2, mm^3",
     "band_tension": "tension of a pulled encircling band (cases with band_tension > 0), N",
+    **TIMELINE_VARIABLES,
 }
 MATERIAL_VARIABLES = {
     **{f"c10_{m}": f"neo-Hookean c10 of the {m.replace('_', ' ')}, MPa" for m in SEED_MATERIALS},

@@ -58,13 +58,19 @@ class StageMap:
 @dataclasses.dataclass(frozen=True)
 class StageRecord:
     """A converged stage of a run: its map, its solution (with the last factorisation),
-    the data of its T and C, and the carry it handed on (name -> array)."""
+    the data of its T and C, and the carry it handed on (name -> array).
+
+    ``names``: the record's name of each of C's carries (C's name -> the record's), where
+    several records share one map: the steps of a timeline (eyefem.eye.timeline) hand on
+    "iop" and "history" each, kept apart as "iop/7", "history/7" (C is compiled once for
+    all of them); ``carry`` holds the record's names. Default: C's own names."""
 
     map: StageMap
     solution: Solution
     params_data: Any = None
     carry_data: Any = None
     carry: Mapping = dataclasses.field(default_factory=dict)
+    names: Mapping = dataclasses.field(default_factory=dict)
 
 
 def _as_jax(tree):
@@ -174,7 +180,8 @@ def staged_gradients(records: Sequence[StageRecord], design: Mapping, objectives
         if i == len(records) - 1:
             gs = g_last
         else:
-            mine = {n: cbar[n] for n in rec.carry if n in cbar}
+            own = {v: k for k, v in rec.names.items()}  # the record's name -> C's
+            mine = {own.get(n, n): cbar.pop(n) for n in rec.carry if n in cbar}
             if not mine:
                 gs = None
             else:
@@ -190,6 +197,8 @@ def staged_gradients(records: Sequence[StageRecord], design: Mapping, objectives
             for name, v in gd.items():
                 totals[j][name] += float(v)
             for name, v in gc.items():
+                if not any(np.any(np.asarray(a)) for a in jax.tree_util.tree_leaves(v)):
+                    continue  # T reads no such carry (a timeline's step reads one of many)
                 if name not in cbar:
                     cbar[name] = jax.tree_util.tree_map(
                         lambda a: np.zeros((k,) + np.shape(a)), v)

@@ -38,15 +38,18 @@ from eyefem.solve.records import Solution
 class Recorder:
     """An ``on_step`` callback of :func:`eyefem.solve.loadpath.solve` that keeps every
     step's stage, model, state and theta (the step's own: its ``dt`` and the history it
-    started from), for :func:`history_gradients`. ``then``: a further on_step to call."""
+    started from), for :func:`history_gradients`, and its StepRecord (``records``: its
+    iterations, balance). ``then``: a further on_step to call."""
 
     stages: Sequence[Stage]
     beta: float = 1.0
     then: Callable | None = None
     steps: list = dataclasses.field(default_factory=list)
+    records: list = dataclasses.field(default_factory=list)
 
     def __call__(self, rec, model, q, theta):
         self.steps.append((rec.stage, rec.t, model, np.array(q), theta))
+        self.records.append(rec)
         if self.then is not None:
             self.then(rec, model, q, theta)
 
