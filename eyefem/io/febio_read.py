@@ -373,7 +373,9 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
     rigid = {k: np.array(sorted(v), np.int64) for k, v in rigid.items()}
     links = _read_links(root, path, nodes, materials, lines, truss_of_block, discrete_sets)
     if not mesh.n_elem and not links:
-        raise _err(path, "<Mesh> has no <Elements> of a solid, truss or spring")
+        raise _err(path, "<Mesh> has no <Elements> of a solid, truss or spring" + (
+            " (only rigid bodies, whose joints and free motions eyefem does not model; run "
+            "the deck in FEBio)" if rigid else ""))
     if not step_els:
         specs = [("step_1", root.find("Control"), None)]
     else:
