@@ -201,3 +201,71 @@ def test_rigid_body_with_prescribed_motion_pulls_through_springs(tmp_path):
 def test_rigid_refusals_name_the_feature(tmp_path, bc, match):
     with pytest.raises(FebError, match=match):
         read_feb(_rigid_deck(tmp_path, rigid_bc=bc))
+
+
+def _contact_deck(tmp_path, d=0.2, eps=5.0, extra=""):
+    """A unit cube of FEBio's neo-Hookean with v = 0 (uniaxial stress is uniaxial strain:
+    sigma_yy = mu (b_yy - 1) / J = 0 gives no lateral stretch) on rollers (z = 0, x = 0,
+    y = 0), pressed by a rigid block (x, y in [-0.5, 1.5], z in [1, 2]) moved down by d,
+    through FEBio's sliding-elastic contact of the cube's top (primary) against the
+    block's bottom face (secondary), penalty eps MPa/mm."""
+    cube = [(x, y, z) for z in (0, 1) for y in (0, 1) for x in (0, 1)]
+    block = [(x, y, z) for z in (1, 2) for y in (-0.5, 1.5) for x in (-0.5, 1.5)]
+    text = "".join(f'<node id="{i + 1}">{x},{y},{z}</node>'
+                   for i, (x, y, z) in enumerate(cube + block))
+    hexa = lambda o: ",".join(str(o + i) for i in (1, 2, 4, 3, 5, 6, 8, 7))  # noqa: E731
+    return _write(tmp_path, f"""  <Material><material id="1" name="gel" type="neo-Hookean">
+    <E>1</E><v>0</v></material>
+    <material id="2" name="press" type="rigid body"><density>1</density></material></Material>
+  <Mesh><Nodes name="n">{text}</Nodes>
+    <Elements type="hex8" name="cube"><elem id="1">{hexa(0)}</elem></Elements>
+    <Elements type="hex8" name="block"><elem id="2">{hexa(8)}</elem></Elements>
+    <NodeSet name="z0">1,2,3,4</NodeSet><NodeSet name="x0">1,3,5,7</NodeSet>
+    <NodeSet name="y0">1,2,5,6</NodeSet>
+    <Surface name="top"><quad4 id="1">5,6,8,7</quad4></Surface>
+    <Surface name="plate"><quad4 id="1">9,11,12,10</quad4></Surface>
+    <SurfacePair name="touch"><primary>top</primary><secondary>plate</secondary></SurfacePair>
+  </Mesh>
+  <MeshDomains><SolidDomain name="cube" mat="gel"/><SolidDomain name="block" mat="press"/>
+  </MeshDomains>
+  <Boundary><bc name="b" node_set="z0" type="zero displacement"><z_dof>1</z_dof></bc>
+    <bc name="sx" node_set="x0" type="zero displacement"><x_dof>1</x_dof></bc>
+    <bc name="sy" node_set="y0" type="zero displacement"><y_dof>1</y_dof></bc></Boundary>
+  <Rigid><rigid_bc name="hold" type="rigid_fixed"><rb>press</rb><Rx_dof>1</Rx_dof>
+      <Ry_dof>1</Ry_dof><Ru_dof>1</Ru_dof><Rv_dof>1</Rv_dof><Rw_dof>1</Rw_dof></rigid_bc>
+    <rigid_bc name="push" type="rigid_displacement"><rb>press</rb><dof>z</dof>
+      <value lc="1">{-d}</value></rigid_bc></Rigid>
+  <Contact><contact name="touch" surface_pair="touch" type="sliding-elastic">
+    <laugon>PENALTY</laugon><penalty>{eps}</penalty><auto_penalty>0</auto_penalty>
+    <two_pass>0</two_pass><tension>0</tension><fric_coeff>0</fric_coeff>{extra}</contact>
+  </Contact>
+""")
+
+
+def test_sliding_contact_with_a_rigid_press_is_uniaxial_compression(tmp_path):
+    """The block pushed down by d compresses the cube to lam = 1 + u with the penetration
+    p = u + d carrying the cube's force: eps p A = mu (1 - lam^2) / lam (unit current area;
+    FEBio's traction eps p integrated over the top face, eyefem's alpha = eps A / 4 at each
+    of its four nodes: the same force for this uniform gap). Solved by brentq."""
+    d, eps, mu = 0.2, 5.0, 0.5
+    u = brentq(lambda x: eps * (x + d) - mu * (1 - (1 + x) ** 2) / (1 + x), -d, 0.0)
+    mesh, loads, model, stages, q = _solve(_contact_deck(tmp_path, d, eps))
+    U = q[: 3 * mesh.n_nodes].reshape(-1, 3)
+    assert np.allclose(U[4:8, 2], u, rtol=1e-8)
+    assert np.allclose(U[:8, :2], 0.0, atol=1e-10)  # no lateral stretch with v = 0
+    assert loads.contacts[0].penalty == pytest.approx(eps * 0.25, rel=1e-12)
+    assert abs(u) > 0.1  # a real compression, most of d
+
+
+@pytest.mark.parametrize("extra, match", [
+    ("<auto_penalty>1</auto_penalty>", "auto_penalty> 1 is not supported"),
+    ("<fric_coeff>0.2</fric_coeff>", "fric_coeff> 0.2 is not supported"),
+])
+def test_contact_refusals_name_the_feature(tmp_path, extra, match):
+    deck = _contact_deck(tmp_path).read_text()
+    tag = extra.split(">")[0] + ">"
+    deck = deck.replace(deck[deck.index(tag):deck.index(tag.replace("<", "</"))
+                             + len(tag) + 1], extra)
+    (tmp_path / "c.feb").write_text(deck)
+    with pytest.raises(FebError, match=match):
+        read_feb(tmp_path / "c.feb")

@@ -83,6 +83,7 @@ class FebLoads:
         body loads as the nodal forces of the element volumes).
       links: one :class:`FebLinks` per truss domain and per discrete set.
       rigid: rigid body name -> its node ids (n,) (each moved as the deck prescribes).
+      contacts: one :class:`FebContact` per sliding contact with a rigid surface.
     """
 
     prescribed: tuple[np.ndarray, np.ndarray]
@@ -93,6 +94,7 @@ class FebLoads:
     forces: tuple = ()
     links: tuple = ()
     rigid: dict = dataclasses.field(default_factory=dict)
+    contacts: tuple = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,6 +113,27 @@ class FebLinks:
     kind: str
     nodes: np.ndarray
     stiffness: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class FebContact:
+    """FEBio's frictionless "sliding-elastic" contact of a deformable surface (primary)
+    against a rigid body's facets (secondary), as eyefem.fem.rigid_contact.RigidContact.
+
+    Attributes: name; primary: the face set; body: the rigid body's name; facets (m, 4)
+      node ids of the secondary faces; direction (3,) unit direction of the body's motion;
+      d (n_steps,) its motion along it at each step's end, mm; penalty: eyefem's alpha
+      per node, N/mm (FEBio's penalty, MPa/mm, times the primary nodes' mean tributary
+      area, mm^2).
+    """
+
+    name: str
+    primary: str
+    body: str
+    facets: np.ndarray
+    direction: np.ndarray
+    d: tuple
+    penalty: float
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -267,7 +290,7 @@ def _child_float(el, tag, path, where, default=None, hint="give a finite number"
 
 
 _IGNORED = {"Globals", "Output", "Module", "Control", "Material", "Mesh", "MeshDomains",
-            "Boundary", "Loads", "LoadData", "Step", "Discrete", "Rigid"}
+            "Boundary", "Loads", "LoadData", "Step", "Discrete", "Rigid", "Contact"}
 
 
 def read_feb(path) -> tuple[Mesh, dict, FebLoads]:
@@ -357,7 +380,7 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
                        "(FEBio's default three-field hex8)")
     mids = np.concatenate([np.full(n, used.index(mat_of_block[b]), np.int64)
                            for b, n in blocks] + [np.zeros(0, np.int64)])
-    face_sets, node_sets, discrete_sets = _read_sets(root, path, node_index)
+    face_sets, node_sets, discrete_sets, pairs = _read_sets(root, path, node_index)
     mesh = Mesh(nodes, hexes, mids, tuple(used), node_sets, face_sets)
     density = _densities(root, path, mesh, used, blocks, mat_of_block)
 
@@ -382,17 +405,18 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
         specs = [(st.get("name") or f"step_{i + 1}", st.find("Control"), st)
                  for i, st in enumerate(step_els)]
     terms: dict = {}  # term name -> (kind, data, value at t per step or None)
-    steps, t = [], 0.0
+    steps, t, step_moves = [], 0.0, []
     for k, (name, ctrl, st) in enumerate(specs):
         n, dt = _read_control(ctrl, root.find("Control") if st is not None else None, path)
         t0, t = t, t + n * dt
         own = _Sources(None if st is None else st.find("Boundary"),
                        None if st is None else st.find("Loads"),
                        None if st is None else st.find("Rigid"))
+        *rig, moves = _read_rigid([top.rigid, own.rigid], path, rigid, curves, t, k == 0,
+                                  materials, by_id)
+        step_moves.append(moves)
         prescribed = _read_boundary([top.boundary, own.boundary], path, mesh, curves, t,
-                                    relative_ok=(k == 0),
-                                    rigid=_read_rigid([top.rigid, own.rigid], path, rigid,
-                                                      curves, t, k == 0, materials, by_id))
+                                    relative_ok=(k == 0), rigid=rig)
         params = {}
         for scope, src in (("", top.loads), (f"{name}:" if st is not None else "", own.loads)):
             for tname, kind, dat, value in _read_loads(src, path, mesh, curves, scope,
@@ -400,18 +424,26 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
                 terms.setdefault(tname, (kind, dat, value(t0)))
                 params[tname] = {"p" if kind == "pressure" else "f": value(t)}
         steps.append((name, n, t, prescribed, params))
+    contacts = _read_contacts(root, path, mesh, pairs, rigid, step_moves)
+    if contacts:
+        mesh = dataclasses.replace(mesh, node_sets={
+            **mesh.node_sets, **{f"contact:{c.name}": np.unique(mesh.face_sets[c.primary])
+                                 for c in contacts}})
     out_steps = []
-    for name, n, t_end, prescribed, params in steps:
+    for k, (name, n, t_end, prescribed, params) in enumerate(steps):
         full = {tn: params.get(tn, {"p" if kind == "pressure" else "f":
                                     0.0 if kind == "pressure" else np.zeros(len(dat))})
                 for tn, (kind, dat, _) in terms.items()}
+        for c in contacts:
+            full[f"contact:{c.name}"] = {"d": np.array([c.d[k]]), "s": np.zeros(1)}
         out_steps.append(FebStep(name, n, t_end, prescribed, full))
     pressures = tuple((tn, dat, float(v0), float(out_steps[0].params[tn]["p"]))
                       for tn, (kind, dat, v0) in terms.items() if kind == "pressure")
     forces = tuple((tn, dat, np.asarray(v0, np.float64))
                    for tn, (kind, dat, v0) in terms.items() if kind == "force")
     loads = FebLoads(out_steps[0].prescribed, pressures, out_steps[0].n_steps,
-                     {m: bulk[m] for m in used}, tuple(out_steps), forces, links, rigid)
+                     {m: bulk[m] for m in used}, tuple(out_steps), forces, links, rigid,
+                     contacts)
     log.info("read %s: %d nodes, %d hex8, materials %s, %d step(s), %d pressure loads, "
              "%d nodal force terms, %d truss / spring sets, %d rigid bodies", path,
              mesh.n_nodes, mesh.n_elem, list(used), len(out_steps), len(pressures),
@@ -733,7 +765,7 @@ def _check_jacobians(nodes, hexes, elem_ids, path):
 
 def _read_sets(root, path, node_index):
     mesh = root.find("Mesh")
-    faces, nsets, dsets = {}, {}, {}
+    faces, nsets, dsets, pairs = {}, {}, {}, {}
 
     def nid(i, where):
         try:
@@ -761,6 +793,9 @@ def _read_sets(root, path, node_index):
             nsets[name] = np.array([nid(i, f"node set '{name}'") for i in ids], np.int64)
         elif el.tag == "ElementSet":
             continue
+        elif el.tag == "SurfacePair":
+            pairs[name] = ((el.findtext("primary") or "").strip(),
+                           (el.findtext("secondary") or "").strip())
         elif el.tag == "DiscreteSet":
             pairs = []
             for d in el:
@@ -773,9 +808,9 @@ def _read_sets(root, path, node_index):
                 pairs.append([nid(i, f"discrete set '{name}'") for i in conn])
             dsets[name] = np.array(pairs, np.int64).reshape(-1, 2)
         else:
-            raise _err(path, f"<Mesh><{el.tag} name=\"{name}\"> is not supported (contact "
-                       "pairs and edges have no eyefem reader)")
-    return faces, nsets, dsets
+            raise _err(path, f"<Mesh><{el.tag} name=\"{name}\"> is not supported (edges "
+                       "and other sets have no eyefem reader)")
+    return faces, nsets, dsets, pairs
 
 
 def _read_control(ctrl, fallback, path):
@@ -1089,7 +1124,102 @@ def _read_rigid(secs, path, rigid, curves, t, first, materials, by_id):
             d = node_dofs(rigid[rb], _XYZ[c])
             dofs.append(d)
             vals.append(np.full(len(d), h[_RIGID_DOFS[c]]))
-    return np.concatenate(dofs), np.concatenate(vals)
+    moves = {rb: np.array([h[d] for d in _RIGID_DOFS[:3]]) for rb, h in held.items()}
+    return np.concatenate(dofs), np.concatenate(vals), moves
+
+
+_CONTACT_FLAGS = {"two_pass": "0", "tension": "0", "auto_penalty": "0", "fric_coeff": "0",
+                  "smooth_aug": "0", "node_reloc": "0", "flip_primary": "0",
+                  "flip_secondary": "0", "shell_bottom_primary": "0",
+                  "shell_bottom_secondary": "0", "update_penalty": "0"}
+"""sliding-elastic parameters eyefem maps only at these values (anything else refused);
+the search and augmentation tolerances (tolerance, gaptol, search_tol, search_radius,
+minaug, maxaug, knmult, seg_up, symmetric_stiffness) do not change a penalty solution."""
+
+
+def _read_contacts(root, path, mesh, pairs, rigid, step_moves) -> tuple:
+    """:class:`FebContact` per <contact>: FEBio's "sliding-elastic" with a penalty (laugon
+    0 / PENALTY), no friction, no auto-penalty, between a deformable surface and the
+    facets of a rigid body moved along one direction. FEBio integrates the traction
+    eps <-g> over the primary faces; eyefem's RigidContact puts alpha <-g> at each primary
+    node with alpha = eps x the nodes' mean tributary area: the same total force for a
+    uniform gap (tests/test_febio_links.py), and both tend to the exact contact
+    constraint as the penalty grows. Other contact is refused by name."""
+    sec = root.find("Contact")
+    out = []
+    for el in ([] if sec is None else sec):
+        if not isinstance(el.tag, str):
+            continue
+        kind, name = el.get("type"), el.get("name") or f"contact_{len(out) + 1}"
+        where = f"<contact name=\"{name}\" type=\"{kind}\">"
+        if el.tag != "contact" or kind != "sliding-elastic":
+            raise _err(path, f"{where} is not supported (eyefem reads frictionless "
+                       "sliding-elastic contact against a rigid body with a penalty)")
+        lau = (el.findtext("laugon") or "0").strip().upper()
+        if lau not in ("0", "PENALTY", "FALSE"):
+            raise _err(path, f"{where}: <laugon> {lau}: eyefem's contact is a penalty "
+                       "(laugon 0 / PENALTY); the augmented Lagrangian is not supported")
+        for tag, want in _CONTACT_FLAGS.items():
+            got = (el.findtext(tag) or want).strip()
+            if float(got) != float(want):
+                raise _err(path, f"{where}: <{tag}> {got} is not supported (eyefem maps "
+                           f"{tag} = {want} only)")
+        eps = _child_float(el, "penalty", path, where, hint="give the penalty, MPa/mm")
+        if el.find("penalty").get("lc") is not None or not eps > 0:
+            raise _err(path, f"{where}: <penalty> must be a number > 0 without a load curve")
+        pair = pairs.get(el.get("surface_pair"))
+        if pair is None:
+            raise _err(path, f"{where}: surface pair '{el.get('surface_pair')}' is not "
+                       "defined in <Mesh>")
+        primary, secondary = pair
+        for surf in pair:
+            if surf not in mesh.face_sets:
+                raise _err(path, f"{where}: surface '{surf}' is not defined in <Mesh>")
+        sec_nodes = np.unique(mesh.face_sets[secondary])
+        body = [rb for rb, nodes in rigid.items() if np.all(np.isin(sec_nodes, nodes))]
+        on_rigid = [rb for rb, nodes in rigid.items()
+                    if np.any(np.isin(np.unique(mesh.face_sets[primary]), nodes))]
+        if not body or on_rigid:
+            raise _err(path, f"{where}: eyefem reads contact of a deformable primary "
+                       "surface against the facets of one rigid body (secondary); contact "
+                       "between deformable bodies is not supported")
+        rb = body[0]
+        moves = np.array([m[rb] for m in step_moves])
+        big = moves[np.argmax(np.linalg.norm(moves, axis=1))]
+        direction = big / np.linalg.norm(big) if np.linalg.norm(big) > 0 else np.eye(3)[2]
+        d = moves @ direction
+        if np.max(np.linalg.norm(moves - d[:, None] * direction, axis=1), initial=0.0) > \
+                1e-12 * max(1.0, float(np.abs(d).max())):
+            raise _err(path, f"{where}: rigid body '{rb}' moves along different directions "
+                       "in different steps; eyefem's contact body moves along one")
+        faces = mesh.face_sets[primary]
+        x = mesh.nodes[faces]
+        area = 0.5 * np.linalg.norm(np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 1]), axis=1)
+        tributary = np.bincount(faces.ravel(), np.repeat(area / 4, 4),
+                                minlength=mesh.n_nodes)[np.unique(faces)]
+        out.append(FebContact(name, primary, rb, mesh.face_sets[secondary], direction,
+                              tuple(float(v) for v in d), eps * float(tributary.mean())))
+    return tuple(out)
+
+
+def contact_term(c: FebContact, mesh: Mesh, rigid_nodes) -> Term:
+    """eyefem.fem.rigid_contact.RigidContact of a :class:`FebContact`: the primary
+    surface's nodes against the rigid body's facets (two triangles per quad, facing away
+    from the body's centroid), moved by d along the body's direction."""
+    from eyefem.fem.rigid import RigidBody
+    from eyefem.fem.rigid_contact import RigidContact
+
+    used, inv = np.unique(c.facets, return_inverse=True)
+    quads = inv.reshape(-1, 4)
+    P = mesh.nodes[used]
+    tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    centre = mesh.nodes[rigid_nodes].mean(axis=0)
+    nrm = np.cross(P[tris[:, 1]] - P[tris[:, 0]], P[tris[:, 2]] - P[tris[:, 0]])
+    inward = np.einsum("ti,ti->t", nrm, P[tris].mean(axis=1) - centre) < 0
+    tris[inward] = tris[inward][:, ::-1]
+    body = RigidBody(c.body, P, tris, tuple(c.direction))
+    return RigidContact(f"contact:{c.name}", mesh, f"contact:{c.name}", (body,),
+                        penalty=c.penalty)
 
 
 _SPRINGS = ("linear spring", "tension-only linear spring")
@@ -1235,6 +1365,7 @@ def build_stages(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, l
     terms = [pressure_term(name, mesh, surf, p0) for name, surf, p0, _ in loads.pressures]
     terms += [NodalForce(name, dofs, {"f": f0}) for name, dofs, f0 in loads.forces]
     terms += [link_term(lk, mesh.nodes) for lk in loads.links]
+    terms += [contact_term(c, mesh, loads.rigid[c.body]) for c in loads.contacts]
     if mesh.n_elem:
         model = solid_model(mesh, materials, tuple(terms))
     else:  # trusses and springs only
