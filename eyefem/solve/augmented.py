@@ -27,11 +27,15 @@ the Q1P0 forces at lambda_eff exactly, and the volume constraint is left at uzaw
 (the exact solver: NewtonOptions.vtol on the norm of the constraints).
 
 kappa_e = NewtonOptions.penalty_factor x the element's initial shear modulus
-2 (c10 + c01) (FEBio's guidance for the bulk modulus of its uncoupled materials with the
-augmented Lagrangian: a penalty of a few hundred to a thousand times the shear modulus,
-its error corrected by the augmentations; FEBio User's Manual, "Uncoupled Materials",
-and its ``laugon``/``atol`` settings). The error of each Uzawa update falls by about
-mu / kappa, so that 1e3 x mu reaches 1e-6 in one or two updates of a step.
+2 (c10 + c01), 100 by default. FEBio's guidance for its uncoupled materials is a bulk
+modulus some hundred to a thousand times the shear modulus, its error corrected by the
+augmentations (FEBio User's Manual, "Uncoupled Materials", ``laugon``/``atol``). Measured
+on case 1's pressurisation on the coarse eye (benchmarks/bench_incompressibility.py):
+at 10 x mu the first solve left max |Jbar - 1| = 0.1 and the Uzawa updates contracted it
+only 2- to 5-fold each (6e-4 after 6); at 1000 x mu Newton did not converge in 40
+iterations (the penalty's forces, cubic in the displacements, defeat the line search);
+at 100 x mu it reached 1e-6 in 6 updates of 1-2 iterations each. On the inflated shell
+10 x mu needs one update a step.
 
 :func:`solve_augmented` is the load path with the transformation (eyefem.solve.loadpath
 calls it for that option): the model's SolidQ1P0 terms become :class:`AugmentedQ1P0`
@@ -181,14 +185,14 @@ def shear_moduli(term: SolidQ1P0) -> np.ndarray:
     return 2.0 * (c[:, 1, 0] + c[:, 0, 1])
 
 
-def augmented_model(model: Model, penalty_factor: float = 10.0, q=None) -> Model:
+def augmented_model(model: Model, penalty_factor: float = 100.0, q=None) -> Model:
     """The model with each SolidQ1P0 term replaced by its :class:`AugmentedQ1P0` (kappa_e =
     penalty_factor x the element's shear modulus; the estimates from q's multiplier dofs,
     0 without q). Other terms are kept. A ValueError for a subclass of SolidQ1P0 (ANS,
     incompatible modes, viscoelastic, a shortened loop: their constraint is not this one)."""
     if not penalty_factor > 0:
         raise ValueError(f"NewtonOptions.penalty_factor = {penalty_factor}; must be > 0 "
-                         "(default 10: kappa = 10 x the shear modulus)")
+                         "(default 100: kappa = 100 x the shear modulus)")
     terms = []
     for t in model.terms:
         if isinstance(t, SolidQ1P0) and type(t) is not SolidQ1P0:

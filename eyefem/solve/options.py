@@ -132,7 +132,7 @@ class NewtonOptions:
     max_step: float = 0.5
     contact_curvature: float = 0.0
     incompressibility: str = "exact"
-    penalty_factor: float = 10.0
+    penalty_factor: float = 100.0
     uzawa_tol: float = 1e-6
     uzawa_max: int = 20
 
