@@ -269,3 +269,65 @@ def test_contact_refusals_name_the_feature(tmp_path, extra, match):
     (tmp_path / "c.feb").write_text(deck)
     with pytest.raises(FebError, match=match):
         read_feb(tmp_path / "c.feb")
+
+
+def _volume_deck(tmp_path, eps=-2.0, in_step=False):
+    """A unit cube of FEBio's neo-Hookean with v = 0 on rollers (x, y, z = 0), its top
+    pulled up 0.2 mm (two steps: 0.1, then 0.2); FEBio's volume constraint (penalty eps)
+    on its six faces, from the start or from the second step."""
+    cube = [(x, y, z) for z in (0, 1) for y in (0, 1) for x in (0, 1)]
+    text = "".join(f'<node id="{i + 1}">{x},{y},{z}</node>' for i, (x, y, z) in enumerate(cube))
+    faces = "".join(f'<quad4 id="{i + 1}">{f}</quad4>' for i, f in enumerate(
+        ("1,3,4,2", "5,6,8,7", "1,2,6,5", "3,7,8,4", "1,5,7,3", "2,4,8,6")))
+    cons = f"""<Constraints><constraint name="vol" surface="all" type="volume">
+      <laugon>0</laugon><penalty>{eps}</penalty></constraint></Constraints>"""
+    step = lambda name, body: f"""<step name="{name}"><Control><time_steps>5</time_steps>
+      <step_size>0.2</step_size></Control>{body}</step>"""  # noqa: E731
+    return _write(tmp_path, f"""  <Material><material id="1" name="gel" type="neo-Hookean">
+    <E>1</E><v>0</v></material></Material>
+  <Mesh><Nodes name="n">{text}</Nodes>
+    <Elements type="hex8" name="cube"><elem id="1">1,2,4,3,5,6,8,7</elem></Elements>
+    <NodeSet name="z0">1,2,3,4</NodeSet><NodeSet name="x0">1,3,5,7</NodeSet>
+    <NodeSet name="y0">1,2,5,6</NodeSet><NodeSet name="top">5,6,7,8</NodeSet>
+    <Surface name="all">{faces}</Surface></Mesh>
+  <MeshDomains><SolidDomain name="cube" mat="gel"/></MeshDomains>
+  <Boundary><bc name="b" node_set="z0" type="zero displacement"><z_dof>1</z_dof></bc>
+    <bc name="sx" node_set="x0" type="zero displacement"><x_dof>1</x_dof></bc>
+    <bc name="sy" node_set="y0" type="zero displacement"><y_dof>1</y_dof></bc>
+    <bc name="up" node_set="top" type="prescribed displacement"><dof>z</dof>
+      <value lc="1">0.1</value></bc></Boundary>
+  {"" if in_step else cons}
+  <Step>{step("first", "")}{step("second", cons if in_step else "")}</Step>
+""").with_suffix(".feb")
+
+
+@pytest.mark.parametrize("in_step", [False, True])
+def test_volume_constraint_is_a_liquid_cavity(tmp_path, in_step):
+    """FEBio's p = eps (V - V0) on the faces is a liquid of pressure P = eps (V - V0)
+    (FEVolumeConstraint::LoadVector): in the cube, stretched to lam = 1.2 with lateral
+    stretch a, the free faces carry sigma_xx = mu (a^2 - 1) / (a^2 lam) = P, V = a^2 lam
+    (brentq). From the start V0 = 1; written in the second step, the constraint takes
+    V0 = the volume at that step's start (1.1: v = 0, no lateral stretch before)."""
+    eps, mu, lam = -2.0, 0.5, 1.2
+    V0 = 1.1 if in_step else 1.0
+    a = brentq(lambda a: mu * (a * a - 1) / (a * a * lam) - eps * (a * a * lam - V0), 0.5, 1.0)
+    deck = _volume_deck(tmp_path, eps, in_step)
+    text = deck.read_text().replace('<pt>0,0</pt><pt>1,1</pt>', '<pt>0,0</pt><pt>1,1</pt>'
+                                    '<pt>2,2</pt>')
+    deck.write_text(text)
+    mesh, loads, model, stages, q = _solve(deck)
+    U = q[: 3 * mesh.n_nodes].reshape(-1, 3)
+    assert np.allclose(U[4:, 2], 0.2, rtol=1e-12)
+    assert U[7, 0] == pytest.approx(a - 1.0, rel=1e-8)
+    assert U[7, 1] == pytest.approx(a - 1.0, rel=1e-8)
+    assert a < 0.99
+
+
+def test_volume_constraint_refusals(tmp_path):
+    deck = _volume_deck(tmp_path)
+    deck.write_text(deck.read_text().replace("<laugon>0</laugon>", "<laugon>1</laugon>"))
+    with pytest.raises(FebError, match="augmented Lagrangian holds the volume exactly"):
+        read_feb(deck)
+    deck = _volume_deck(tmp_path, eps=2.0)
+    with pytest.raises(FebError, match="needs eps < 0"):
+        read_feb(deck)

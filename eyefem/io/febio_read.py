@@ -84,6 +84,8 @@ class FebLoads:
       links: one :class:`FebLinks` per truss domain and per discrete set.
       rigid: rigid body name -> its node ids (n,) (each moved as the deck prescribes).
       contacts: one :class:`FebContact` per sliding contact with a rigid surface.
+      volumes: (name, face set, FEBio's penalty eps MPa/mm^3, step index or None: the
+        model's) per volume constraint (:func:`volume_term`).
     """
 
     prescribed: tuple[np.ndarray, np.ndarray]
@@ -95,6 +97,7 @@ class FebLoads:
     links: tuple = ()
     rigid: dict = dataclasses.field(default_factory=dict)
     contacts: tuple = ()
+    volumes: tuple = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -290,7 +293,8 @@ def _child_float(el, tag, path, where, default=None, hint="give a finite number"
 
 
 _IGNORED = {"Globals", "Output", "Module", "Control", "Material", "Mesh", "MeshDomains",
-            "Boundary", "Loads", "LoadData", "Step", "Discrete", "Rigid", "Contact"}
+            "Boundary", "Loads", "LoadData", "Step", "Discrete", "Rigid", "Contact",
+            "Constraints"}
 
 
 def read_feb(path) -> tuple[Mesh, dict, FebLoads]:
@@ -349,16 +353,17 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
             raise _err(path, f"<Step><{st.tag}> is not supported; give each step as <step>")
         for child in st:
             if isinstance(child.tag, str) and child.tag not in (
-                    "Control", "Boundary", "Loads", "Rigid") and len(child):
+                    "Control", "Boundary", "Loads", "Rigid", "Constraints") and len(child):
                 raise _err(path, f"<step name=\"{st.get('name')}\"><{child.tag}> is not "
-                           "supported (eyefem reads a step's Control, Boundary, Loads and "
-                           "Rigid)")
+                           "supported (eyefem reads a step's Control, Boundary, Loads, Rigid "
+                           "and Constraints)")
         _check_analysis(st.find("Control"), path)
 
     materials, bulk, by_id = _read_materials(root, path)
     nodes, node_index = _read_nodes(root, path)
     hexes, blocks, elem_ids, lines = _read_elements(root, path, node_index)
     mat_of_block, truss_of_block = _read_domains(root, path, blocks, materials, by_id, lines)
+    shells = {b: lines.pop(b)[1] for b in list(lines) if isinstance(lines[b], tuple)}
     _check_jacobians(nodes, hexes, elem_ids, path)
     # a rigid body's elements leave the solid: their nodes move as the deck prescribes
     rigid, keep, start = {}, np.ones(len(hexes), bool), 0
@@ -367,6 +372,8 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
             rigid.setdefault(mat_of_block[b], set()).update(hexes[start:start + n].ravel().tolist())
             keep[start:start + n] = False
         start += n
+    for b, ids in shells.items():
+        rigid.setdefault(truss_of_block.pop(b)[0], set()).update(ids.tolist())
     hexes = hexes[keep]
     elem_ids = [e for e, k in zip(elem_ids, keep) if k]
     blocks = [(b, n) for b, n in blocks if not isinstance(materials[mat_of_block[b]], _Special)]
@@ -425,6 +432,9 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
                 params[tname] = {"p" if kind == "pressure" else "f": value(t)}
         steps.append((name, n, t, prescribed, params))
     contacts = _read_contacts(root, path, mesh, pairs, rigid, step_moves)
+    volumes = _read_volumes([(None, root.find("Constraints"))] + [
+        (k, None if st is None else st.find("Constraints")) for k, (_, _, st) in
+        enumerate(specs)], path, mesh)
     if contacts:
         mesh = dataclasses.replace(mesh, node_sets={
             **mesh.node_sets, **{f"contact:{c.name}": np.unique(mesh.face_sets[c.primary])
@@ -443,7 +453,7 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
                    for tn, (kind, dat, v0) in terms.items() if kind == "force")
     loads = FebLoads(out_steps[0].prescribed, pressures, out_steps[0].n_steps,
                      {m: bulk[m] for m in used}, tuple(out_steps), forces, links, rigid,
-                     contacts)
+                     contacts, volumes)
     log.info("read %s: %d nodes, %d hex8, materials %s, %d step(s), %d pressure loads, "
              "%d nodal force terms, %d truss / spring sets, %d rigid bodies", path,
              mesh.n_nodes, mesh.n_elem, list(used), len(out_steps), len(pressures),
@@ -653,6 +663,17 @@ def _read_elements(root, path, node_index):
     hexes, blocks, elem_ids, lines = [], [], [], {}
     for block in root.find("Mesh").findall("Elements"):
         etype, name = block.get("type"), block.get("name")
+        if etype in ("quad4", "tri3"):  # shells: a rigid body's facets only
+            ids = []
+            for e in block.findall("elem"):
+                c = _ints(e.text, path, f"element {e.get('id')}", len(node_index))
+                try:
+                    ids += [node_index[i] for i in c]
+                except KeyError as exc:
+                    raise _err(path, f"element {e.get('id')}: node {exc.args[0]} is not in "
+                               "<Nodes>") from None
+            lines[name] = ("shell", np.unique(np.array(ids, np.int64)))
+            continue
         if etype in ("line2", "truss2"):
             conn = []
             for e in block.findall("elem"):
@@ -699,9 +720,18 @@ def _read_domains(root, path, blocks, materials, by_id, lines):
             continue
         mat = d.get("mat")
         mat = by_id.get(mat, mat)
+        if d.tag == "ShellDomain":
+            spec = materials.get(mat)
+            if not (isinstance(spec, _Special) and spec.kind == "rigid body") or not isinstance(
+                    lines.get(d.get("name")), tuple):
+                raise _err(path, f"<ShellDomain name=\"{d.get('name')}\">: shells are read "
+                           "only as a rigid body's facets (a \"rigid body\" material on "
+                           "quad4 / tri3 elements); deformable shells are not supported")
+            trusses[d.get("name")] = (mat, None)
+            continue
         if d.tag in ("BeamDomain", "TrussDomain"):
             where = f"<{d.tag} name=\"{d.get('name')}\">"
-            if d.get("name") not in lines:
+            if d.get("name") not in lines or isinstance(lines[d.get("name")], tuple):
                 raise _err(path, f"{where}: no line2 <Elements> block of that name")
             spec = materials.get(mat)
             if d.get("type") != "linear-truss" or not (
@@ -746,8 +776,8 @@ def _read_domains(root, path, blocks, materials, by_id, lines):
             raise _err(path, f"element block '{name}' has no SolidDomain in <MeshDomains>")
     for name in lines:
         if name not in trusses:
-            raise _err(path, f"element block '{name}' (line2) has no linear-truss BeamDomain "
-                       "in <MeshDomains>")
+            raise _err(path, f"element block '{name}' (line2 or shells) has no linear-truss "
+                       "BeamDomain (or rigid ShellDomain) in <MeshDomains>")
     return out, trusses
 
 
@@ -1222,6 +1252,80 @@ def contact_term(c: FebContact, mesh: Mesh, rigid_nodes) -> Term:
                         penalty=c.penalty)
 
 
+def _read_volumes(secs, path, mesh) -> tuple:
+    """(name, face set, eps, step) per FEBio "volume" constraint (FEVolumeConstraint) of
+    the model's (step None) and each step's <Constraints>: the penalty form only (laugon
+    0 / PENALTY) with eps < 0 (a liquid); anything else refused by name."""
+    out = []
+    for step, sec in secs:
+        for el in ([] if sec is None else sec):
+            if not isinstance(el.tag, str):
+                continue
+            kind, name = el.get("type"), el.get("name") or f"volume_{len(out) + 1}"
+            where = f"<constraint name=\"{name}\" type=\"{kind}\">"
+            if el.tag != "constraint" or kind != "volume":
+                raise _err(path, f"{where} is not supported (eyefem reads the \"volume\" "
+                           "constraint as a closed liquid cavity)")
+            lau = (el.findtext("laugon") or "0").strip().upper()
+            if lau not in ("0", "PENALTY", "FALSE"):
+                raise _err(path, f"{where}: <laugon> {lau}: FEBio's augmented Lagrangian holds "
+                           "the volume exactly; eyefem's cavity is a compressible liquid (give "
+                           "laugon 0 and a penalty)")
+            for child in el:
+                if isinstance(child.tag, str) and child.tag not in ("laugon", "penalty",
+                                                                     "augtol"):
+                    raise _err(path, f"{where}: <{child.tag}> is not supported (laugon, "
+                               "penalty)")
+            eps = _child_float(el, "penalty", path, where, hint="give the penalty, MPa/mm^3")
+            if not eps < 0:
+                raise _err(path, f"{where}: <penalty> = {eps:g}: FEBio's p = eps (V - V0) acts "
+                           "along the faces' normals, so a liquid resisting its compression "
+                           "needs eps < 0 (eps > 0 pushes the volume away from V0)")
+            surf = el.get("surface")
+            if surf not in mesh.face_sets:
+                raise _err(path, f"{where}: surface '{surf}' is not defined in <Mesh>")
+            out.append((name, surf, eps, step))
+    return tuple(out)
+
+
+def volume_term(name, mesh, surf, eps, path="deck"):
+    """FEBio's volume constraint as eyefem.fem.cavity.FluidCavity: FEBio's multiplier
+    p = eps (V - V0) pushes along the faces' normals with V = 1/3 integral x . n da over
+    them (FEVolumeConstraint::LoadVector), i.e. a liquid of pressure P = eps (V_c - V0) on
+    either orientation of the faces (V_c the enclosed volume): the cavity's law P = P_ini -
+    K (V_c - V_ini) / V_ini with P_ini = 0, V_ini = V0 and K = -eps V0. The faces are turned to face the liquid where
+    the deck's face away from it. Returns (term, the mesh with the face set used)."""
+    from eyefem.fem.cavity import FluidCavity
+
+    faces = mesh.face_sets[surf]
+    x = mesh.nodes[faces]  # the sign of FEBio's V (two triangles per face about 0)
+    v_febio = sum(np.einsum("fi,fi->f", x[:, 0], np.cross(x[:, i], x[:, i + 1])).sum()
+                  for i in (1, 2)) / 6.0
+    if v_febio > 0:  # normals out of the enclosed region: eyefem's face the liquid
+        key = f"volume:{name}"
+        mesh = dataclasses.replace(mesh, face_sets={**mesh.face_sets, key: faces[:, ::-1]})
+        surf = key
+    try:
+        probe = FluidCavity(f"volume:{name}", mesh, surf, bulk=0.0)
+        V0 = float(np.ravel(probe.params["v_ini"])[0])
+        term = FluidCavity(f"volume:{name}", mesh, surf, p_ini=0.0, bulk=-eps * V0,
+                           v_ini=V0)
+    except ValueError as exc:
+        raise FebError(f"{path}: volume constraint '{name}': {exc}") from None
+    return term, mesh
+
+
+def _close_volume(model, q, theta, name, eps):
+    """A step's volume constraint acts from the step's start: V0 the volume then, FEBio's
+    multiplier 0 (P_ini = 0), K = -eps V0 (a Stage ``before`` hook)."""
+    term = model.term(name)
+    _, V = term.pressures(q, theta[name])
+    V = float(np.ravel(V)[0])
+    new = {**theta[name], "p_ini": term._shape(0.0), "v_ini": term._shape(V),
+           "dv": term._shape(0.0), "bulk": term._shape(-eps * V)}
+    return model, q, {**theta, name: new}
+
+
 _SPRINGS = ("linear spring", "tension-only linear spring")
 
 
@@ -1365,6 +1469,9 @@ def build_stages(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, l
     terms = [pressure_term(name, mesh, surf, p0) for name, surf, p0, _ in loads.pressures]
     terms += [NodalForce(name, dofs, {"f": f0}) for name, dofs, f0 in loads.forces]
     terms += [link_term(lk, mesh.nodes) for lk in loads.links]
+    for name, surf, eps, _ in loads.volumes:
+        term, mesh = volume_term(name, mesh, surf, eps)
+        terms.append(term)
     terms += [contact_term(c, mesh, loads.rigid[c.body]) for c in loads.contacts]
     if mesh.n_elem:
         model = solid_model(mesh, materials, tuple(terms))
@@ -1372,7 +1479,20 @@ def build_stages(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, l
         model = Model(mesh, tuple(terms), 3 * mesh.n_nodes)
     steps = loads.steps or (FebStep("load", loads.n_steps, 1.0, loads.prescribed,
                                     {n: {"p": p1} for n, _, _, p1 in loads.pressures}),)
-    stages = [Stage(st.name, st.n_steps, st.prescribed, params=st.params) for st in steps]
+    names = [t.name for t in model.terms]
+    stages = []
+    for k, st in enumerate(steps):
+        scoped = [(f"volume:{n}", eps) for n, _, eps, step in loads.volumes if step == k]
+        off = {f"volume:{n}" for n, _, _, step in loads.volumes if step not in (None, k)}
+        before = None
+        if scoped:
+            def before(model, q, theta, scoped=scoped):
+                for name, eps in scoped:
+                    model, q, theta = _close_volume(model, q, theta, name, eps)
+                return model, q, theta
+        stages.append(Stage(st.name, st.n_steps, st.prescribed, params=st.params,
+                            active=tuple(n for n in names if n not in off) if off else None,
+                            before=before))
     return model, stages
 
 
