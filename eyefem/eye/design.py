@@ -32,6 +32,14 @@ meridian; a design moves them by params (shift, radial fit "dr", turn "rot" abou
 eye axis), so every outcome is measured at the case's buckle position (the retinal
 break): a moved buckle indents less there.
 
+A case on the surgery's timeline (volume_regulation = true, eyefem.eye.timeline) is
+simulated by :class:`TimelineSimulator` (``SurgerySimulator(params)`` of such a case is
+one): every step after the closing is one stage of the staged adjoint, its carry the
+cavity's history, its IOP and where needed the optics, so that the timeline's outcomes
+(the peak IOP on the table, the minutes above the central retinal artery's closing
+pressure, the IOP and the shape at the follow-up times) and their gradients in the design
+(the paracentesis's volume and time among its variables) come from one backward sweep.
+
 Warm start: a new design is solved from the previous design's converged states, by
 continuation of the params in one step (cut automatically if needed); the equilibria
 do not depend on the path (hyperelastic, frictionless). Stage 1 is solved again only
@@ -755,7 +763,7 @@ class TimelineSimulator(SurgerySimulator):
         path solved with: roundoff where the two agree (a check of the step maps)."""
         worst, carry = 0.0, {}
         for r in res.stages:
-            if r.map.params is self._step_params:
+            if isinstance(r.params_data, dict) and "stage" in r.params_data:  # a step's
                 got = stage_params(r.map, res.design, carry, r.params_data)
                 for term, ps in got.items():
                     for k, v in ps.items():

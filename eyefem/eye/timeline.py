@@ -96,8 +96,10 @@ TIMELINE_FIELDS = [
           "pressure scale over which the choroid's blood is expelled, mmHg",
           lambda v: 1 <= v <= 200, "1 to 200 mmHg"),
     Field("paracentesis_volume", float, 0.0,
-          "aqueous removed by an anterior chamber paracentesis after the tightening, uL "
-          "(a 30-gauge needle takes 50-200 uL); 0: none",
+          "aqueous removed by an anterior chamber paracentesis after the tightening "
+          "(paracentesis_delay_minutes later), at one instant, uL (a 30-gauge needle takes "
+          "50-200 uL); 0: none. A design variable (python -m optimize.plan --vars "
+          "paracentesis_volume)",
           lambda v: 0 <= v <= 300, "0 to 300 uL (the anterior chamber holds about 250)"),
     Field("paracentesis_delay_minutes", float, 0.0,
           "when the paracentesis is done: minutes after the end of the tightening, min (the "
@@ -206,12 +208,14 @@ def smooth_minutes_above(t, iop, threshold: float, width: float = SMOOTH_MMHG):
 def table_outcomes(t, iop, p: dict) -> dict:
     """The on-table outcomes of the clock t (k,) (minutes from the closing, 0 first) and
     the IOP (k,) (mmHg, the pre-operative IOP first) of the steps from the closing to the
-    end of surgery: the peak (the largest step's: its derivative is that step's), the
-    smooth minutes above the closing pressure and the IOP at the end of surgery. numpy or
-    JAX (the one definition of :func:`timeline_outcomes` and the design gradients)."""
+    end of surgery: the peak (the largest step's, the first of steps that tie: its
+    derivative is that step's, so where a zero-length wait repeats the tightening's last
+    IOP the derivative is the one-sided one of a later paracentesis, zero), the smooth
+    minutes above the closing pressure and the IOP at the end of surgery. numpy or JAX (the
+    one definition of :func:`timeline_outcomes` and the design gradients)."""
     xp = jnp if any(isinstance(a, jax.Array) for a in (t, iop)) else np
     iop = xp.asarray(iop, float)
-    return {"peak_iop_on_table_mmhg": xp.max(iop),
+    return {"peak_iop_on_table_mmhg": iop[xp.argmax(iop)],
             "minutes_above_cra_closing": smooth_minutes_above(t, iop, p["cra_closing_mmhg"]),
             "iop_end_of_surgery_mmhg": iop[-1]}
 
