@@ -83,8 +83,8 @@ def surgery_deck(tmp_path_factory):
 
 def test_surgery_exports_every_stage_and_its_pieces(surgery_deck):
     """Case 1 on the coarse mesh: three steps, the zonule's 16 bars and the lens's
-    springs as linear springs, the buckle as 24 rigid segments with one sliding-elastic
-    contact, the cavity as one volume constraint."""
+    springs as linear springs, the buckle as 24 rigid segments each in sliding-elastic
+    contact with the sclera, the cavity as one volume constraint."""
     setup, deck, _ = surgery_deck
     model = setup.model
     pieces = deck_pieces(deck)
@@ -93,7 +93,7 @@ def test_surgery_exports_every_stage_and_its_pieces(surgery_deck):
     zonule = len(model.term("zonule").params["EA"])
     assert pieces["springs"] == {"linear spring": zonule + lens}
     assert pieces["elements"]["hex8"] == model.mesh.n_elem
-    assert pieces["rigid_bodies"] == 24 and pieces["contacts"] == {"sliding-elastic": 1}
+    assert pieces["rigid_bodies"] == 24 and pieces["contacts"] == {"sliding-elastic": 24}
     assert pieces["constraints"] == {"volume": 1} and pieces["surface_loads"] == 1
     # nodes: the mesh's, a ground node per lens spring, the segments' facets (5 x 7 each)
     assert pieces["nodes"] == model.mesh.n_nodes + lens + 24 * 5 * 7
@@ -112,11 +112,27 @@ def test_surgery_deck_lists_what_febio_is_not_given(surgery_deck):
     assert "not verified" in deck.read_text()[:400]
 
 
-def test_surgery_deck_refused_by_eyefem_reader_by_name(surgery_deck):
-    """eyefem's reader does not map FEBio's contact: it refuses the deck naming it."""
-    _, deck, _ = surgery_deck
-    with pytest.raises(FebError, match="<Contact> is not supported"):
-        read_feb(deck)
+def test_surgery_deck_reads_back_into_the_same_pieces(surgery_deck):
+    """eyefem's own reader takes the exported deck back: the mesh's nodes and hexahedra
+    (plus the ground and segment nodes), the zonule's and the lens's springs, one
+    RigidContact per rigid segment, the cavity as a FluidCavity acting in the tighten
+    stage only (FEBio's step-level constraint), the IOP load and the three stages."""
+    setup, deck, _ = surgery_deck
+    model0 = setup.model
+    mesh, mats, loads = read_feb(deck)
+    model, stages = build_stages(mesh, mats, loads)
+    lens = len(model0.term("lens_springs").nodes)
+    assert mesh.n_elem == model0.mesh.n_elem
+    assert mesh.n_nodes == model0.mesh.n_nodes + lens + 24 * 5 * 7
+    kinds = [type(t).__name__ for t in model.terms]
+    assert kinds.count("RigidContact") == 24 and kinds.count("FluidCavity") == 1
+    springs = [t for t in model.terms if type(t).__name__ == "LinearSpring"]
+    assert sum(len(t.dofs) for t in springs) == lens + len(model0.term("zonule").params["EA"])
+    assert [s.name for s in stages] == [s.name for s in setup.stages]
+    assert [s.n_steps for s in stages] == [s.n_steps for s in setup.stages]
+    cavity = next(t.name for t in model.terms if type(t).__name__ == "FluidCavity")
+    assert [s.active is None or cavity in s.active for s in stages] == [False, True, False]
+    assert loads.contacts[0].d == pytest.approx((0.0, 0.795775674, 0.795775674), rel=1e-8)
 
 
 def test_stage_count_out_of_range_is_refused(tmp_path):

@@ -237,21 +237,20 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
         for j, f in enumerate(faces, start=1):
             ET.SubElement(s, "quad4", id=str(j)).text = _ids(f)
     taken = set(surf_names.values())
-    contact_pairs = []
+    contact_pairs = []  # one per rigid segment (FEBio's contact: one secondary body)
     for t in buckles:
-        nm = _unique(f"{t.name}_surface", taken)
-        s = ET.SubElement(xml_mesh, "Surface", name=nm)
-        j = 0
         for seg in segments:
-            if seg[0].startswith(f"{t.name}_segment"):
-                for f in seg[1]:
-                    j += 1
-                    ET.SubElement(s, "quad4", id=str(j)).text = _ids(f)
-        pair = _unique(f"{t.name}_contact", taken)
-        sp = ET.SubElement(xml_mesh, "SurfacePair", name=pair)
-        ET.SubElement(sp, "primary").text = surf_names.get(t.node_set, t.node_set)
-        ET.SubElement(sp, "secondary").text = nm
-        contact_pairs.append((t, pair))
+            if not seg[0].startswith(f"{t.name}_segment"):
+                continue
+            nm = _unique(f"{seg[0]}_surface", taken)
+            s = ET.SubElement(xml_mesh, "Surface", name=nm)
+            for j, f in enumerate(seg[1], start=1):
+                ET.SubElement(s, "quad4", id=str(j)).text = _ids(f)
+            pair = _unique(f"{seg[0]}_contact", taken)
+            sp = ET.SubElement(xml_mesh, "SurfacePair", name=pair)
+            ET.SubElement(sp, "primary").text = surf_names.get(t.node_set, t.node_set)
+            ET.SubElement(sp, "secondary").text = nm
+            contact_pairs.append((t, pair))
     set_names = safe_names(mesh.node_sets)
     for name, ids in mesh.node_sets.items():
         ET.SubElement(xml_mesh, "NodeSet", name=set_names[name]).text = _ids(ids)
@@ -351,7 +350,7 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
         for t, pair in contact_pairs:
             area = float(np.mean(t.node_area))
             eps = float(np.mean(np.asarray(t.data["alpha"]))) / area
-            c = ET.SubElement(con, "contact", name=t.name, surface_pair=pair,
+            c = ET.SubElement(con, "contact", name=pair, surface_pair=pair,
                               type="sliding-elastic")
             c.append(ET.Comment(f" eyefem's penalty {np.mean(t.data['alpha']):.6g} N/mm per "
                                 f"node over the mean nodal area {area:.6g} mm^2 "))

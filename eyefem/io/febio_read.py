@@ -827,7 +827,7 @@ def _read_sets(root, path, node_index):
             pairs[name] = ((el.findtext("primary") or "").strip(),
                            (el.findtext("secondary") or "").strip())
         elif el.tag == "DiscreteSet":
-            pairs = []
+            delems = []
             for d in el:
                 if not isinstance(d.tag, str):
                     continue
@@ -835,8 +835,8 @@ def _read_sets(root, path, node_index):
                 if d.tag != "delem" or len(conn) != 2:
                     raise _err(path, f"discrete set '{name}': give each spring as "
                                "<delem>node,node</delem>")
-                pairs.append([nid(i, f"discrete set '{name}'") for i in conn])
-            dsets[name] = np.array(pairs, np.int64).reshape(-1, 2)
+                delems.append([nid(i, f"discrete set '{name}'") for i in conn])
+            dsets[name] = np.array(delems, np.int64).reshape(-1, 2)
         else:
             raise _err(path, f"<Mesh><{el.tag} name=\"{name}\"> is not supported (edges "
                        "and other sets have no eyefem reader)")
@@ -1232,10 +1232,11 @@ def _read_contacts(root, path, mesh, pairs, rigid, step_moves) -> tuple:
     return tuple(out)
 
 
-def contact_term(c: FebContact, mesh: Mesh, rigid_nodes) -> Term:
+def contact_term(c: FebContact, mesh: Mesh) -> Term:
     """eyefem.fem.rigid_contact.RigidContact of a :class:`FebContact`: the primary
-    surface's nodes against the rigid body's facets (two triangles per quad, facing away
-    from the body's centroid), moved by d along the body's direction."""
+    surface's nodes against the rigid body's facets (two triangles per quad, their normals
+    as the deck orders them: FEBio's secondary normals face the primary surface, eyefem's
+    point out of the rigid body), moved by d along the body's direction."""
     from eyefem.fem.rigid import RigidBody
     from eyefem.fem.rigid_contact import RigidContact
 
@@ -1243,11 +1244,10 @@ def contact_term(c: FebContact, mesh: Mesh, rigid_nodes) -> Term:
     quads = inv.reshape(-1, 4)
     P = mesh.nodes[used]
     tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-    centre = mesh.nodes[rigid_nodes].mean(axis=0)
-    nrm = np.cross(P[tris[:, 1]] - P[tris[:, 0]], P[tris[:, 2]] - P[tris[:, 0]])
-    inward = np.einsum("ti,ti->t", nrm, P[tris].mean(axis=1) - centre) < 0
-    tris[inward] = tris[inward][:, ::-1]
-    body = RigidBody(c.body, P, tris, tuple(c.direction))
+    try:
+        body = RigidBody(c.body, P, tris, tuple(c.direction))
+    except ValueError as exc:
+        raise FebError(f"contact '{c.name}': {exc}") from None
     return RigidContact(f"contact:{c.name}", mesh, f"contact:{c.name}", (body,),
                         penalty=c.penalty)
 
@@ -1472,7 +1472,7 @@ def build_stages(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, l
     for name, surf, eps, _ in loads.volumes:
         term, mesh = volume_term(name, mesh, surf, eps)
         terms.append(term)
-    terms += [contact_term(c, mesh, loads.rigid[c.body]) for c in loads.contacts]
+    terms += [contact_term(c, mesh) for c in loads.contacts]
     if mesh.n_elem:
         model = solid_model(mesh, materials, tuple(terms))
     else:  # trusses and springs only
