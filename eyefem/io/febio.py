@@ -1,5 +1,5 @@
-"""FEBio 4 input decks (``<febio_spec version="4.0">``): write a model's first stage
-(reading a deck back: eyefem.io.febio_read).
+"""FEBio 4 input decks (``<febio_spec version="4.0">``): write a model's stages (reading
+a deck back: eyefem.io.febio_read).
 
 Mapping (see docs/febio.md):
 
@@ -12,20 +12,27 @@ Mapping (see docs/febio.md):
   the bulk modulus k = ``bulk_factor`` (c10 + c01) (default 1000) and FEBio's augmented
   Lagrangian (<laugon>1</laugon>, <atol> AUGMENTATION_TOL): its augmentations drive each
   three-field element's volume ratio Jbar = v / V to 1, the Q1P0 element's constraint, and
-  the reader takes laugon = 1 back as exactly incompressible; higher-order terms (c20, c30, ...) have no FEBio "Mooney-Rivlin"
-  equivalent and are dropped with a warning; FEBio's own laws (eyefem.fem.materials.
-  UncoupledMooneyRivlin with its k, CoupledMooneyRivlin) are written as what they are
-  ("Mooney-Rivlin" with that k, "neo-Hookean", "coupled Mooney-Rivlin"), and read back
-  as such (eyefem.io.febio_read);
+  the reader takes laugon = 1 back as exactly incompressible; higher-order terms (c20,
+  c30, ...) have no FEBio "Mooney-Rivlin" equivalent and are dropped with a warning;
+  FEBio's own laws (eyefem.fem.materials.UncoupledMooneyRivlin with its k,
+  CoupledMooneyRivlin) are written as what they are ("Mooney-Rivlin" with that k,
+  "neo-Hookean", "coupled Mooney-Rivlin"), and read back as such;
+* stages: each a <step> (one stage: FEBio's single analysis, no <Step>); each param's
+  value at the stages' ends on a load curve (stage k spans FEBio time [k - 1, k]);
 * loads: prescribed displacements (a dof d is node d // 3, component d % 3) become
   "zero displacement" / "prescribed displacement" boundary conditions on node sets, each
-  surface pressure (eyefem.fem.surface.PressureLoad: a follower load, positive against the
-  outward normal as in FEBio) a "pressure" surface load; both ramp linearly from the
-  stage's start to its end through load curves, over time_steps = the stage's n_steps.
+  surface pressure (eyefem.fem.surface.PressureLoad: a follower load, positive against
+  the outward normal as in FEBio) a "pressure" surface load;
+* bars (eyefem.fem.bars.Bars) and node springs (NodeSprings) become FEBio's linear
+  springs (the same energies: E = EA / L0; zero-length springs to fixed ground nodes);
+* an encircling rigid buckle (eyefem.fem.buckle_contact.BuckleContact) becomes
+  BUCKLE_SEGMENTS rigid bodies of quad4 facets translated radially, each in
+  sliding-elastic contact with the sclera; a closed cavity (eyefem.fem.cavity.FluidCavity)
+  FEBio's volume constraint (penalty -K / V_ini).
 
-What is not exported: fluid cavities (eyefem.fem.cavity.FluidCavity: no FEBio 4.0
-equivalent that can be checked here), contact, bars (sutures, zonule), springs: each is
-written as an XML comment and logged as a warning.
+What FEBio cannot be given (sutures tied and tightened in a later stage, the orbit's
+springs on a ring's rigid motion, ...) or is given approximately is returned, logged and
+written in the deck's header comment. No deck has been run in FEBio here.
 """
 
 from __future__ import annotations
@@ -137,7 +144,9 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
         if t in solids or t in loads or t in links or t in springs or t in cavities \
                 or t in buckles:
             continue
-        warnings.append(f"term '{t.name}' skipped ({_SKIPPED.get(type(t).__name__, type(t).__name__ + ': no FEBio equivalent exported')})")
+        why = _SKIPPED.get(type(t).__name__,
+                           f"{type(t).__name__}: no FEBio equivalent exported")
+        warnings.append(f"term '{t.name}' skipped ({why})")
 
     # materials: one per (name) used by the exported elements
     elem_mat = np.full(mesh.n_elem, -1, np.int64)

@@ -1,11 +1,15 @@
-"""Reading FEBio 4 input decks of hexahedral hyperelastic solids into eyefem (the
-mapping: eyefem.io.febio, docs/febio.md).
+"""Reading FEBio 4 input decks into eyefem (the mapping: eyefem.io.febio, docs/febio.md).
 
 Materials as FEBio defines them (eyefem.fem.materials): "Mooney-Rivlin" is uncoupled,
 W = c1 (I1bar - 3) + c2 (I2bar - 3) + k/2 (ln J)^2 with the deck's k, on FEBio's
 three-field hex8 (U on the element's volume ratio; eyefem.fem.solid_compressible);
 "neo-Hookean" (E, v) and "coupled Mooney-Rivlin" (c1, c2, k) are coupled, at every Gauss
-point. Other types and parameters are refused by name.
+point. Beyond the hex8 solids: linear trusses (:class:`LinearTruss`, FEBio's E ln(lam)
+law), discrete linear springs (:class:`LinearSpring`), rigid bodies whose six dofs are
+all fixed or prescribed (their nodes prescribed), frictionless penalty sliding-elastic
+contact against a rigid body's facets (eyefem.fem.rigid_contact.RigidContact) and the
+penalty volume constraint (a closed liquid cavity, eyefem.fem.cavity.FluidCavity). Other
+types, parameters and sections are refused by name.
 
 Decks are checked like case files: ids and id ranges (bounded by the deck's node count
 before anything is allocated), finite numbers, the material constants against the case
@@ -14,7 +18,7 @@ analysis type (static only). A pressure on an open surface is FEBio's follower l
 (eyefem.fem.surface.pressure_term).
 
 Length: one reader per deck section, each with the messages that name the file, the tag
-and the value it cannot read; about 660 lines.
+and the value it cannot read; about 1500 lines.
 """
 
 from __future__ import annotations
@@ -298,19 +302,22 @@ _IGNORED = {"Globals", "Output", "Module", "Control", "Material", "Mesh", "MeshD
 
 
 def read_feb(path) -> tuple[Mesh, dict, FebLoads]:
-    """Read an FEBio 4 deck of hex8 Mooney-Rivlin solids with fixed / prescribed
-    displacements and surface pressures (one static step, loads linear in time).
+    """Read an FEBio 4 deck (static steps of hex8 solids, trusses, springs, rigid bodies
+    moved as prescribed, contact against them, volume constraints; see the module).
 
     Returns: the mesh (materials named as in the deck, face sets from the Surfaces, node
-      sets from the NodeSets), the materials (name -> UncoupledMooneyRivlin with c10 = c1,
-      c01 = c2 and the deck's k, or MooneyRivlin where k = 0; CoupledMooneyRivlin for
-      "neo-Hookean" and "coupled Mooney-Rivlin") and the loads (:class:`FebLoads`).
+      sets from the NodeSets; a rigid body's elements left out), the materials (name ->
+      UncoupledMooneyRivlin with c10 = c1, c01 = c2 and the deck's k, or MooneyRivlin where
+      k = 0 or laugon = 1; CoupledMooneyRivlin for "neo-Hookean" and "coupled
+      Mooney-Rivlin") and the loads (:class:`FebLoads`: steps, loads, trusses and springs,
+      rigid bodies, contacts, volume constraints).
     Raises: FebError (a ValueError) naming the file and the tag, element or value it
-      cannot read: another spec version, tetrahedra or shells, another material or material
-      parameter, a pressure model other than FEBio's default, contact,
-      more than one step, a dynamic analysis, a load curve that is not linear over the
-      step, ids or id ranges that name no node, numbers that are not finite, material
-      constants outside the case files' ranges, more than MAX_TIME_STEPS steps; OSError.
+      cannot read: another spec version, tetrahedra or deformable shells, another material
+      or material parameter, a pressure model other than FEBio's default, contact or a
+      constraint eyefem does not map, a rigid body with a free dof, a dynamic analysis, an
+      interpolation FEBio has and eyefem does not, ids or id ranges that name no node,
+      numbers that are not finite, material constants outside the case files' ranges, more
+      than MAX_TIME_STEPS steps; OSError.
     """
     return read_feb_deck(path)[:3]
 
@@ -600,7 +607,8 @@ def _mooney_rivlin(el, kind, name, where, path):
     k = _child_float(el, "k", path, where, default=0.0,
                      hint="give the bulk modulus in MPa, e.g. <k>1000</k>")
     _check_constant(c1, "c1", name, where, path)
-    _check_constant(c2, "c2", name, where, path)
+    if c2 != 0.0:  # c2 = 0 is FEBio's default, no unit slip
+        _check_constant(c2, "c2", name, where, path)
     if 0 <= c1 and 0 <= c2 and 2 * (c1 + c2) < MIN_SHEAR_MODULUS:
         raise _err(path, f"{where}: c1 = {c1:g} MPa, c2 = {c2:g} MPa: the shear modulus "
                    f"2 (c1 + c2) = {2 * (c1 + c2):g} MPa is below {MIN_SHEAR_MODULUS:g} MPa "
@@ -1293,8 +1301,9 @@ def volume_term(name, mesh, surf, eps, path="deck"):
     p = eps (V - V0) pushes along the faces' normals with V = 1/3 integral x . n da over
     them (FEVolumeConstraint::LoadVector), i.e. a liquid of pressure P = eps (V_c - V0) on
     either orientation of the faces (V_c the enclosed volume): the cavity's law P = P_ini -
-    K (V_c - V_ini) / V_ini with P_ini = 0, V_ini = V0 and K = -eps V0. The faces are turned to face the liquid where
-    the deck's face away from it. Returns (term, the mesh with the face set used)."""
+    K (V_c - V_ini) / V_ini with P_ini = 0, V_ini = V0 and K = -eps V0. The faces are
+    turned to face the liquid where the deck's face away from it. Returns (term, the mesh
+    with the face set used)."""
     from eyefem.fem.cavity import FluidCavity
 
     faces = mesh.face_sets[surf]
@@ -1602,7 +1611,8 @@ def deck_pieces(path) -> dict:
     omissions = []
     for el in root:
         if el.tag is ET.Comment and el.text:
-            omissions += [m.strip() for m in re.findall(r"not exported or approximated: (.*)", el.text)]
+            omissions += [m.strip() for m in
+                          re.findall(r"not exported or approximated: (.*)", el.text)]
     return {"nodes": len(nodes), "elements": dict(elements), "springs": dict(springs),
             "rigid_bodies": sum(m.get("type") == "rigid body"
                                 for m in root.iterfind("Material/material")),
