@@ -158,7 +158,10 @@ def relaxation(p: dict) -> Relaxation | None:
 def with_relaxation(model, p: dict, name: str = "solid"):
     """The model with its solid term ``name`` relaxing as the case parameters say
     (:func:`eyefem.solve.model.with_viscoelastic`); the model itself for 'none'.
-    ValueError naming the tissue when a relaxing tissue is not in the mesh."""
+    ValueError naming the tissue when a relaxing tissue is not in the mesh, and for a
+    solid of another element (``wall_element = 'ans'``, a deformable band's shortened
+    loop). The surgery applies it to the model it has built, after the buckle body's
+    changes (the rigid buckle leaves the solid a Q1P0 term)."""
     from eyefem.solve.model import with_viscoelastic
 
     rel = relaxation(p)
