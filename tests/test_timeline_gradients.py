@@ -1,7 +1,10 @@
 """Gradients of the surgery's timeline outcomes (eyefem.eye.design.TimelineSimulator, issue
 74) against central differences of whole timelines, and the planner on the timeline
 (coarse eye, slow: each timeline is a full load path of about 30 steps from the closing to
-a week after surgery, and its gradient one adjoint per step).
+a week after surgery, and its gradient one adjoint per step). The fast check: the same
+construction (one staged record per step, the history and the IOP handed on under each
+step's own name, the on-table outcomes of eyefem.eye.timeline.table_outcomes) on a small
+regulated shell.
 
 The case: cases/surgery/timeline_case1.toml on the coarse eye with a paracentesis of 30 uL
 two minutes after the tightening and a follow-up to one week (1h, 48h, 1w: the three-month
@@ -12,8 +15,6 @@ import numpy as np
 import pytest
 
 from eyefem.api import load_case
-
-pytestmark = pytest.mark.slow
 
 CASE = "cases/surgery/timeline_case1.toml"
 NAMES = ("peak_iop_on_table_mmhg", "minutes_above_cra_closing", "iop_48h_mmhg",
@@ -26,7 +27,7 @@ argmax (the last tightening step) does not move within the step."""
 
 
 @pytest.fixture(scope="module")
-def timeline():
+def timeline():  # used by the slow tests only
     import jax
 
     from eyefem.eye.design import SurgerySimulator
@@ -40,6 +41,7 @@ def timeline():
     return sim, res, sim.gradients(res, NAMES)
 
 
+@pytest.mark.slow
 def test_a_timeline_case_gets_the_timeline_simulator(timeline):
     from eyefem.eye.design import TimelineSimulator
 
@@ -56,6 +58,7 @@ def test_a_timeline_case_gets_the_timeline_simulator(timeline):
     assert res.outcomes["peak_iop_on_table_mmhg"] == pytest.approx(max(iops[:8]), rel=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("var", list(STEPS))
 def test_timeline_gradients_against_central_differences(timeline, var):
     """d outcome / d variable by the adjoint through the timeline's steps against central
@@ -80,6 +83,7 @@ def test_timeline_gradients_against_central_differences(timeline, var):
             assert g == pytest.approx(fd, rel=1e-4), (name, var, g, fd)
 
 
+@pytest.mark.slow
 def test_the_planner_meets_the_peak_iop_limit_on_the_timeline(tmp_path):
     """python -m optimize.plan on the timeline case (coarse, follow-up to a week): a limit on
     the peak IOP on the table (60 mmHg, where the case's 5 mm tightening peaks at 77) and on
@@ -105,3 +109,147 @@ def test_the_planner_meets_the_peak_iop_limit_on_the_timeline(tmp_path):
     assert s["outcomes"]["minutes_above_cra_closing"] <= 2.5
     assert 0.0 <= s["design"]["paracentesis_volume"] <= 200.0
     assert (out / "planned_case.toml").exists() and (out / "plan_history.csv").exists()
+
+
+# --- the fast check: a regulated shell on a timeline ----------------------------------------
+
+def _shell_timeline(design, record=False):
+    """A regulated spherical shell (the published aqueous and choroid constants) pressurised
+    to 15 mmHg, closed, pressed from outside by ``load`` mmHg over 10 minutes (3 steps),
+    held for ``delay`` minutes (2 steps), ``para`` uL removed at one instant, and followed
+    to an hour: (recorder, cavity term, prescribed)."""
+    import dataclasses
+
+    from eyefem.fem import generators
+    from eyefem.fem.cavity import FluidCavity, closing_hook
+    from eyefem.fem.materials import neo_hookean
+    from eyefem.fem.regulation import AQUEOUS, CHOROID_ESTIMATE
+    from eyefem.fem.surface import PressureLoad
+    from eyefem.fem.units import MMHG
+    from eyefem.problems.verification import shell_rigid_constraints
+    from eyefem.solve.model import solid_model
+    from eyefem.solve.solver import NewtonOptions, Stage, solve
+    from eyefem.solve.transient import Recorder
+
+    m = generators.spherical_shell(10.0, 1.0, 4, 1, material="wall")
+    m = m.replace(face_sets={**m.face_sets, "cavity": m.face_set("inner")})
+    cav = FluidCavity("cav", m, "cavity", bulk=2083.3,
+                      regulation=dataclasses.replace(AQUEOUS, **CHOROID_ESTIMATE))
+    model = solid_model(m, {"wall": neo_hookean("wall", 0.1)},
+                        (PressureLoad("iop", m, "inner", 0.0),
+                         PressureLoad("buckle", m, "outer", 0.0), cav))
+    d = shell_rigid_constraints(m)
+    fix = (d, np.zeros(len(d)))
+    on = ("solid", "buckle", "cav")
+    stages = [Stage("pressurise", 2, fix, params={"iop": {"p": 15 * MMHG}}, active=("solid", "iop")),
+              Stage("tighten", 3, fix, params={"buckle": {"p": design["load"] * MMHG}}, active=on,
+                    before=closing_hook("cav", "iop"), duration=10.0),
+              Stage("wait", 2, fix, active=on, duration=design["delay"]),
+              Stage("paracentesis", 1, fix, params={"cav": {"paracentesis": design["para"]}},
+                    active=on),
+              Stage("follow-up", 3, fix, active=on, times=(10.0, 30.0, 60.0))]
+    rec = Recorder(stages)
+    solve(model, stages, options=NewtonOptions(rtol=1e-11, atol=1e-14), on_step=rec)
+    return rec, cav
+
+
+def _shell_step_params(design, carry, data):
+    """T of one step of the shell's timeline (JAX)."""
+    from eyefem.fem.units import MMHG
+
+    stage, t = data["stage"], data["t"]
+    load = design["load"] * MMHG
+    removed = {"tighten": 0.0, "wait": 0.0, "paracentesis": t * design["para"]}.get(
+        stage, design["para"])
+    minutes = design["delay"] if stage == "wait" else data["minutes"]
+    h = carry[data["history"]] if data["history"] is not None else data["h0"]
+    return {"buckle": {"p": t * load if stage == "tighten" else load},
+            "cav": {"paracentesis": removed + 0.0 * load, "dt": (t - data["t0"]) * minutes,
+                    **h}}
+
+
+def _shell_carry(q, theta, data):
+    from eyefem.fem.cavity import cavity_pressures
+    from eyefem.fem.regulation import HISTORY_KEYS, advanced_history
+    from eyefem.fem.units import MMHG
+
+    P = cavity_pressures(q, theta["cav"], *data)[0][0]
+    h = advanced_history(P, theta["cav"])
+    return {"history": {k: h[k] for k in HISTORY_KEYS}, "iop": P / MMHG}
+
+
+def test_the_staged_adjoint_of_a_timeline_on_a_small_shell():
+    """One StageRecord per step (eyefem.solve.staged, ``names``: each step's history and IOP
+    kept apart under its own name, one carry function for all), the step's params a JAX
+    function of the design and the history before it, the peak and the smooth minutes
+    above 25 mmHg (eyefem.eye.timeline.table_outcomes) and the last IOP: their gradients in
+    the outer load, the paracentesis volume and its delay against central differences of
+    whole load paths (relative steps 1e-4..1e-3, Newton to 1e-11): 1e-6."""
+    import jax
+    import jax.numpy as jnp
+
+    from eyefem.eye.timeline import table_outcomes
+    from eyefem.fem.cavity import cavity_pressures
+    from eyefem.fem.regulation import HISTORY_KEYS
+    from eyefem.fem.units import MMHG
+    from eyefem.solve.assembly import Assembler
+    from eyefem.solve.records import Solution
+    from eyefem.solve.staged import StageMap, StageRecord, hand_on, staged_gradients
+
+    jax.config.update("jax_enable_x64", True)
+    p = {"cra_closing_mmhg": 25.0}
+    design = {"load": 40.0, "para": 30.0, "delay": 2.0}
+
+    def outcomes(rec, cav):
+        steps = [s for s in rec.steps if s[0] != "pressurise"]
+        iop = [float(cav.pressures(q, th["cav"])[0][0]) / MMHG for _, _, _, q, th in steps]
+        t = [float(th["cav"]["time"] + th["cav"]["dt"]) for *_, th in steps]
+        table = [i for i, s in enumerate(steps) if s[0] != "follow-up"]
+        out = table_outcomes([0.0] + [t[i] for i in table], [15.0] + [iop[i] for i in table], p)
+        return np.array([out["peak_iop_on_table_mmhg"], out["minutes_above_cra_closing"],
+                         iop[-1]])
+
+    rec, cav = _shell_timeline(design)
+    first = next(i for i, s in enumerate(rec.steps) if s[0] != "pressurise")
+    smap = StageMap("step", _shell_step_params, _shell_carry)
+    by_name = {s.name: s for s in rec.stages}
+    records, k = [], 0
+    for i in range(first, len(rec.steps)):
+        name, t, model, q, th = rec.steps[i]
+        stage = by_name[name]
+        mask = np.zeros(model.n_dof, bool)
+        mask[stage.prescribed[0]] = True
+        t0 = rec.steps[i - 1][1] if rec.steps[i - 1][0] == name else 0.0
+        data = {"stage": name, "t": float(t), "t0": float(t0),
+                "minutes": float(stage.duration or 0.0),
+                "history": f"history/{k - 1}" if k else None,
+                "h0": {h: np.asarray(th["cav"][h]) for h in HISTORY_KEYS}}
+        carry = hand_on(smap, q, th, (cav.data, cav.dofs))
+        names = {c: f"{c}/{k}" for c in carry}
+        records.append(StageRecord(smap, Solution(model, q, th, [rec.records[i]],
+                                                  Assembler(model, mask), None, stage.active),
+                                   data, (cav.data, cav.dofs),
+                                   {names[c]: v for c, v in carry.items()}, names))
+        k += 1
+    table = [j for j, r in enumerate(records) if r.params_data["stage"] != "follow-up"]
+
+    def J(q, theta, carry, data):
+        t = jnp.stack([jnp.zeros(())] + [carry[f"history/{j}"]["time"] for j in table])
+        iop = jnp.stack([jnp.asarray(15.0)] + [carry[f"iop/{j}"] for j in table])
+        out = table_outcomes(t, iop, p)
+        last = cavity_pressures(q, theta["cav"], *data)[0][0] / MMHG
+        return jnp.stack([out["peak_iop_on_table_mmhg"], out["minutes_above_cra_closing"],
+                          last])
+
+    values, grads = staged_gradients(records, design, J, (cav.data, cav.dofs))
+    np.testing.assert_allclose(values, outcomes(rec, cav), rtol=1e-12)
+    assert values[0] > 30.0 and 1.0 < values[1] < 10.0  # above 25 mmHg for some minutes
+    for var, h in (("load", 4e-3), ("para", 3e-3), ("delay", 2e-3)):
+        up = outcomes(*_shell_timeline({**design, var: design[var] + h}))
+        down = outcomes(*_shell_timeline({**design, var: design[var] - h}))
+        fd = (up - down) / (2 * h)
+        for j in range(3):
+            if j == 0 and var != "load":  # the peak is the tightening's: no paracentesis in it
+                assert grads[j][var] == 0.0 and abs(fd[j]) < 1e-9
+            else:
+                assert grads[j][var] == pytest.approx(fd[j], rel=1e-6), (j, var)
