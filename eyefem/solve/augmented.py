@@ -258,14 +258,13 @@ def _held(stage, dofs):
                                                   np.concatenate([v, np.zeros(keep.sum())])))
 
 
-def solve_augmented(model: Model, stages, *, q0=None, theta=None, options, on_step=None,
+def solve_augmented(model: Model, stages, *, run, q0=None, theta=None, options, on_step=None,
                     on_stage_end=None, completed=()):
-    """eyefem.solve.loadpath.solve with the augmented Lagrangian on the Q1P0 terms (module
-    docstring); the same arguments and result. ``on_step``, ``on_stage_end`` and the
+    """``run`` (eyefem.solve.loadpath.solve, which calls this) with the augmented Lagrangian
+    on the Q1P0 terms (module docstring); the same arguments and result. ``on_step``, ``on_stage_end`` and the
     Solution see the exact model and state (lambda_eff in the multiplier dofs); the
     starts handed to ``on_stage_end`` and a ConvergenceError's state hold the
     displacements with the multipliers at 0 (a resumed run starts its estimates there)."""
-    from eyefem.solve import loadpath
     from eyefem.solve.assembly import Assembler
     from eyefem.solve.records import Solution
 
@@ -283,10 +282,9 @@ def solve_augmented(model: Model, stages, *, q0=None, theta=None, options, on_st
         on_stage_end(i, exact_model(m), exact_state(m, qs), th, starts)
 
     options = dataclasses.replace(options, backend=positive_definite(options.backend))
-    sol = loadpath.solve(aug, stages, q0=q, theta=theta, options=options,
-                         on_step=None if on_step is None else step,
-                         on_stage_end=None if on_stage_end is None else stage_end,
-                         completed=completed)
+    sol = run(aug, stages, q0=q, theta=theta, options=options,
+              on_step=None if on_step is None else step,
+              on_stage_end=None if on_stage_end is None else stage_end, completed=completed)
     log.info("augmented Lagrangian: %d Uzawa updates, max |J - 1| = %.2e at the end",
              uzawa_updates(sol.model), volume_errors(sol.model, sol.q))
     exact = exact_model(sol.model)

@@ -156,7 +156,7 @@ def solve(model: Model, stages: Sequence[Stage], *, q0=None, theta=None,
         from eyefem.solve.augmented import solve_augmented
 
         if any(isinstance(t, SolidQ1P0) for t in model.terms):  # (not yet transformed)
-            return solve_augmented(model, stages, q0=q0, theta=theta, options=options,
+            return solve_augmented(model, stages, run=solve, q0=q0, theta=theta, options=options,
                                    on_step=on_step, on_stage_end=on_stage_end,
                                    completed=completed)
     q = np.zeros(model.n_dof) if q0 is None else np.array(q0, dtype=np.float64)
