@@ -17,7 +17,7 @@ augmented state and the relative difference of the outcomes (displacements, mult
 the model's reported scalars: IOP...) against the exact run. Medians over ``--repeats``
 runs of each (the first run of each problem also compiles: a warm-up run is made first).
 
-    python benchmarks/bench_incompressibility.py                          # shell 20:5, case 1 coarse
+    python benchmarks/bench_incompressibility.py              # shell 20:5, case 1 on coarse
     python benchmarks/bench_incompressibility.py --problems shell --sizes 8:2 --repeats 1
     python benchmarks/bench_incompressibility.py --penalty-factor 10,100  # several penalties
 
@@ -28,6 +28,7 @@ solve per iteration").
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -98,9 +99,8 @@ def rel(a, b) -> float:
 
 def compare(name, model, stages, opts, repeats, factors) -> list[dict]:
     variants = [("exact", opts)] + [
-        (f"augmented (kappa = {f:g} mu)", NewtonOptions(**{**opts.__dict__,
-                                                          "incompressibility": "augmented_lagrangian",
-                                                          "penalty_factor": f}))
+        (f"augmented (kappa = {f:g} mu)", dataclasses.replace(
+            opts, incompressibility="augmented_lagrangian", penalty_factor=f))
         for f in factors]
     for _, o in variants[:2]:  # warm-up: compiles the kernels of both (the first stage)
         solve(model, stages[:1], options=o)
@@ -145,10 +145,12 @@ def table(rows) -> str:
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         rep = max(r["rel_diff_reported"].values(), default=0.0)
-        lines.append(f"| {r['problem']} ({r['hexahedra']} hex) | {r['variant']} | {r['iterations']} | "
-                     f"{r['uzawa']} | {r['factorisations']} ({r['cholesky']} / {r['indefinite']}; "
+        lines.append(f"| {r['problem']} ({r['hexahedra']} hex) | {r['variant']} | "
+                     f"{r['iterations']} | {r['uzawa']} | {r['factorisations']} "
+                     f"({r['cholesky']} / {r['indefinite']}; "
                      f"{r['cholesky_failed']}) | "
-                     f"{r['s_per_iteration']:.3f} | {r['wall_s']:.2f} | {r['wall_ratio_to_exact']:.2f} | "
+                     f"{r['s_per_iteration']:.3f} | {r['wall_s']:.2f} | "
+                     f"{r['wall_ratio_to_exact']:.2f} | "
                      f"{r['peak_rss_MB'] or float('nan'):.0f} | {r['max_volume_error']:.1e} | "
                      f"{r['rel_diff_u']:.1e} | {rep:.1e} |")
     return "\n".join(lines)

@@ -54,7 +54,8 @@ def test_residual_and_tangent_against_finite_differences(element):
     for j in range(24):
         e = jnp.zeros_like(q).at[:, j].set(h)
         g_fd[:, j] = (energy(q + e) - energy(q - e)) / (2 * h)
-        H_fd[:, :, j] = (np.asarray(grad_hess(q + e)[0]) - np.asarray(grad_hess(q - e)[0])) / (2 * h)
+        H_fd[:, :, j] = (np.asarray(grad_hess(q + e)[0])
+                         - np.asarray(grad_hess(q - e)[0])) / (2 * h)
     assert np.max(np.abs(g - g_fd)) < 1e-8 * np.max(np.abs(g))
     assert np.max(np.abs(H - H_fd)) < 1e-6 * np.max(np.abs(H))
     assert np.allclose(H, np.swapaxes(H, 1, 2), atol=1e-12 * np.max(np.abs(H)))
@@ -133,8 +134,8 @@ def test_augmented_state_converges_to_the_exact_q1p0_state(paths):
     name, model, exact, out = paths
     n_u = model.n_u
     u0, l0 = exact.q[:n_u], exact.q[n_u:]
-    du = {tol: np.linalg.norm(sol.q[:n_u] - u0) / np.linalg.norm(u0) for tol, (sol, _) in out.items()}
-    dl = {tol: np.linalg.norm(sol.q[n_u:] - l0) / np.linalg.norm(l0) for tol, (sol, _) in out.items()}
+    du = {tol: np.linalg.norm(s.q[:n_u] - u0) / np.linalg.norm(u0) for tol, (s, _) in out.items()}
+    dl = {tol: np.linalg.norm(s.q[n_u:] - l0) / np.linalg.norm(l0) for tol, (s, _) in out.items()}
     assert du[1e-11] < 1e-8 and dl[1e-11] < 1e-8, (du, dl)
     assert du[1e-11] < du[1e-4] and dl[1e-11] < dl[1e-4], (du, dl)
     assert du[1e-4] < 1e-3, du  # the error is of the order of the volume error left

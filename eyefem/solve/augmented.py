@@ -261,7 +261,8 @@ def _held(stage, dofs):
 def solve_augmented(model: Model, stages, *, run, q0=None, theta=None, options, on_step=None,
                     on_stage_end=None, completed=()):
     """``run`` (eyefem.solve.loadpath.solve, which calls this) with the augmented Lagrangian
-    on the Q1P0 terms (module docstring); the same arguments and result. ``on_step``, ``on_stage_end`` and the
+    on the Q1P0 terms (module docstring); the same arguments and result. ``on_step``,
+    ``on_stage_end`` and the
     Solution see the exact model and state (lambda_eff in the multiplier dofs); the
     starts handed to ``on_stage_end`` and a ConvergenceError's state hold the
     displacements with the multipliers at 0 (a resumed run starts its estimates there)."""

@@ -333,7 +333,8 @@ def factorize(A: sp.spmatrix, backend: str | None = None, on_indefinite: str = "
             except LinearSolveError as exc:
                 FACTORISATIONS["cholesky_failed"] += 1
                 if on_indefinite == "raise":
-                    raise NegativeCurvature(f"the tangent is not positive definite ({exc})") from exc
+                    raise NegativeCurvature(
+                        f"the tangent is not positive definite ({exc})") from exc
                 log.debug("Cholesky factorisation failed (%s): symmetric indefinite instead", exc)
         FACTORISATIONS["indefinite"] += 1
         return _Pardiso(A)
@@ -604,7 +605,9 @@ class SaddlePointSolver:
             x, y, res, cres, rel = x + dx, y + dy, res2, cres2, rel2
         if not np.isfinite(rel) or rel > 1e-6:
             raise LinearSolveError(f"linear solve residual {rel:.2e} relative (backend "
-                                   f"{(self.backend or '').removesuffix(SPD) or default_backend()}): the tangent is singular "
+                                   f"{(self.backend or '').removesuffix(SPD) or default_backend()}"
+                                   "): "
+                                   "the tangent is singular "
                                    "or badly conditioned")
         if rel > self.tol:
             log.debug("linear solve residual %.2e relative, constraint %.2e",
