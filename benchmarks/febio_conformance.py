@@ -13,7 +13,8 @@ deck defines no data record of its own, and code/runTests.py takes the value fro
 last "Data Record #1" block of the log, i.e. at the end of the last step:
 FELogSolutionNorm = the l2 norm of the solver's total solution vector (FENewtonSolver::
 m_Ut), the displacements of every dof with an equation in the last step: nodes in
-elements, neither fixed nor prescribed by the conditions active in that step. A deck
+elements (solids, trusses, springs), neither fixed nor prescribed by the conditions active
+in that step (a rigid body's nodes are prescribed). A deck
 whose <Output><logfile> defines records of its own has another gold value and is marked
 so.
 
@@ -178,8 +179,8 @@ def run_deck(path, gold: float | None, *, time_cap: float = 120.0,
 def group_of(reason: str) -> str:
     """A refusal's group: the message with names, ids and numbers taken out."""
     g = re.sub(r"\bname=\"[^\"]*\"", "", reason)
-    g = re.sub(r"(material|surface|node set|element block|SolidDomain) '[^']*'( \(id [^)]*\))?",
-               r"\1", g)
+    g = re.sub(r"(material|surface|node set|element block|SolidDomain|rigid body|discrete "
+               r"set|surface pair|volume constraint|contact) '[^']*'( \(id [^)]*\))?", r"\1", g)
     g = re.sub(r"(load curve|load controller|element|node) \d+", r"\1 N", g)
     g = re.sub(r"-?\d+(\.\d+)?(e[-+]?\d+)?", "N", g)
     g = g.split(";")[0]
