@@ -13,6 +13,12 @@ Times: minutes from the cavity's closing (the start of the tightening); the foll
 times are counted from the end of surgery. The shape outcomes at a week and at three
 months are those of the elastic tissue at the IOP of that time (the tissues' creep over
 months is not modelled: docs/validation.md).
+
+The outcomes are defined once (:func:`table_outcomes`, :func:`followup_steps`,
+:func:`shape_name`), for summary.json (:func:`timeline_outcomes`, from the rows) and for
+the design gradients (eyefem.eye.design.TimelineSimulator, JAX functions of the steps'
+carried IOPs, clocks and optics; the paracentesis's volume and delay are design
+variables there).
 """
 
 from __future__ import annotations
