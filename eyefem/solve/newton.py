@@ -93,8 +93,8 @@ def newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOp
     if err <= opts.uzawa_tol:
         return dataclasses.replace(done, iterations=its)
     raise StepFailed(f"volume error max |J - 1| = {err:.2e} after {opts.uzawa_max} Uzawa "
-                     f"updates (uzawa_tol {opts.uzawa_tol:g}; raise uzawa_max or penalty_factor, or "
-                     "set incompressibility = \"exact\")")
+                     f"updates (uzawa_tol {opts.uzawa_tol:g}; raise uzawa_max or "
+                     "penalty_factor, or set incompressibility = \"exact\")")
 
 
 def _newton(model: Model, asm: Assembler, q, theta, dq_prescribed, opts: NewtonOptions,
