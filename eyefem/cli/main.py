@@ -355,7 +355,8 @@ def cmd_describe(args) -> int:
         return 2
     fields, builder = found
     print(f"{args.problem}: {(builder.__doc__ or '').strip().splitlines()[0]}\n[parameters]")
-    print(describe(fields))
+    print(describe(fields, first=getattr(builder, "first", ()),
+                   advanced=getattr(builder, "advanced", ())))
     return 0
 
 
