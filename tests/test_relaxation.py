@@ -190,3 +190,37 @@ def test_eye_wall_is_elastic_at_once_and_relaxed_after_1000_tau(eye_runs):
     assert np.max(np.abs(relaxed[:n_u] - elastic[:n_u])) > 0.1 * scale  # the wall crept
     norms = [np.linalg.norm(q[:n_u]) for s, q, _ in rows if s == "hold"]
     assert np.all(np.diff(norms) > 0)
+
+
+def _surgery_params(**over):
+    from eyefem.eye.surgery import SURGERY_FIELDS
+
+    return {**{f.name: f.default for f in SURGERY_FIELDS}, "mesh": "coarse", **over}
+
+
+def test_the_surgery_refuses_relaxation_without_the_timeline():
+    from eyefem.eye.surgery import check_parameters
+
+    p = _surgery_params(tissue_relaxation="custom", relaxation_g=[0.25],
+                        relaxation_tau_min=[10.0])
+    with pytest.raises(ValueError, match="volume_regulation = true"):
+        check_parameters(p)
+    check_parameters({**p, "volume_regulation": True})  # the timeline: accepted
+
+
+def test_the_surgery_builds_its_wall_relaxing_on_the_timeline():
+    """The surgery's schema carries the relaxation's fields, and a case with them builds
+    the wall tissues as ViscoelasticQ1P0 (the other tissues elastic rows)."""
+    from eyefem.eye.surgery import SURGERY_FIELDS, surgery
+
+    names = {f.name for f in SURGERY_FIELDS}
+    assert {f.name for f in RELAXATION_FIELDS} <= names
+    p = _surgery_params(tissue_relaxation="custom", relaxation_g=[0.25, 0.25],
+                        relaxation_tau_min=[10.0, 1440.0], volume_regulation=True,
+                        materials_preset="physiological")
+    setup = surgery(p, {})
+    solid = next(t for t in setup.model.terms if t.name == "solid")
+    assert isinstance(solid, ViscoelasticQ1P0)
+    elastic = surgery({**p, "tissue_relaxation": "none"}, {})
+    assert not isinstance(next(t for t in elastic.model.terms if t.name == "solid"),
+                          ViscoelasticQ1P0)

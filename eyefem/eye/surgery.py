@@ -36,6 +36,7 @@ from eyefem.eye.parts import SurgeryParts
 from eyefem.eye.presets import PRESETS, SEED_MATERIALS, with_overrides
 from eyefem.eye.timeline import (TIMELINE_FIELDS, plot_timeline, regulation, timed_stages,
                                   timeline_outcomes)
+from eyefem.eye.relaxation import RELAXATION_FIELDS, with_relaxation
 from eyefem.eye.wall import WALL_ELEMENT_FIELD, with_wall_element
 from eyefem.fem.buckle_contact import EDGE_WIDTH, RIDGE_FLANK
 from eyefem.fem.cavity import WATER_BULK, FluidCavity
@@ -46,7 +47,7 @@ from eyefem.fem.terms import OrbitSpring
 from eyefem.fem.units import MMHG
 from eyefem.io.casefile import Field, positive
 from eyefem.io.output import write_csv
-from eyefem.io.runner import Setup
+from eyefem.solve.problem import Setup
 from eyefem.solve.linsolve import physical_memory_kb
 from eyefem.solve.model import node_dofs, solid_model
 
@@ -241,7 +242,7 @@ SURGERY_FIELDS = [
           ">= 3"),
     WALL_ELEMENT_FIELD,
 ] + [LENS_SUPPORT_FIELD if f.name == "lens_support" else f
-     for f in BIOMETRY_FIELDS] + TIMELINE_FIELDS
+     for f in BIOMETRY_FIELDS] + TIMELINE_FIELDS + RELAXATION_FIELDS
 
 
 def _materials(materials, preset: str = "seed"):
@@ -273,9 +274,11 @@ def warn_memory(n_elem: int, level: str) -> bool:
 
 
 def surgery(p, materials):
-    """Build the surgery Setup from case parameters (see SURGERY_FIELDS) and material
-    overrides (name -> MooneyRivlin): the eye, the buckle body, the staged procedure.
-    The ``model`` switch is applied here (:func:`resolve_model`): the Setup's parts hold
+    """Scleral buckling on the parametric eye: the eye, a buckle body and the staged procedure.
+
+    Builds the Setup from case parameters (SURGERY_FIELDS) and material overrides (name ->
+    MooneyRivlin); a time-dependent wall (RELAXATION_FIELDS) is applied to the model the
+    buckle body hands back. The ``model`` switch is applied here (:func:`resolve_model`): the Setup's parts hold
     the parameters the model was built with."""
     check_parameters(p)
     p = resolve_model(p)
@@ -298,7 +301,7 @@ def surgery(p, materials):
     wall = _eye_terms(parts)
     model = solid_model(mesh, {m: mats[m] for m in mesh.materials},
                         wall[:3] + (contact, sutures) + wall[3:] + holds, n_extra_dofs=1)
-    model = body.model(with_wall_element(model, p["wall_element"]), parts)
+    model = with_relaxation(body.model(with_wall_element(model, p["wall_element"]), parts), p)
     path = LoadPath(node_dofs(mesh.node_set("eye/nerve_end")), parts.extra_dof,
                     p["iop_mmhg"] * MMHG)
     last, patches = {}, {}  # the stress patches per model mesh (a deformable body's merges)
@@ -320,7 +323,8 @@ def surgery(p, materials):
                                      "volume_change_mm3", "max_suture_force_N",
                                      "refraction_change_D", "corneal_power_change_D",
                                      "corneal_astigmatism_D", "anterior_chamber_depth_change_mm",
-                                     "scleral_stress_kPa")}
+                                     "scleral_stress_kPa", "scleral_stress_fraction_of_strength",
+                                     "suture_force_fraction_of_break")}
         out.update({"iop_after_tightening_mmhg": summary[1]["iop_mmhg"] if len(summary) > 1
                     else None, "elements": int(mesh.n_elem),
                     "buckle_body": p.get("buckle_body", "rigid")})
@@ -459,6 +463,10 @@ def check_parameters(p):
     """Checks across fields (each field alone is checked by its schema): ValueError
     naming the values and the fix. ``eyefem new-case`` runs it before writing a case."""
     given, p = p, resolve_model(p)
+    if p.get("tissue_relaxation", "none") != "none" and not p.get("volume_regulation", False):
+        raise ValueError(f"tissue_relaxation = {p['tissue_relaxation']!r} relaxes the tissues "
+                         "over time, and time passes only on the surgery's timeline: set "
+                         "volume_regulation = true (or tissue_relaxation = 'none')")
     if p.get("band_tension", 0.0) > 0:
         if p["buckle"].startswith("sponge"):  # as Buckle.encircling
             raise ValueError(f"band_tension = {p['band_tension']} N needs an encircling buckle "
@@ -725,7 +733,7 @@ ADVANCED_FIELDS = frozenset({
     "zonule_insertion_radius", "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
     "sclera_thickness_equator", "sclera_thickness_pole", "wall_element", "lens_support",
-    "model", *(f.name for f in TIMELINE_FIELDS)})
+    "model", *(f.name for f in TIMELINE_FIELDS), *(f.name for f in RELAXATION_FIELDS)})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all
 (``--all``): the orbit's hold, load steps, contact, model and material details, the
 timeline."""
@@ -734,7 +742,8 @@ DESCRIBE_FIRST = ("buckle", "buckle_body", "tightening", "band_tension",
                   "deformable_tightening", "buckle_distance", "buckle_meridian_deg",
                   "buckle_shift", "suture_width", "n_sutures", "suture_tightening",
                   "bite_radius", "iop_mmhg", "materials_preset", "drain_volume",
-                  "volume_regulation", "paracentesis_volume", "followup")
+                  "volume_regulation", "paracentesis_volume", "followup",
+                  "tissue_relaxation")
 """The fields ``eyefem describe surgery`` lists first, in this order: what a surgeon or a
 researcher changes first (the buckle and its tightening, the sutures' placement, the
 pressure, the tissues, the drainage, the timeline's switch, paracentesis and follow-up
