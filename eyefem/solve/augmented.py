@@ -14,8 +14,11 @@ lambda_e^k plus a penalty on the element's volume change
 multiplier lambda_eff = lambda_e^k + kappa_e g_e / (2 V_e), its Hessian the Q1P0
 displacement block at lambda_eff plus kappa_e / (4 V_e) k_ul k_ul^T (k_ul = dc/du, c = 2 g_e
 the constraint of the Q1P0 energy). The Newton matrix is K + B D B^T on the displacements
-only, positive definite where the material is stable: one Cholesky factorisation
-(Pardiso mtype 2, linsolve.SPD) and one back-solve per iteration. When a load step has
+only, positive definite where the material and the other terms are stable: one Cholesky
+factorisation (Pardiso mtype 2, linsolve.SPD) and one back-solve per iteration. Where it
+is not (a follower pressure's or a contact's tangent, a pressure the penalty does not
+outweigh), the failed Cholesky hands the step to the modified Newton shift, or the matrix
+to the symmetric indefinite factorisation (linsolve.factorize). When a load step has
 converged, the estimates are updated (Uzawa, FEBio's augmentation: ``laugon``)
 
     lambda_e^{k+1} = lambda_e^k + kappa_e g_e / (2 V_e)
@@ -27,10 +30,9 @@ the Q1P0 forces at lambda_eff exactly, and the volume constraint is left at uzaw
 (the exact solver: NewtonOptions.vtol on the norm of the constraints).
 
 kappa_e = NewtonOptions.penalty_factor x the element's initial shear modulus
-2 (c10 + c01), 100 by default. FEBio's guidance for its uncoupled materials is a bulk
-modulus some hundred to a thousand times the shear modulus, its error corrected by the
-augmentations (FEBio User's Manual, "Uncoupled Materials", ``laugon``/``atol``). Measured
-on case 1's pressurisation on the coarse eye (benchmarks/bench_incompressibility.py):
+2 (c10 + c01), 100 by default (FEBio's ``laugon``/``atol`` augmentations of its
+uncoupled materials are the same scheme, their penalty the material's bulk modulus).
+Measured on case 1's pressurisation on the coarse eye (benchmarks/bench_incompressibility.py):
 at 10 x mu the first solve left max |Jbar - 1| = 0.1 and the Uzawa updates contracted it
 only 2- to 5-fold each (6e-4 after 6); at 1000 x mu Newton did not converge in 40
 iterations (the penalty's forces, cubic in the displacements, defeat the line search);
