@@ -118,7 +118,7 @@ def _shell():
     return setup.model, setup.stages
 
 
-@pytest.fixture(scope="module", params=["bar", pytest.param("shell", marks=pytest.mark.slow)])
+@pytest.fixture(scope="module", params=["bar", "shell"])
 def paths(request):
     """The exact Q1P0 solution and augmented ones at loosening Uzawa tolerances."""
     model, stages = {"bar": _bar, "shell": _shell}[request.param]()
