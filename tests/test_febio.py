@@ -18,7 +18,7 @@ from eyefem.fem.mesh import hex_geometry
 from eyefem.fem.surface import PressureLoad
 from eyefem.io.febio import FebError, write_feb
 from eyefem.io.febio_read import build_model, read_feb
-from eyefem.io.runner import Setup
+from eyefem.solve.problem import Setup
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage, solve
 

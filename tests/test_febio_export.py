@@ -15,7 +15,7 @@ from eyefem.fem.materials import mooney_rivlin
 from eyefem.fem.terms import NodeSprings
 from eyefem.io.febio import write_feb
 from eyefem.io.febio_read import FebError, build_stages, deck_pieces, read_feb
-from eyefem.io.runner import Setup
+from eyefem.solve.problem import Setup
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage, solve
 

@@ -23,7 +23,7 @@ from eyefem.fem.solid import SolidQ1P0
 from eyefem.fem.solid_compressible import SolidCompressible
 from eyefem.io.febio import FebError, write_feb
 from eyefem.io.febio_read import build_model, read_feb, solution_norm
-from eyefem.io.runner import Setup
+from eyefem.solve.problem import Setup
 from eyefem.solve.model import node_dofs, solid_model
 from eyefem.solve.solver import Stage, solve
 

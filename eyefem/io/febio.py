@@ -52,7 +52,7 @@ from eyefem.fem.solid import SolidQ1P0
 from eyefem.fem.solid_compressible import SolidCompressible
 from eyefem.fem.surface import PressureLoad
 from eyefem.fem.terms import NodeSprings
-from eyefem.io.runner import Setup
+from eyefem.solve.problem import Setup
 from eyefem.solve.solver import Stage
 
 log = logging.getLogger(__name__)

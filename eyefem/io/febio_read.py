@@ -41,7 +41,7 @@ from eyefem.fem.surface import pressure_term
 from eyefem.fem.terms import NodalForce, Term
 from eyefem.io.casefile import material_c10_field, unit_slip
 from eyefem.io.febio import SPEC_VERSION, FebError
-from eyefem.io.runner import Setup
+from eyefem.solve.problem import Setup
 from eyefem.solve.model import Model, node_dofs, solid_model
 from eyefem.solve.solver import Stage
 
@@ -1623,7 +1623,7 @@ def deck_pieces(path) -> dict:
 
 
 def feb_setup(path) -> Setup:
-    """A Setup (for eyefem.io.runner.run_setup) of an FEBio deck: probe records the largest
+    """A Setup (for eyefem.run.runner.run_setup) of an FEBio deck: probe records the largest
     nodal displacement (mm); the summary gives its final value, the deck's sizes and the
     sha256 of the deck read (``deck_sha256``)."""
     path = Path(path)
