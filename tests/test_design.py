@@ -315,14 +315,14 @@ def test_buckle_contact_smoothing_automatic_by_buckle_kind_or_as_given(buckle, g
     assert setup.model.term("buckle").smoothing == expected
 
 
-@pytest.mark.parametrize("given", [None, 1.0])
+@pytest.mark.parametrize("given", [None, 0.5])
 def test_ring_edge_default_or_as_given(given):
     from eyefem.eye.surgery import surgery
 
     kw = {} if given is None else {"buckle_edge": given}
     setup = surgery(default_parameters(mesh="coarse", buckle="tire_flat", **kw), None)
     term = setup.model.term("buckle")
-    assert term.edge_width == (0.5 if given is None else given) == term.data["geo"][8]
+    assert term.edge_width == (1.0 if given is None else given) == term.data["geo"][8]
 
 
 def test_ring_edge_wider_than_half_the_ring_or_on_a_deformable_band_is_refused():
@@ -331,9 +331,9 @@ def test_ring_edge_wider_than_half_the_ring_or_on_a_deformable_band_is_refused()
     with pytest.raises(ValueError, match=r"buckle_edge = 1.5 mm.*band \(2.5 mm wide\).*"
                                          r"below 1.25 mm"):
         check_parameters(default_parameters(buckle="band", buckle_edge=1.5))
-    with pytest.raises(ValueError, match="buckle_edge = 1.0 mm shapes the rigid ring"):
+    with pytest.raises(ValueError, match="buckle_edge = 0.5 mm shapes the rigid ring"):
         check_parameters(default_parameters(buckle="band", buckle_body="deformable",
-                                            buckle_edge=1.0))
+                                            buckle_edge=0.5))
     check_parameters(default_parameters(buckle="band", buckle_edge=1.0))
 
 
@@ -366,4 +366,4 @@ def test_ridged_tire_flank_default_or_as_given(given):
 
     kw = {} if given is None else {"ridge_flank": given}
     setup = surgery(default_parameters(mesh="coarse", buckle="tire_ridged", **kw), None)
-    assert setup.model.term("buckle").ridge_flank == (1.0 if given is None else given)
+    assert setup.model.term("buckle").ridge_flank == (1.5 if given is None else given)
