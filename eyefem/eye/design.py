@@ -542,6 +542,13 @@ class TimelineSimulator(SurgerySimulator):
         if params.get("buckle_body", "rigid") != "rigid":
             _refuse_timeline(params)
         super().__init__(params, materials, options)
+        carried = [t.name for t in self.model.terms
+                   if getattr(t, "history_keys", ()) and t.name != "cavity"]
+        if carried or self.params.get("relaxation_g"):
+            raise ValueError(f"{', '.join(carried) or 'relaxation_g'}: the timeline's design "
+                             "gradients hand on the cavity's history only; a relaxing wall "
+                             "(relaxation_g) is not differentiated through time yet: plan "
+                             "the case without it, or run it with eyefem run")
         self.outcome_names = tuple(OUTCOMES) + timeline.outcome_names(self.params)
 
     def run(self, design: dict | None = None, *, warm: bool = True) -> TimelineResult:
