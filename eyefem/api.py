@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.catalog import schemas
+from eyefem.catalog import schemas, solver_defaults
 from eyefem.eye.design import DESIGN_VARIABLES, OUTCOMES, RingSimulator, SurgerySimulator
 from eyefem.io import casefile
 from eyefem.io.casefile import Case
@@ -59,7 +59,7 @@ _simulators_lock = threading.Lock()
 
 def load_case(path: str | Path) -> Case:
     """Read and validate a case file against the schemas of every known problem."""
-    return casefile.load_case(path, schemas())
+    return casefile.load_case(path, schemas(), solver_defaults())
 
 
 def with_material_preset(case: Case, preset: str) -> Case:

@@ -21,3 +21,10 @@ def problems() -> dict:
 def schemas() -> dict:
     """name -> the schema fields of its ``[parameters]`` table."""
     return {k: v[0] for k, v in problems().items()}
+
+
+def solver_defaults() -> dict:
+    """name -> ``f(parameters) -> dict``: the ``[solver]`` settings a problem wants for the
+    parameters of a case that leaves them out (eyefem.io.casefile.load_case)."""
+    return {k: v[1].solver_settings for k, v in problems().items()
+            if getattr(v[1], "solver_settings", None) is not None}

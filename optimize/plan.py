@@ -357,7 +357,7 @@ def _check_start(case, start: dict, bounds: dict):
 
 def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
-    from eyefem.catalog import schemas
+    from eyefem.catalog import schemas, solver_defaults
     from eyefem.api import with_material_preset
     from eyefem.eye.design import SurgerySimulator
     from eyefem.io.casefile import CaseError, load_case
@@ -416,7 +416,7 @@ def main(argv=None) -> int:
         log.info("element kernels on %s; factorisations: %s", where, default_backend())
     try:
         overrides = _check_args(a)
-        case = load_case(a.case, schemas())
+        case = load_case(a.case, schemas(), solver_defaults())
         if case.problem != "surgery":
             raise CaseError(f"{a.case}: problem '{case.problem}'; the planner needs a surgery case")
         if a.materials:

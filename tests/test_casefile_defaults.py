@@ -114,3 +114,22 @@ def test_the_short_case_runs_the_written_out_case(tmp_path):
         summaries.append(json.loads((out / "summary.json").read_text()))
     for k in ("iop_mmhg", "indentation_mm", "axial_length_change_mm", "max_suture_force_N"):
         assert summaries[0][k] == pytest.approx(summaries[1][k], rel=1e-12), k
+
+
+@pytest.mark.parametrize("buckle, body, curvature", [
+    ("tire_ridged", "rigid", 1e-3), ("sponge_radial", "rigid", 1e-3),
+    ("tire_flat", "rigid", 0.0), ("tire_ridged", "deformable", 0.0)])
+def test_a_short_case_gets_the_contact_tangent_its_buckle_wants(tmp_path, buckle, body,
+                                                                curvature):
+    """The problem's [solver] settings apply to a case that leaves them out (a rigid ridged
+    tire's shoulders and a rounded sponge's ends: the contact tangent without their
+    curvature early in each step); the case file's own setting wins."""
+    from eyefem.catalog import solver_defaults
+
+    text = SHORT.format(buckle=buckle, t=5.0) + f'buckle_body = "{body}"\n'
+    path = tmp_path / "short.toml"
+    path.write_text(text)
+    assert load_case(path, schemas(), solver_defaults()).solver.contact_curvature == curvature
+    assert load_case(path, schemas()).solver.contact_curvature == 0.0  # no defaults given
+    path.write_text(text + "[solver]\ncontact_curvature = 0.0\n")
+    assert load_case(path, schemas(), solver_defaults()).solver.contact_curvature == 0.0

@@ -32,12 +32,12 @@ def run_case(path, out_dir, *, mesh=None, reuse=False, vtu=False) -> dict:
     With ``reuse`` the summary in ``out_dir`` is taken only from a complete run of the
     same parsed case (hash of problem, parameters, mesh, materials, solver) by this
     eyefem version (``run.json``); otherwise the case is computed again."""
-    from eyefem.catalog import problems, schemas
+    from eyefem.catalog import problems, schemas, solver_defaults
     from eyefem.io import manifest
     from eyefem.io.casefile import check_material_names, load_case
     from eyefem.run.runner import claimed_folder, run_setup, write_summary
 
-    case = load_case(path, schemas())
+    case = load_case(path, schemas(), solver_defaults())
     params = dict(case.parameters)
     if mesh is not None:
         params["mesh"] = mesh

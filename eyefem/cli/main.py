@@ -63,12 +63,12 @@ def _load_run_case(args, claim: bool = False):
     eyefem run's; ``--force`` adopts another) and locked before the model is built;
     ``release`` frees the lock (a no-op without ``claim``)."""
     from eyefem.api import with_material_preset
-    from eyefem.catalog import problems, schemas
+    from eyefem.catalog import problems, schemas, solver_defaults
     from eyefem.io import manifest
     from eyefem.io.casefile import CaseError, check_material_names, load_case
 
     try:
-        case = load_case(args.case, schemas())
+        case = load_case(args.case, schemas(), solver_defaults())
         out = Path(args.out or case.output["directory"])
         if args.mesh:
             if "mesh" not in case.parameters:
@@ -396,12 +396,12 @@ def cmd_new_case(args) -> int:
 
 
 def cmd_export_feb(args) -> int:
-    from eyefem.catalog import problems, schemas
+    from eyefem.catalog import problems, schemas, solver_defaults
     from eyefem.io.casefile import CaseError, check_material_names, load_case
     from eyefem.io.febio import write_feb
 
     try:
-        case = load_case(args.case, schemas())
+        case = load_case(args.case, schemas(), solver_defaults())
         if args.mesh:
             if "mesh" not in case.parameters:
                 raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; "

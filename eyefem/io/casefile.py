@@ -182,8 +182,14 @@ class Case:
     raw: dict
 
 
-def load_case(path: str | Path, schemas: dict[str, list[Field]]) -> Case:
-    """Read and validate a case file against the problem schemas (problem -> fields)."""
+def load_case(path: str | Path, schemas: dict[str, list[Field]],
+              solver_defaults: dict | None = None) -> Case:
+    """Read and validate a case file against the problem schemas (problem -> fields).
+
+    ``solver_defaults``: problem -> ``f(parameters) -> dict`` of ``[solver]`` settings the
+    problem wants for these parameters (the surgery's contact tangent for a rigid ridged
+    tire or rounded sponge: eyefem.eye.surgery.solver_settings); a setting the case file's
+    own ``[solver]`` gives wins."""
     path = Path(path)
     if path.is_dir():
         raise CaseError(f"case file '{path}' is a directory; give a .toml case file "
@@ -260,6 +266,13 @@ def load_case(path: str | Path, schemas: dict[str, list[Field]]) -> Case:
                         "modulus k is read for the verification problems and user_mesh); "
                         "remove k")
     solver = parse_section(raw.get("solver", {}), SOLVER_FIELDS, f"{path} [solver]")
+    wanted = (solver_defaults or {}).get(problem)
+    if wanted is not None:
+        try:
+            solver.update({k: v for k, v in wanted(params).items()
+                           if k not in raw.get("solver", {})})
+        except ValueError as exc:
+            raise CaseError(f"{path} [parameters]: {exc}") from None
     solver["backend"] = solver["backend"] or None
     try:
         opts = NewtonOptions(**solver)

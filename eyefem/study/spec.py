@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eyefem.catalog import schemas
+from eyefem.catalog import schemas, solver_defaults
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.variables import DESIGN_VARIABLES, OUTCOMES
 from eyefem.io import manifest
@@ -377,7 +377,7 @@ def load_sweep(path: str | Path) -> Sweep:
         raise SweepError(f"{path} [sweep]: base case '{head['case']}' not found (looked for "
                          f"{case_path}); the path is relative to the sweep file's folder")
     try:
-        base = load_case(case_path, schemas())
+        base = load_case(case_path, schemas(), solver_defaults())
     except CaseError as exc:
         raise SweepError(f"{path} [sweep] case: {exc}") from None
 
@@ -587,7 +587,7 @@ def plan(sweep: Sweep) -> tuple[list[PlannedRun], list[tuple[int, dict, str]]]:
             f = Path(tmp) / f"run{i}.toml"
             f.write_text(text, encoding="utf-8")
             try:
-                case = load_case(f, schemas())
+                case = load_case(f, schemas(), solver_defaults())
             except CaseError as exc:
                 invalid.append((i, row, str(exc).replace(str(f), f"run {i}")))
                 continue

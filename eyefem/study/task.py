@@ -55,7 +55,7 @@ def case_with(case, overrides: dict, folder: Path, name: str):
     case (a user's mesh) stay the resolved ones."""
     import tomli_w
 
-    from eyefem.catalog import schemas
+    from eyefem.catalog import schemas, solver_defaults
     from eyefem.io.casefile import load_case
     from eyefem.study.spec import _set
 
@@ -67,7 +67,7 @@ def case_with(case, overrides: dict, folder: Path, name: str):
         _set(raw, p, v)
     f = Path(folder) / f"{name}.toml"
     f.write_text(tomli_w.dumps(raw), encoding="utf-8")
-    return load_case(f, schemas())
+    return load_case(f, schemas(), solver_defaults())
 
 
 def solve_case(case, out: Path, setup=None):
@@ -166,7 +166,7 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
     if jax_cache and not jax.config.jax_compilation_cache_dir:
         jax.config.update("jax_compilation_cache_dir", jax_cache)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
-    from eyefem.catalog import problems, schemas
+    from eyefem.catalog import problems, schemas, solver_defaults
     from eyefem.io import manifest
     from eyefem.io.casefile import load_case
     from eyefem.io.output import write_text
@@ -185,7 +185,7 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
         manifest.check_writable(out)
         (out / ROW_FILE).unlink(missing_ok=True)
         write_text(out / CASE_FILE, case_text)
-        case = load_case(out / CASE_FILE, schemas())
+        case = load_case(out / CASE_FILE, schemas(), solver_defaults())
         setup = problems()[case.problem][1](case.parameters, case.materials)
         res = solve_case(case, out, setup)
         summary = {"case": str(case.path), "title": case.title, **res.summary}
