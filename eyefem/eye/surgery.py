@@ -742,8 +742,8 @@ DESCRIBE_FIRST = ("buckle", "buckle_body", "tightening", "band_tension",
                   "deformable_tightening", "buckle_distance", "buckle_meridian_deg",
                   "buckle_shift", "suture_width", "n_sutures", "suture_tightening",
                   "bite_radius", "iop_mmhg", "materials_preset", "drain_volume",
-                  "volume_regulation", "paracentesis_volume", "followup",
-                  "tissue_relaxation")
+                  "volume_regulation", "paracentesis_volume", "paracentesis_delay_minutes",
+                  "followup", "cra_closing_mmhg", "tissue_relaxation")
 """The fields ``eyefem describe surgery`` lists first, in this order: what a surgeon or a
 researcher changes first (the buckle and its tightening, the sutures' placement, the
 pressure, the tissues, the drainage, the timeline's switch, paracentesis and follow-up
