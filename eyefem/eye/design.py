@@ -376,7 +376,10 @@ class SurgerySimulator:
                             "pre-operative state", str(exc).splitlines()[0])
         return self._run(design, warm=False)
 
-    def _run(self, design, *, warm):
+    def _prepared(self, design):
+        """What a run of ``design`` starts from: (the design with the case's values filled in
+        and checked, the pre-operative eye, the suture term, the model, the bites, the stage
+        maps, stage 2's theta, its ramped params, its start theta from the pre-operative eye)."""
         design = {**self.design0(), **(design or {})}
         self._check(design)
         pre = self._stage1(design)
@@ -385,13 +388,17 @@ class SurgerySimulator:
         model = self._model(sut)
         bites = bite_rays(self.parts, design["suture_width"], design["buckle_meridian_deg"])
         maps = self.maps(sut)
-        held = self.stage2.prescribed
         th2 = self._theta2(design, sut, pre, bites)
-        prev = self.last if warm else None
         ramped = {k: th2[k] for k in self._ramped}
+        start = {**th2, **{k: pre.theta2[k] for k in self._ramped if k not in ("solid", "zonule")}}
+        start["cavity"] = {**start["cavity"], "bulk": th2["cavity"]["bulk"]}
+        return design, pre, sut, model, bites, maps, th2, ramped, start
+
+    def _run(self, design, *, warm):
+        design, pre, sut, model, bites, maps, th2, ramped, start = self._prepared(design)
+        held = self.stage2.prescribed
+        prev = self.last if warm else None
         if prev is None:
-            start = {**th2, **{k: pre.theta2[k] for k in self._ramped if k not in ("solid", "zonule")}}
-            start["cavity"] = {**start["cavity"], "bulk": th2["cavity"]["bulk"]}
             sol2 = solve(model, [Stage("tighten", self.stage2.n_steps, held, params=ramped,
                                        active=self.stage2.active)],
                          q0=pre.sol1.q, theta=start, options=self.options)
@@ -558,18 +565,7 @@ class TimelineSimulator(SurgerySimulator):
 
     # --- the forward run -----------------------------------------------------------
     def _run(self, design, *, warm=False):
-        design = {**self.design0(), **(design or {})}
-        self._check(design)
-        pre = self._stage1(design)
-        sut = suture_term(self.parts, self.scale0, design["suture_width"],
-                          design["buckle_meridian_deg"])
-        model = self._model(sut)
-        bites = bite_rays(self.parts, design["suture_width"], design["buckle_meridian_deg"])
-        maps = self.maps(sut)
-        th2 = self._theta2(design, sut, pre, bites)
-        ramped = {k: th2[k] for k in self._ramped}
-        start = {**th2, **{k: pre.theta2[k] for k in self._ramped if k not in ("solid", "zonule")}}
-        start["cavity"] = {**start["cavity"], "bulk": th2["cavity"]["bulk"]}
+        design, pre, sut, model, bites, maps, th2, ramped, start = self._prepared(design)
         # the ramped params' start values (constants of the pre-operative eye): the buckle's
         # motion, the drained volume, a band's pull; the other params of T_2 start at T_2's
         first = {t: {k: np.asarray(pre.theta2[t][k]) for k in th2[t]
