@@ -218,6 +218,14 @@ def _err(path, msg):
     return FebError(f"{path}: {msg}")
 
 
+def _penalty_form(path, el, where: str, why: str):
+    """Refuse an element whose <laugon> asks for anything but the penalty form (0, PENALTY,
+    FALSE), saying ``why`` after its name ``where``."""
+    lau = (el.findtext("laugon") or "0").strip().upper()
+    if lau not in ("0", "PENALTY", "FALSE"):
+        raise _err(path, f"{where}: <laugon> {lau}: {why}")
+
+
 def _floats(text, path, what, hint="give a finite number") -> list[float]:
     """The numbers of a tag's text (comma or space separated); FebError naming ``what``
     and the token for text or a value that is not finite (``hint``: the fix)."""
@@ -1193,10 +1201,8 @@ def _read_contacts(root, path, mesh, pairs, rigid, step_moves) -> tuple:
         if el.tag != "contact" or kind != "sliding-elastic":
             raise _err(path, f"{where} is not supported (eyefem reads frictionless "
                        "sliding-elastic contact against a rigid body with a penalty)")
-        lau = (el.findtext("laugon") or "0").strip().upper()
-        if lau not in ("0", "PENALTY", "FALSE"):
-            raise _err(path, f"{where}: <laugon> {lau}: eyefem's contact is a penalty "
-                       "(laugon 0 / PENALTY); the augmented Lagrangian is not supported")
+        _penalty_form(path, el, where, "eyefem's contact is a penalty (laugon 0 / PENALTY); "
+                      "the augmented Lagrangian is not supported")
         for tag, want in _CONTACT_FLAGS.items():
             got = (el.findtext(tag) or want).strip()
             if float(got) != float(want):
@@ -1274,11 +1280,9 @@ def _read_volumes(secs, path, mesh) -> tuple:
             if el.tag != "constraint" or kind != "volume":
                 raise _err(path, f"{where} is not supported (eyefem reads the \"volume\" "
                            "constraint as a closed liquid cavity)")
-            lau = (el.findtext("laugon") or "0").strip().upper()
-            if lau not in ("0", "PENALTY", "FALSE"):
-                raise _err(path, f"{where}: <laugon> {lau}: FEBio's augmented Lagrangian holds "
-                           "the volume exactly; eyefem's cavity is a compressible liquid (give "
-                           "laugon 0 and a penalty)")
+            _penalty_form(path, el, where, "FEBio's augmented Lagrangian holds the volume "
+                          "exactly; eyefem's cavity is a compressible liquid (give laugon 0 "
+                          "and a penalty)")
             for child in el:
                 if isinstance(child.tag, str) and child.tag not in ("laugon", "penalty",
                                                                      "augtol"):
