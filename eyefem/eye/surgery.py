@@ -241,6 +241,14 @@ SURGERY_FIELDS = [
     Field("n_segments", int, 24, "facets of an encircling buckle's ring / 8", lambda v: v >= 3,
           ">= 3"),
     WALL_ELEMENT_FIELD,
+    Field("symmetry", str, "none", "'mirror': solve the half of the eye with y >= 0 (the "
+          "plane through the optical axis and the optic nerve), the plane's nodes held in "
+          "y, and report the whole eye's outcomes (about half the unknowns: a faster, "
+          "smaller run); refused, with the reason, unless the mesh, buckle, sutures, "
+          "contact and loads are symmetric about that plane (an encircling buckle with "
+          "sutures spaced evenly about it; not with a deformable buckle, the timeline or "
+          "the design gradients; docs/case_files.md); 'none': the whole eye",
+          lambda v: v in ("none", "mirror"), "'none' or 'mirror'"),
 ] + [LENS_SUPPORT_FIELD if f.name == "lens_support" else f
      for f in BIOMETRY_FIELDS] + TIMELINE_FIELDS + RELAXATION_FIELDS
 
@@ -341,8 +349,12 @@ def surgery(p, materials):
                                  - summary[0]["corneal_astigmatism_D"])
         return out
 
-    return Setup("surgery", model, timed_stages(body.stages(parts, path), p), probe, finish,
-                 parts=parts)
+    setup = Setup("surgery", model, timed_stages(body.stages(parts, path), p), probe, finish,
+                  parts=parts)
+    if p.get("symmetry", "none") == "mirror":
+        from eyefem.eye.mirror import mirror_setup
+        return mirror_setup(setup)
+    return setup
 
 
 def run_mesh_error(p: dict, encircling: bool, out: dict) -> dict:
@@ -733,7 +745,7 @@ ADVANCED_FIELDS = frozenset({
     "zonule_insertion_radius", "tissue_mixing",
     "liquid_bulk", "zonule_E", "suture_EA", "suture_angle_deg", "sclera_thickness_limbus",
     "sclera_thickness_equator", "sclera_thickness_pole", "wall_element", "lens_support",
-    "model", *(f.name for f in TIMELINE_FIELDS), *(f.name for f in RELAXATION_FIELDS)})
+    "model", "symmetry", *(f.name for f in TIMELINE_FIELDS), *(f.name for f in RELAXATION_FIELDS)})
 """Fields ``eyefem new-case surgery`` leaves at their defaults unless asked for all
 (``--all``): the orbit's hold, load steps, contact, model and material details, the
 timeline."""

@@ -1,0 +1,168 @@
+"""The mirror half (eyefem.eye.mirror): half the eye about y = 0 gives the whole eye's
+outcomes, and a case that is not symmetric is refused with the reason.
+
+The slow test runs coarse case 1 whole and halved (about a minute each on 2 cores); the
+fast ones use small meshes and single terms.
+"""
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from eyefem.eye.mirror import HalfTerm, check_mirror, half_model, half_prescribed, mirror
+from eyefem.fem.bars import Bars
+from eyefem.fem.generators import box
+from eyefem.fem.materials import MooneyRivlin
+from eyefem.fem.terms import NodalForce, NodeSprings
+from eyefem.solve.model import solid_model
+
+jax.config.update("jax_enable_x64", True)
+
+ROOT = Path(__file__).resolve().parents[1]
+CASE1 = ROOT / "cases" / "surgery" / "case1.toml"
+
+OUTCOMES = ("iop_mmhg", "iop_after_tightening_mmhg", "indentation_mm",
+            "axial_length_change_mm", "volume_change_mm3", "max_suture_force_N",
+            "refraction_change_D", "corneal_power_change_D",
+            "anterior_chamber_depth_change_mm", "scleral_stress_kPa",
+            "buckle_free_motion_mm")
+"""The whole eye's outcomes compared (the corneal astigmatism, ~0.002 D here, is compared
+in absolute terms: it is the difference of two nearly equal powers)."""
+
+
+def _box(ny=2):
+    """A block symmetric about y = 0: 2 x 2ny x 2 hexahedra over [0, 2] x [-1, 1] x [0, 2]
+    mm (nodes on the plane y = 0)."""
+    return box(2.0, 2.0, 2.0, 2, 2 * ny, 2, origin=(0.0, -1.0, 0.0)).replace(
+        node_sets={}, face_sets={})  # the box's side sets are not mirror images
+
+
+def _model(mesh, extra_terms=()):
+    mat = MooneyRivlin.from_terms("default", {"c10": 0.05})
+    return solid_model(mesh, {"default": mat}, tuple(extra_terms))
+
+
+def test_a_mesh_that_is_not_symmetric_is_refused():
+    mesh = _box()
+    X = mesh.nodes.copy()
+    X[np.argmax(X[:, 1]), 1] += 0.05  # one node moved: it and its mirror node lose their pair
+    with pytest.raises(ValueError, match=r"not symmetric about y = 0: 2 of \d+ nodes have no "
+                                         r"mirror node.*set symmetry = 'none'"):
+        mirror(mesh.replace(nodes=X), 3 * len(X) + mesh.n_elem)
+
+
+def test_an_element_on_the_plane_is_refused():
+    mesh = box(2.0, 3.0, 2.0, 2, 3, 2, origin=(0.0, -1.5, 0.0)).replace(
+        node_sets={}, face_sets={})  # 3 elements across: the middle one straddles
+    with pytest.raises(ValueError, match="centroid on the plane y = 0"):
+        mirror(mesh, 3 * mesh.n_nodes + mesh.n_elem)
+
+
+def test_a_load_on_one_side_is_refused_with_the_term_named():
+    mesh = _box()
+    node = int(np.argmax(mesh.nodes[:, 1] + 1e-3 * mesh.nodes[:, 0]))  # a node at y = 1
+    model = _model(mesh, (NodalForce("push", [3 * node + 1], {"f": np.array([0.1])}),))
+    mir = mirror(model.mesh, model.n_dof)
+    half = half_model(model, mir)
+    with pytest.raises(ValueError, match=r"term 'push' is not symmetric about the plane y = 0"
+                                         r".*set symmetry = 'none'"):
+        check_mirror(model, model.theta0(), half, mir, "the test")
+
+
+def test_the_half_has_half_the_energy_of_every_term_at_symmetric_states():
+    """Solid (rebuilt on the half), springs on nodes of both sides and on the plane, a bar
+    across the plane and one on it (each its own mirror image: half its stiffness), a
+    mirrored pair of bars (one kept whole, one dropped)."""
+    mesh = _box()
+    X = mesh.nodes
+    tol = 1e-9
+    top = np.nonzero(np.abs(X[:, 2] - 2.0) < tol)[0]
+    a = int(top[np.argmin(np.abs(X[top, 0] - 1.0) + np.abs(X[top, 1] - 1.0))])  # y = 1
+    b = int(top[np.argmin(np.abs(X[top, 0] - 1.0) + np.abs(X[top, 1] + 1.0))])  # y = -1
+    c = int(top[np.argmin(np.abs(X[top, 0] - 0.0) + np.abs(X[top, 1]))])  # on the plane
+    d = int(top[np.argmin(np.abs(X[top, 0] - 2.0) + np.abs(X[top, 1]))])  # on the plane
+    e = int(top[np.argmin(np.abs(X[top, 0] - 2.0) + np.abs(X[top, 1] - 1.0))])
+    f = int(top[np.argmin(np.abs(X[top, 0] - 2.0) + np.abs(X[top, 1] + 1.0))])
+    ends = np.array([[a, b], [c, d], [c, e], [c, f]])  # across, on, a mirrored pair
+    n4 = np.repeat(ends[:, :1], 4, 1), np.repeat(ends[:, 1:], 4, 1)
+    bars = Bars("bars", n4[0], n4[1], np.zeros((4, 2)), np.zeros((4, 2)), X, EA=3.0)
+    springs = NodeSprings("springs", np.arange(mesh.n_nodes), k=0.2)
+    model = _model(mesh, (bars, springs))
+    mir = mirror(model.mesh, model.n_dof)
+    half = half_model(model, mir)
+    hb = half.term("bars")
+    assert isinstance(hb, HalfTerm)
+    assert sorted(np.asarray(hb.data["w"]).tolist()) == [0.5, 0.5, 1.0]  # the pair: one
+    rng = np.random.default_rng(3)
+    theta = model.theta0()
+    for _ in range(3):
+        qh = rng.normal(scale=0.05, size=mir.n_dof_half)
+        qh[mir.plane_y_dofs] = 0.0
+        q = mir.lift(qh)
+        for t in model.terms:
+            h = half.term(t.name)
+            ew = float(t.energy(jnp.asarray(q), theta[t.name], t.data, t.dofs))
+            eh = float(h.energy(jnp.asarray(qh), half.theta0()[t.name], h.data, h.dofs))
+            assert eh == pytest.approx(ew / 2, rel=1e-12, abs=1e-15), t.name
+        # the half's gradient is half the whole's restricted to symmetric variations (but
+        # on the held plane y dofs: there the half's is the reaction of the other half)
+        gw = model.gradient(q, theta)
+        gh = half.gradient(qh, half.theta0())
+        free = np.ones(mir.n_dof_half, bool)
+        free[mir.plane_y_dofs] = False
+        want = 0.5 * np.bincount(mir.dof_map, mir.dof_sign * gw, minlength=mir.n_dof_half)
+        np.testing.assert_allclose(gh[free], want[free], rtol=1e-10, atol=1e-13)
+    check_mirror(model, theta, half, mir, "the test")  # symmetric: passes
+
+
+def test_held_dofs_on_the_half():
+    mesh = _box()
+    model = _model(mesh)
+    mir = mirror(model.mesh, model.n_dof)
+    base = np.nonzero(np.abs(mesh.nodes[:, 2]) < 1e-9)[0]
+    dofs = (3 * base[:, None] + np.arange(3)).ravel()
+    hd, hv = half_prescribed((dofs, np.zeros(len(dofs))), mir, "s")
+    assert len(np.unique(hd)) == len(hd)
+    assert set(mir.plane_y_dofs) <= set(hd.tolist())
+    assert np.all(hv == 0.0)
+    one_side = base[mesh.nodes[base, 1] > 0.5]
+    with pytest.raises(ValueError, match="prescribed displacements are not symmetric"):
+        half_prescribed((np.r_[3 * one_side + 1, 3 * mir.partner[one_side] + 1],
+                         np.r_[np.full(len(one_side), 0.1), np.full(len(one_side), 0.1)]),
+                        mir, "s")
+
+
+@pytest.fixture(scope="module")
+def case1_runs(tmp_path_factory):
+    """Coarse case 1 run whole and as the mirror half: (whole, half) RunResults."""
+    from eyefem.api import load_case
+    from eyefem.eye.surgery import surgery
+    from eyefem.run.runner import run_setup
+
+    case = load_case(CASE1)
+    out = {}
+    for sym in ("none", "mirror"):
+        setup = surgery({**case.parameters, "mesh": "coarse", "symmetry": sym}, case.materials)
+        out[sym] = run_setup(setup, tmp_path_factory.mktemp(sym), case.solver, vtu=False,
+                             plots=False)
+    return out["none"], out["mirror"]
+
+
+@pytest.mark.slow
+def test_half_and_whole_agree_on_coarse_case1(case1_runs):
+    """The outcomes of the whole eye from the half agree with the whole run to 1e-6
+    relative (both converge every step to the solver's tolerance, about 1e-9 of the
+    forces; found within 3e-9)."""
+    whole, half = case1_runs
+    assert half.solution.model.n_dof < 0.55 * whole.solution.model.n_dof
+    for k in OUTCOMES:
+        assert half.summary[k] == pytest.approx(whole.summary[k], rel=1e-6), k
+    assert half.summary["corneal_astigmatism_D"] == pytest.approx(
+        whole.summary["corneal_astigmatism_D"], abs=1e-6)
+    assert half.summary["unbalanced_steps"]["count"] == 0
+    assert len(half.rows) == len(whole.rows)  # the same load steps
+    for rw, rh in zip(whole.rows, half.rows):
+        assert rh["iop_mmhg"] == pytest.approx(rw["iop_mmhg"], rel=1e-6)
