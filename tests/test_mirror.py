@@ -166,3 +166,32 @@ def test_half_and_whole_agree_on_coarse_case1(case1_runs):
     assert len(half.rows) == len(whole.rows)  # the same load steps
     for rw, rh in zip(whole.rows, half.rows):
         assert rh["iop_mmhg"] == pytest.approx(rw["iop_mmhg"], rel=1e-6)
+
+
+def test_a_segmental_sponge_off_the_plane_is_refused():
+    """Case 5's radial sponge turned to the meridian 45 degrees: its contact breaks the
+    symmetry, and the case is refused naming the term and what would keep it."""
+    from eyefem.api import load_case
+    from eyefem.eye.surgery import surgery
+
+    case = load_case(ROOT / "cases" / "surgery" / "case5.toml")
+    p = {**case.parameters, "mesh": "coarse", "symmetry": "mirror", "buckle_meridian_deg": 45.0}
+    with pytest.raises(ValueError, match=r"term '(buckle|sutures)' is not symmetric about the "
+                                         r"plane y = 0.*segmental buckle centred on it.*"
+                                         r"set symmetry = 'none'"):
+        surgery(p, case.materials)
+
+
+def test_the_mirror_half_refuses_a_deformable_buckle_and_the_timeline():
+    from eyefem.eye.mirror import mirror_setup
+    from eyefem.solve.problem import Setup
+
+    class Parts:
+        p = {"buckle_body": "deformable"}
+
+    setup = Setup("surgery", None, [], None, None, parts=Parts())
+    with pytest.raises(ValueError, match="buckle_body = 'deformable'.*rigid buckle"):
+        mirror_setup(setup)
+    Parts.p = {"volume_regulation": True}
+    with pytest.raises(ValueError, match="volume_regulation = True.*timeline"):
+        mirror_setup(setup)
