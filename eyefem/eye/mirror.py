@@ -280,6 +280,8 @@ class HalfTerm(Term):
     dofs: np.ndarray
     data: dict
     n_whole: int
+    mirror: Mirror = dataclasses.field(default=None, compare=False, repr=False)
+    """The mirror map (lifts the half's state for the whole term's reports and fields)."""
 
     def __post_init__(self):
         for attr in ("contact", "dynamic", "pressure_stiffness"):
@@ -295,6 +297,22 @@ class HalfTerm(Term):
     def static_key(self) -> tuple:
         return ("half", type(self.inner), self.inner.static_key(), self.n_whole,
                 self.data["w"] is None, self.data["s"] is None)
+
+    def report(self, q, params) -> dict:
+        """The whole term's report at the lifted state (forces of the whole eye)."""
+        return self.inner.report(self.mirror.lift(q), params)
+
+    def point_fields(self, q, params, n_nodes) -> dict:
+        """The whole term's nodal fields at the lifted state, at the half's nodes."""
+        n = len(self.mirror.partner)
+        out = self.inner.point_fields(self.mirror.lift(q), params, n)
+        return {k: (np.asarray(v)[self.mirror.keep_nodes] if np.shape(v)[:1] == (n,) else v)
+                for k, v in out.items()}
+
+    def geometry(self, q, params):
+        """The whole term's own shape (a rigid buckle's surface, every suture) at the
+        lifted state."""
+        return self.inner.geometry(self.mirror.lift(q), params)
 
     def _args(self, q_loc, params, data):
         s = data["s"]
@@ -395,9 +413,19 @@ def _half_term(term: Term, mir: Mirror, n_nodes: int) -> HalfTerm:
     data = {"in": _take_items(term.data, keep, n_items), "items": keep,
             "w": None if np.all(w == 1.0) else w, "s": None if np.all(s == 1.0) else s}
     if type(term).gap_linearisation is Term.gap_linearisation:
-        return HalfTerm(term.name, term, mir.dof_map[kd], data, n_items)
+        return HalfTerm(term.name, term, mir.dof_map[kd], data, n_items, mir)
     data["alpha"] = np.asarray(data["in"]["alpha"]) * (1.0 if data["w"] is None else data["w"])
-    return HalfContact(term.name, term, mir.dof_map[kd], data, n_items)
+    return HalfContact(term.name, term, mir.dof_map[kd], data, n_items, mir)
+
+
+@dataclasses.dataclass(frozen=True)
+class HalfCavity(FluidCavity):
+    """The half of a FluidCavity (open on the plane y = 0): the FluidCavity's energy and
+    pressure, its reported volumes (mm^3) doubled to the whole eye's."""
+
+    def report(self, q, params) -> dict:
+        return {k: (2.0 * v if k.endswith("_mm3") else v)
+                for k, v in super().report(q, params).items()}
 
 
 def _plane_origin(origin) -> tuple:
@@ -426,9 +454,10 @@ def half_model(model: Model, mir: Mirror) -> Model:
                                  "volume_regulation = false or symmetry = 'none'")
             half = lambda v: None if v is None else np.asarray(v, np.float64) / 2  # noqa: E731
             origin = _plane_origin(t.data["origin"])
-            terms.append(dataclasses.replace(
-                t, mesh=mir.mesh, symmetry_planes=("y",), origin=origin,
-                v_ini=half(t.v_ini), outflow_compliance=half(t.outflow_compliance)))
+            fields = {f.name: getattr(t, f.name) for f in dataclasses.fields(t) if f.init}
+            terms.append(HalfCavity(**{**fields, "mesh": mir.mesh, "symmetry_planes": ("y",),
+                                       "origin": origin, "v_ini": half(t.v_ini),
+                                       "outflow_compliance": half(t.outflow_compliance)}))
         elif type(t) is PressureLoad:
             terms.append(dataclasses.replace(t, mesh=mir.mesh,
                                              origin=_plane_origin(t.origin)))
