@@ -37,6 +37,15 @@ fits through the eye model).
 
 The fitted (g_i, tau_i in minutes) go into a case as tissue_relaxation = "custom",
 relaxation_g and relaxation_tau_min (eyefem/eye/relaxation.py).
+
+A paper that gives Fung's quasi-linear constants instead of a curve (C, tau1, tau2: the
+box spectrum of Downs et al., J Biomech Eng 125:124, 2003, for one) gives its reduced
+relaxation function in closed form, :func:`qlv_curve`; ``--qlv C TAU1 TAU2 --window T0 T1
+--source TEXT --write CSV`` samples it over the test's window into a CSV with its source,
+then fits that:
+
+    python benchmarks/fit_prony.py --qlv C TAU1_S TAU2_S --window 1 1000 \
+        --source "paper, table, species, strain" --write curve.csv
 """
 
 from __future__ import annotations
@@ -57,6 +66,36 @@ def read_curve(path: str):
     data = np.genfromtxt([ln for ln in lines if not ln.startswith("#")], delimiter=",",
                          names=True)
     return np.asarray(data["time_s"], float), np.asarray(data["G"], float), src
+
+
+def qlv_curve(t, C: float, tau1: float, tau2: float) -> np.ndarray:
+    """Fung's reduced relaxation function with a box spectrum between tau1 and tau2,
+
+        G(t) = [1 + C (E1(t / tau2) - E1(t / tau1))] / [1 + C ln(tau2 / tau1)],
+
+    E1 the exponential integral: G(0+) = 1 (the instantaneous response), G(inf) = 1 / (1 +
+    C ln(tau2 / tau1)) (the equilibrium fraction). t (n,) > 0, tau1 < tau2, in one unit
+    (seconds here); C >= 0 dimensionless. ValueError naming the constant otherwise."""
+    from scipy.special import exp1
+
+    t = np.asarray(t, np.float64)
+    if not (np.isfinite(C) and C >= 0):
+        raise ValueError(f"qlv_curve: C = {C}; must be a number >= 0")
+    if not (np.isfinite(tau1) and np.isfinite(tau2) and 0 < tau1 < tau2):
+        raise ValueError(f"qlv_curve: tau1 = {tau1}, tau2 = {tau2}; need 0 < tau1 < tau2")
+    if not np.all(t > 0):
+        raise ValueError("qlv_curve: the times must be above 0 (G jumps at t = 0)")
+    return (1.0 + C * (exp1(t / tau2) - exp1(t / tau1))) / (1.0 + C * np.log(tau2 / tau1))
+
+
+def write_curve(path: str, t, G, source: list[str]) -> None:
+    """A CSV read_curve reads: the source lines as '#' comments, then time_s, G."""
+    if not source or not any(s.strip() for s in source):
+        raise ValueError("write_curve: give the curve's source (paper, table or figure, "
+                         "species, tissue, strain, ramp)")
+    lines = [f"# {s}" for s in source] + ["time_s,G"]
+    lines += [f"{float(a)!r},{float(b)!r}" for a, b in zip(t, G)]
+    open(path, "w").write("\n".join(lines) + "\n")
 
 
 def fit(t, G, per_decade: int = 1) -> dict:
@@ -85,10 +124,31 @@ def fit(t, G, per_decade: int = 1) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("csv")
+    ap.add_argument("csv", nargs="?", help="the relaxation curve (time_s, G) to fit")
     ap.add_argument("--per-decade", type=int, default=1)
     ap.add_argument("--out")
+    ap.add_argument("--qlv", nargs=3, type=float, metavar=("C", "TAU1_S", "TAU2_S"),
+                    help="sample Fung's QLV reduced relaxation function instead of reading")
+    ap.add_argument("--window", nargs=2, type=float, metavar=("T0_S", "T1_S"),
+                    help="the test's window for --qlv, seconds")
+    ap.add_argument("--source", help="where --qlv's constants were read (required)")
+    ap.add_argument("--write", help="the CSV --qlv writes (then fitted)")
     a = ap.parse_args(argv)
+    if a.qlv:
+        if not (a.window and a.source and a.write):
+            ap.error("--qlv needs --window T0 T1, --source TEXT and --write CSV")
+        t0, t1 = a.window
+        if not 0 < t0 < t1:
+            ap.error(f"--window {t0} {t1}: need 0 < T0 < T1 seconds")
+        t = np.geomspace(t0, t1, int(np.ceil(20 * np.log10(t1 / t0))) + 1)
+        C, tau1, tau2 = a.qlv
+        write_curve(a.write, t, qlv_curve(t, C, tau1, tau2),
+                    [a.source, f"Fung QLV reduced relaxation function, C = {C!r}, tau1 = "
+                     f"{tau1!r} s, tau2 = {tau2!r} s, sampled {t0!r} to {t1!r} s "
+                     "(benchmarks/fit_prony.py --qlv)"])
+        a.csv = a.write
+    elif not a.csv:
+        ap.error("give a curve CSV, or --qlv C TAU1 TAU2 with --window, --source, --write")
     t, G, src = read_curve(a.csv)
     out = {"source": src, **fit(t, G, a.per_decade)}
     text = json.dumps(out, indent=1)
