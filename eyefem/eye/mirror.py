@@ -58,17 +58,13 @@ from eyefem.fem.mesh import Mesh
 from eyefem.fem.solid import SolidQ1P0
 from eyefem.fem.surface import PressureLoad
 from eyefem.fem.terms import Term
-from eyefem.solve.loadpath import Stage
 from eyefem.solve.model import Model
 from eyefem.solve.problem import Setup
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SYMMETRIES", "MIRROR_TOL", "Mirror", "HalfTerm", "mirror", "half_model",
-           "check_mirror", "mirror_setup", "CAVITY_VOLUME_KEYS"]
-
-SYMMETRIES = ("none", "mirror")
-"""The values of the surgery's ``symmetry`` field."""
+__all__ = ["MIRROR_TOL", "Mirror", "HalfTerm", "HalfContact", "HalfCavity",
+           "mirror", "half_model", "check_mirror", "mirror_setup", "CAVITY_VOLUME_KEYS"]
 
 MIRROR_TOL = 1e-8
 """Tolerance of the mirror map, relative to the mesh's size (its largest |coordinate|):
@@ -192,8 +188,9 @@ def mirror(mesh: Mesh, n_dof: int) -> Mirror:
     for e, h in enumerate(mesh.hexes):
         j = keys.get(tuple(sorted(partner[h].tolist())))
         if j is None or mesh.material_ids[j] != mesh.material_ids[e]:
-            what = "no mirror element" if j is None else (
-                f"a mirror element ({j}) of another tissue ('{mesh.materials[mesh.material_ids[j]]}')")
+            other = "" if j is None else mesh.materials[mesh.material_ids[j]]
+            what = ("no mirror element" if j is None
+                    else f"a mirror element ({j}) of another tissue ('{other}')")
             raise ValueError(f"the mesh is not symmetric about y = 0: element {e} "
                              f"('{mesh.materials[mesh.material_ids[e]]}', centroid "
                              f"{np.round(X[h].mean(0), 3).tolist()} mm) has {what}; set "
@@ -344,7 +341,6 @@ class HalfTerm(Term):
         return g, H
 
 
-
 @dataclasses.dataclass(frozen=True)
 class HalfContact(HalfTerm):
     """A HalfTerm of a penalty-contact term (energy 1/2 alpha p(g)^2 per item): its gaps'
@@ -393,19 +389,19 @@ def _half_term(term: Term, mir: Mirror, n_nodes: int) -> HalfTerm:
     index: dict = {}
     for i, key in enumerate(keys):
         index.setdefault(key, []).append(i)
-    keep, weights, lifted = [], [], []
+    keep, weights = [], []
     for i, key in enumerate(keys):
         nodes = np.array(sorted(key), np.int64)
-        side = y_side[nodes] if len(nodes) else np.zeros(0, np.int64)
+        side = y_side[nodes]
         mkey = frozenset(mir.partner[nodes].tolist())
         js = index.get(mkey, [])
         paired = len(js) == 1 and js[0] != i and len(index[key]) == 1
         if paired and np.all(side >= 0):
-            keep.append(i), weights.append(1.0), lifted.append(False)
+            keep.append(i), weights.append(1.0)
         elif paired and np.all(y_side[np.array(sorted(mkey), np.int64)] >= 0):
             continue  # its mirror image is kept
         else:  # its own mirror image, or crossing the plane: half of it, lifted
-            keep.append(i), weights.append(0.5), lifted.append(bool(np.any(side < 0)))
+            keep.append(i), weights.append(0.5)
     keep = np.asarray(keep, np.int64)
     w = np.asarray(weights)
     kd = dofs[keep]
