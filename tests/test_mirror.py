@@ -202,3 +202,18 @@ def test_the_mirror_half_refuses_a_deformable_buckle_and_the_timeline():
     Parts.p = {"volume_regulation": True}
     with pytest.raises(ValueError, match="volume_regulation = True.*timeline"):
         mirror_setup(setup)
+
+
+def test_the_design_simulators_refuse_the_mirror_half():
+    """eyefem.simulate (and the planner, which runs on it) solves the whole eye: a case
+    with symmetry = 'mirror' is refused with the reason, before any solve."""
+    import dataclasses
+
+    import eyefem
+    from eyefem.api import load_case
+
+    case = load_case(CASE1)
+    case = dataclasses.replace(case, parameters={**case.parameters, "symmetry": "mirror"})
+    with pytest.raises(ValueError, match="symmetry = 'mirror' solves half the eye.*design "
+                                         "gradients.*symmetry = 'none'"):
+        eyefem.simulate(case, {"tightening": 5.0}, mesh="coarse")
