@@ -13,18 +13,34 @@ relaxed modulus). The same (g_i, tau_i) apply to every relaxing tissue
 (``relaxation_tissues``, the corneoscleral wall by default); the other tissues stay
 elastic. Times are minutes (the timeline's clock).
 
-**Published constants.** None ship. The project's literature search found abstracts of
-scleral relaxation and creep tests (Song, Lim, Park and Demer, J Biomech 2023, 111530:
-tensile creep of human sclera over 1,500 s, Prony series; Downs et al., J Biomech Eng
-125:124, 2003: stress relaxation of rabbit and monkey peripapillary sclera with a
-spectral reduced relaxation function; Downs et al., IOVS 46:540, 2005: monkey; Whitford
-et al., Biomech Model Mechanobiol 17:19, 2018: human cornea at strain rates 0.5-5 %/min;
-"Regional variation in the biomechanical properties of the human sclera": 36 donor
-scleras, the stress at a strain 157-203 % higher at 200 than at 8 %/min), but no curve or table of constants could be read, and none are invented.
-``tissue_relaxation = "custom"`` takes constants the user supplies (from such a paper,
-or from ``benchmarks/fit_prony.py`` run on a digitised curve). What a relaxation test
-identifies, and what it does not (relaxation slower than the test, which the shape at
-three months depends on): docs/formulation.md, "Quasi-linear viscoelastic tissue".
+**Published constants.** None ship: no scleral or corneal relaxation curve or table of
+Prony (or QLV) constants could be read, and none are invented. The stored copies of
+the candidate papers hold their abstracts or openings only:
+
+- Downs et al., J Biomech Eng 125:124 (2003), pmc.ncbi.nlm.nih.gov/articles/PMC2744140:
+  uniaxial stress relaxation of rabbit and monkey peripapillary sclera at 0-1 % strain,
+  a spectral (Fung) reduced relaxation function; the monkey's is stiffer at once and at
+  equilibrium and relaxes more slowly. Its table of (C, tau1, tau2) and moduli: not read.
+- Downs et al., IOVS 46:540 (2005), iovs.arvojournals.org/article.aspx?articleid=2123970:
+  monkey, normal against early glaucoma; no constants in the stored text.
+- Cruz Perez, Morris, Hart, Liu, J Biomed Sci Eng 6:29 (2013), scirp.org/html/40830.html:
+  an FE eye with viscoelastic cornea and sclera; its moduli and time constants: not read.
+- Song, Lim, Park, Demer, J Biomech 2023, 111530: tensile creep of human sclera over
+  1,500 s, Prony series; no constants in the abstract.
+- Hatami-Marbini, Vision 9:1 (2025): stress relaxation of porcine posterior sclera at four
+  hydrations (a logarithmic fit); no constants in the abstract.
+- "Regional variation in the biomechanical properties of the human sclera" (Elsheikh et
+  al., Exp Eye Res 2010; 36 donors, strips): stress 157-203 % and tangent modulus
+  30.3-38.8 % higher at 200 than at 8 %/min; Whitford et al., Biomech Model Mechanobiol
+  17:19 (2018): the human cornea's stiffness parallel to the lamellae about doubles from
+  0.5 to 5 %/min. Rate sensitivities of a ramp, not a relaxation function.
+
+``tissue_relaxation = "custom"`` takes constants the user supplies (from such a paper's
+table, or ``benchmarks/fit_prony.py`` run on a digitised curve);
+``cases/surgery/timeline_case1_relaxing.toml`` runs case 1 with illustrative ones. What a
+relaxation test identifies, and what it does not (relaxation slower than the test, which
+the shape at three months depends on): docs/formulation.md, "Quasi-linear viscoelastic
+tissue"; docs/validation.md, "The time-dependent wall".
 """
 
 from __future__ import annotations

@@ -11,8 +11,10 @@ nothing here applies.
 
 Times: minutes from the cavity's closing (the start of the tightening); the follow-up
 times are counted from the end of surgery. The shape outcomes at a week and at three
-months are those of the elastic tissue at the IOP of that time (the tissues' creep over
-months is not modelled: docs/validation.md).
+months are those of the tissues at the IOP of that time: elastic, or relaxed as far as
+their Prony series has by then with a time-dependent wall (``tissue_relaxation``,
+eyefem.eye.relaxation; ``preop_minutes`` lets the pre-operative IOP act on it before the
+surgery). Growth and remodelling are not modelled (docs/validation.md).
 
 The outcomes are defined once (:func:`table_outcomes`, :func:`followup_steps`,
 :func:`shape_name`), for summary.json (:func:`timeline_outcomes`, from the rows) and for
@@ -78,6 +80,9 @@ def _followup_ok(v) -> bool:
     return True
 
 
+PREOP_MAX_MIN = 2 * 365.25 * 1440
+"""The longest pre-operative time, minutes (two years)."""
+
 TIMELINE_FIELDS = [
     Field("volume_regulation", bool, False,
           "true: the closed cavity exchanges liquid over the surgery's timeline as a living "
@@ -114,6 +119,12 @@ TIMELINE_FIELDS = [
           "tightening. A design variable: the wait's steps stretch with it, so the outcomes "
           "are smooth in it (eyefem.eye.timeline.timed_stages)",
           lambda v: 0 <= v <= 60, "0 to 60 min"),
+    Field("preop_minutes", float, 0.0,
+          "how long the pre-operative IOP has acted on the eye before the surgery, min: the "
+          "pressurising stage lasts this long, so a time-dependent wall (tissue_relaxation) "
+          "starts the surgery relaxed under it (e.g. 525960: a year); 0: pressurised at "
+          "once (the wall's instantaneous response). No effect on elastic tissues",
+          lambda v: 0 <= v <= PREOP_MAX_MIN, f"0 to {PREOP_MAX_MIN:.0f} min (two years)"),
     Field("tighten_minutes", float, 10.0, "duration of the tightening (or placing) stage, min",
           lambda v: 0 < v <= 240, "above 0, at most 240 min"),
     Field("suture_minutes", float, 15.0, "duration of the suturing stage, min",
@@ -152,8 +163,9 @@ paracentesis_delay_minutes)."""
 
 
 def timed_stages(stages: list, p: dict, *, events: bool = False) -> list:
-    """The procedure's stages on the timeline: the tightening (the stage that closes the
-    cavity) and the suturing take their minutes; a paracentesis (if any) removes its volume
+    """The procedure's stages on the timeline: the pressurising stage lasts
+    ``preop_minutes`` (none when 0), the tightening (the stage that closes the cavity) and
+    the suturing take their minutes; a paracentesis (if any) removes its volume
     at one instant after the tightening, ``paracentesis_delay_minutes`` after it (a
     "wait" stage of WAIT_STEPS steps in between, held, the regulation going on); a
     follow-up stage holds everything as it ends the surgery and runs to the follow-up
@@ -173,6 +185,9 @@ def timed_stages(stages: list, p: dict, *, events: bool = False) -> list:
         raise ValueError(f"volume_regulation needs a procedure of 3 stages (pressurise, "
                          f"tighten or place, suture); this one has {len(stages)}")
     first, tighten, *rest = stages
+    preop = float(p.get("preop_minutes", 0.0))
+    if preop > 0:
+        first = dataclasses.replace(first, duration=preop)
     out = [first, dataclasses.replace(tighten, duration=p["tighten_minutes"])]
     delay = float(p.get("paracentesis_delay_minutes", 0.0))
     if events or (p["paracentesis_volume"] > 0 and delay > 0):
