@@ -109,6 +109,32 @@ def project_to_quads(x, quads_x, cand, iters=25):
     return best
 
 
+def followed_xi(q_loc, data):
+    """Closest points xi (P, 2) of the hitting nodes on their bilinear faces as a JAX
+    function of the pairs' dofs q_loc (P, 15) (data: SurfaceContact's, with the pairing's
+    xi (P, 2)): one Newton step on F(xi) = t(xi) . (x_h - x_t(xi)) = 0 from the paired xi,
+    dF/dxi = dt/dxi . r - t t^T. Where the paired xi is the closest point (F = 0) the
+    value is the paired xi and its first derivative the implicit one, -dF/dxi^-1 dF/dq,
+    so an energy of the gap, stationary in xi there, gets its exact Hessian. Pairs clamped
+    to a face edge (a |xi| = 1, where the pairing's projection, clipped, is not the
+    stationary point) and padding keep their xi."""
+    xi0 = data["xi"]
+    x = data["X"] + q_loc.reshape(-1, 5, 3)
+    N, dN = _shape(xi0)
+    xf = x[:, 1:]
+    r = x[:, 0] - jnp.einsum("pa,pai->pi", N, xf)
+    t = jnp.einsum("pak,pai->pki", dN, xf)
+    F = jnp.einsum("pki,pi->pk", t, r)
+    twist = jnp.einsum("a,pai->pi", 0.25 * _C[:, 0] * _C[:, 1], xf)  # d t_0/d xi_1
+    off = jnp.einsum("pi,pi->p", r, twist)
+    J = (-jnp.einsum("pki,pli->pkl", t, t)
+         + off[:, None, None] * jnp.array([[0.0, 1.0], [1.0, 0.0]]))
+    ok = (data["w"] > 0) & jnp.all(jnp.abs(xi0) < 1 - 1e-9, axis=1)
+    J = jnp.where(ok[:, None, None], J, -jnp.eye(2))
+    step = -jnp.linalg.solve(J, F[..., None])[..., 0]
+    return xi0 + jnp.where(ok[:, None], step, 0.0)
+
+
 _NAGATA_EDGES = ((0, 1), (1, 2), (3, 2), (0, 3))
 """A face's edges (from node, to node) along s = (xi_0 + 1) / 2 at t = 0, along t at s = 1,
 along s at t = 1, along t at s = 0 (t = (xi_1 + 1) / 2)."""
@@ -247,7 +273,25 @@ class SurfaceContact(Term):
         self._pair(np.zeros(3 * self.mesh.n_nodes), initial=True)
 
     def static_key(self):
-        return (self.mode, self.smoothing is not None, self.normals)
+        return (self.mode, self.smoothing is not None, self.normals,
+                getattr(self, "following", False))
+
+    def following_pairing(self) -> "SurfaceContact":
+        """This term with its target points following the state: each pair's xi the
+        closest point of its face to the hitting node, a function of the pair's dofs (one
+        Newton correction from the paired xi, exact to first order where xi is the
+        closest point: :func:`followed_xi`), where the pairing's energy holds xi fixed.
+        At a state paired at itself (``update(q)``) the two energies and residuals agree;
+        the tangent of this one has the term of the target points sliding over the faces
+        (the response of a frictionless contact whose pairing follows the state, as
+        re-pairing makes it), which the held pairing's lacks: the adjoint's tangent
+        (eyefem.solve.adjoint). Flat faces in sliding mode only (sticking points and the
+        Nagata patches' held normals: this term itself)."""
+        if self.mode != "sliding" or self.normals != "facet":
+            return self
+        new = copy.copy(self)
+        object.__setattr__(new, "following", True)
+        return new
 
     def _nodal_normals(self, qx):
         """Unit normals (m, 4, 3) of the master faces' nodes: the sums of the adjacent
@@ -342,6 +386,8 @@ class SurfaceContact(Term):
         return x[:, 0], xt, n
 
     def local_energy(self, q_loc, params, data):
+        if getattr(self, "following", False):
+            data = {**data, "xi": followed_xi(q_loc, data)}
         xh, xt, n = self.kinematics(q_loc, data)
         a = params["scale"] * data["w"] * data["alpha"]
         if self.mode == "sticking":

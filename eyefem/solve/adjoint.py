@@ -8,8 +8,10 @@ one transposed solve (reusing the last Newton factorisation, refined against the
 tangent-vector product) and one vector-Jacobian product of the residual with respect
 to theta. Newton's iterations are never differentiated.
 
-Contact pairing, active sets and sticking points are frozen at the converged state:
-the gradient is exact for the realised contact state (see docs/adjoint.md).
+Contact pairing (which face), active sets and sticking points are frozen at the
+converged state: the gradient is exact for the realised contact state. Within a paired
+face the target point follows the state (:func:`following`), as re-pairing makes it
+(see docs/adjoint.md).
 """
 
 from __future__ import annotations
@@ -112,6 +114,20 @@ def adjoint_solve(model: Model, solver, asm, q, theta, rhs, *, active=None, tol=
     return lam[:, 0] if one else lam
 
 
+def following(model: Model) -> Model:
+    """The model whose tangent the adjoint takes: each re-paired (contact) term that can
+    have its target points follow the state (``following_pairing``, e.g.
+    eyefem.fem.contact.SurfaceContact) replaced by that term. Its residual at the
+    converged state, paired at itself, is the model's; its tangent adds the target points'
+    sliding over the faces, which the re-pairing of every Newton iterate gives the
+    converged state and the held pairing's tangent lacks."""
+    terms = [t.following_pairing() if getattr(t, "dynamic", False)
+             and hasattr(t, "following_pairing") else t for t in model.terms]
+    if all(a is b for a, b in zip(terms, model.terms)):
+        return model
+    return model.with_terms(terms)
+
+
 def _apply(model, q, V, theta, active, asm):
     """K V (n_dof, k) on the free primal and multiplier rows (zero elsewhere)."""
     kv = model.hvp_many(q, V, theta, active)
@@ -208,7 +224,7 @@ def values_and_grads(objectives: Callable[..., Any], solution, *, active=None, d
     active = solution.active if active is None else active
     check_potential(solution.model, active)
     solution = solution.factorised()
-    model, q, theta = solution.model, solution.q, solution.theta
+    model, q, theta = following(solution.model), solution.q, solution.theta
     theta_j = jax.tree_util.tree_map(jnp.asarray, theta)
     q_j = jnp.asarray(q)
     if data is None:
