@@ -637,8 +637,10 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
         return setup.probe(mw, mir.lift(q_h), theta_whole(theta_h, mw))
 
     log.info("mirror half: %d of %d elements, %d of %d nodes (%d on the plane y = 0), %d of "
-             "%d unknowns", mir.mesh.n_elem, whole.mesh.n_elem, mir.mesh.n_nodes,
-             whole.mesh.n_nodes, int(mir.on_plane.sum()), mir.n_dof_half, whole.n_dof)
+             "%d unknowns; it finds the symmetric state (its stability, against modes that "
+             "break the symmetry too, takes the whole eye: symmetry = 'none')",
+             mir.mesh.n_elem, whole.mesh.n_elem, mir.mesh.n_nodes, whole.mesh.n_nodes,
+             int(mir.on_plane.sum()), mir.n_dof_half, whole.n_dof)
     q0 = None if setup.q0 is None else mir.restrict(setup.q0)
     return dataclasses.replace(setup, model=half, stages=stages, probe=probe,
                                parts=_NotDifferentiable(), q0=q0)
