@@ -204,6 +204,19 @@ def test_a_segmental_sponge_off_the_plane_is_refused():
         surgery(p, case.materials)
 
 
+def test_sutures_turned_about_the_buckle_normal_are_refused():
+    """Case 1's sutures turned by 20 degrees (suture_angle_deg): each one's mirror image is
+    turned the other way, so the sutures break the symmetry (their energy at the check's
+    stretched state tells)."""
+    from eyefem.api import load_case
+    from eyefem.eye.surgery import surgery
+
+    case = load_case(CASE1)
+    p = {**case.parameters, "mesh": "coarse", "symmetry": "mirror", "suture_angle_deg": 20.0}
+    with pytest.raises(ValueError, match=r"term 'sutures' is not symmetric about the plane"):
+        surgery(p, case.materials)
+
+
 def test_the_mirror_half_refuses_a_deformable_buckle_and_the_timeline():
     from eyefem.eye.mirror import mirror_setup
     from eyefem.solve.problem import Setup

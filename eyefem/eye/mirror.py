@@ -512,16 +512,24 @@ def half_prescribed(prescribed, mir: Mirror, stage: str) -> tuple[np.ndarray, np
     return np.r_[hd, extra], np.r_[hv, np.zeros(len(extra))]
 
 
-def _random_states(model: Model, rng, n: int = 2):
-    """A few whole states that press the outer surface outward (so that contact terms
-    work) with random displacements, multipliers and extras on top."""
+CHECK_STATES = ((0.3, 0.0), (0.6, 0.0), (-0.3, -1.0))
+"""The states of the symmetry checks: (radial displacement of every node, mm; value of
+every extra unknown), with random displacements, multipliers and extras (0.02) on top.
+Pushed out, the sclera presses into a rigid buckle (its contact works); pulled in with the
+buckle moved out by 1 mm, the sutures are stretched (their energy is not zero)."""
+
+
+def _random_states(model: Model, rng):
+    """The whole states of CHECK_STATES (n_dof,) each."""
     X = model.mesh.nodes
     r = np.linalg.norm(X, axis=1, keepdims=True)
-    radial = X / np.maximum(r, 1e-12)
+    radial = (X / np.maximum(r, 1e-12)).ravel()
+    n_extra = model.n_dof - 3 * len(X) - model.mesh.n_elem
     out = []
-    for k in range(n):
+    for push, extra in CHECK_STATES:
         q = rng.normal(scale=0.02, size=model.n_dof)
-        q[:3 * len(X)] += (0.3 + 0.3 * k) * radial.ravel()
+        q[:3 * len(X)] += push * radial
+        q[model.n_dof - n_extra:] += extra
         out.append(q)
     return out
 
