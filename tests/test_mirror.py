@@ -199,7 +199,7 @@ def test_a_segmental_sponge_off_the_plane_is_refused():
     case = load_case(ROOT / "cases" / "surgery" / "case5.toml")
     p = {**case.parameters, "mesh": "coarse", "symmetry": "mirror", "buckle_meridian_deg": 45.0}
     with pytest.raises(ValueError, match=r"term '(buckle|sutures)' is not symmetric about the "
-                                         r"plane y = 0.*segmental buckle centred on it.*"
+                                         r"plane y = 0.*segmental buckle centred on the plane.*"
                                          r"set symmetry = 'none'"):
         surgery(p, case.materials)
 

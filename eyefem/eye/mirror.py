@@ -562,8 +562,8 @@ def check_mirror(model: Model, theta: dict, half: Model, mir: Mirror, where: str
                 f"{where}: term '{t.name}' is not symmetric about the plane y = 0 (its energy "
                 f"changes by {worst / scale:.2g} of itself when the state is reflected): "
                 "symmetry = 'mirror' needs an encircling buckle with its sutures spaced "
-                "evenly about the plane (e.g. n_sutures even with suture_angle_deg = 0), or a "
-                "segmental buckle centred on it (buckle_meridian_deg = 0 or 180); set "
+                "evenly round it and not turned (suture_angle_deg = 0), or a segmental "
+                "buckle centred on the plane (buckle_meridian_deg = 0 or 180); set "
                 "symmetry = 'none' for this case")
         h = half.term(t.name)
         ph = th_h[t.name]
