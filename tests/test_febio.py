@@ -178,7 +178,7 @@ def test_reads_a_hand_written_deck(tmp_path):
 
 @pytest.mark.parametrize("kw, message", [
     ({"version": "3.0"}, "version '3.0'"),
-    ({"mtype": "Ogden"}, "type 'Ogden' is not supported"),
+    ({"mtype": "Shenoy"}, "type 'Shenoy' is not supported"),
     ({"etype": "tet4", "conn": "1,2,3,5"}, "hexahedra are needed"),
     ({"conn": "1,4,3,2,5,8,7,6"}, "element 7: non-positive Jacobian"),
     ({"points": "<pt>1,1</pt></points><extend>SPIRAL</extend><points>"},

@@ -124,7 +124,7 @@ def test_script_core_on_decks_the_project_writes(tmp_path):
     suite.mkdir()
     (suite / "ab01.feb").write_text(_one())
     (suite / "ab02.feb").write_text(_two_steps())
-    (suite / "ab03.feb").write_text(_one(mtype="Ogden"))
+    (suite / "ab03.feb").write_text(_one(mtype="Shenoy"))
     (suite / "oi01.feb").write_text(_one())  # FEBio's runner skips optimisation inputs
     ref = _norm(suite / "ab01.feb")
     gold = tmp_path / "linuxGoldStandards.py"
@@ -137,11 +137,11 @@ def test_script_core_on_decks_the_project_writes(tmp_path):
     assert sorted(by) == ["ab01", "ab02", "ab03"]
     assert by["ab01"].status == "agree" and abs(by["ab01"].rel_diff) < 1e-9
     assert by["ab02"].status == "differ" and by["ab02"].rel_diff == pytest.approx(-1 / 101)
-    assert by["ab03"].status == "refused" and "type 'Ogden' is not supported" in by[
+    assert by["ab03"].status == "refused" and "type 'Shenoy' is not supported" in by[
         "ab03"].reason
     text = conf.summary(rows)
     assert "decks: 3" in text and "agreeing to 0.5%: 1" in text
-    assert "1  material: type 'Ogden' is not supported" in text
+    assert "1  material: type 'Shenoy' is not supported" in text
     out = tmp_path / "t.csv"
     conf.write_csv(rows, out)
     assert [r["status"] for r in csv.DictReader(open(out))] == ["agree", "differ", "refused"]

@@ -305,7 +305,7 @@ def test_deck_mooney_rivlin_uses_its_bulk_modulus(tmp_path):
 
 
 @pytest.mark.parametrize("edit, message", [
-    (lambda s: s.replace('type="Mooney-Rivlin"', 'type="Ogden"'), "type 'Ogden' is not supported"),
+    (lambda s: s.replace('type="Mooney-Rivlin"', 'type="Shenoy"'), "type 'Shenoy' is not supported"),
     (lambda s: s.replace("<c1>", "<pressure_model>NIKE3D</pressure_model><c1>"),
      "pressure_model"),
     (lambda s: s.replace("<c1>", "<laugon>2</laugon><c1>"), "laugon"),
@@ -345,7 +345,18 @@ def test_deck_neo_hookean_out_of_range(tmp_path):
 # code/linuxGoldStandards.py records it (commit e8ac0860ef05). The decks are not part of
 # eyefem; set EYEFEM_FEBIO_VERIFY to a checkout's Verify folder to run them.
 FEBIO_SOLUTION_NORMS = {"mi03": 1.1783901556, "tu01": 14.9958440769, "mi26": 2.02115312832,
-                        "mi27": 4.17586115304, "mi30": 1881.63452986}
+                        "mi27": 4.17586115304, "mi30": 1881.63452986,
+                        # the further laws (eyefem.fem.materials.FEBIO_LAWS)
+                        "mi02": 1.41848905154, "ma01": 7.73149507271, "ma02": 7.50244860312,
+                        "ma03": 8.67037056864, "ma11": 10.5130342097, "ma12": 7.88551331741,
+                        "ma47": 1.18909671349, "ma48": 8.13977478303, "ma61": 3.60823970452,
+                        "ma73": 1.40538741563, "fi02": 0.836223007889,
+                        "fi06": 4.53416034107, "fi11": 4.52684046357,
+                        "ma20": 0.493408719039, "ma23": 0.185712126746}
+"""The FEBio gold norms of the decks the test solves (all one step). The tolerance is
+FEBio's against eyefem's convergence tolerances: the classic laws agree to 1.2e-5, the
+further ones to 1.3e-3 (ma61, Yeoh: FEBio's looser residual test) and 5e-5 or better
+(the others)."""
 
 
 
@@ -358,7 +369,8 @@ def test_febio_regression_decks(name):
     mesh, mats, loads = read_feb(deck)
     model, stage = build_model(mesh, mats, loads)
     q = solve(model, [stage]).q
-    assert solution_norm(mesh, stage, q) == pytest.approx(FEBIO_SOLUTION_NORMS[name], rel=1e-4)
+    assert solution_norm(mesh, stage, q, loads) == pytest.approx(
+        FEBIO_SOLUTION_NORMS[name], rel=2e-3 if name == "ma61" else 1e-4)
 
 
 def test_the_problems_that_take_a_bulk_modulus_are_the_verification_ones_and_user_mesh():

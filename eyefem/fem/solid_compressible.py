@@ -177,3 +177,121 @@ def _point_fields(q_loc, params, data):
         + p[:, None, None, None] * jnp.eye(3)
     E = 0.5 * (jnp.einsum("egki,egkj->egij", F, F) - jnp.eye(3))
     return sig, J, 0.5 * p, E
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SolidFebioLaw(Term):
+    """Hexahedra of one of FEBio's further laws (eyefem.fem.materials.FebioLaw: Ogden,
+    Holmes-Mow, trans iso Mooney-Rivlin, solid mixtures, ...), on the same displacement
+    element as :class:`SolidCompressible`:
+
+        Pi_e = sum_g dv_g W(F_g; a0_g) + V_e U(Jbar_e)                          [N mm]
+
+    with W the law's energy (its uncoupled parts of Fbar_g = J_g^(-1/3) F_g), U = k/2
+    (ln J)^2 on the element's volume ratio Jbar = v / V for an uncoupled law (FEBio's
+    three-field hex8), none for a coupled one (k = 0: FEBio's displacement element).
+
+    Args:
+      name: term name.
+      mesh: the mesh.
+      law: the material (eyefem.fem.materials.FebioLaw).
+      elements: the element ids of this material (n,).
+      fibers: (n, 8, n_fibers, 3) unit fibre directions at the Gauss points in the
+        reference configuration (FEBio's order of the law's fibred parts), or None for a
+        law without fibres.
+      constants: the law's constants to start from (m,), default law.constants().
+    params: {"c": the law's constants (m,), MPa or dimensionless as FEBio's; "k": its bulk
+      modulus, MPa}.
+    """
+
+    name: str
+    mesh: Mesh
+    law: object
+    elements: np.ndarray
+    fibers: np.ndarray | None = None
+    constants: np.ndarray | None = None
+    multiplier_slots = ()
+    chunked_kernel = True
+
+    def __post_init__(self):
+        m = self.mesh
+        el = np.asarray(self.elements, np.int64)
+        hexes = m.hexes[el]
+        grad_n, dv, _ = hex_geometry(m.nodes, hexes)
+        n_fib = max(self.law.n_fibers, 1)
+        a0 = np.zeros((len(el), 8, n_fib, 3))
+        if self.law.n_fibers:
+            a0 = np.asarray(self.fibers, np.float64).reshape(len(el), 8, n_fib, 3)
+        object.__setattr__(self, "elements", el)
+        object.__setattr__(self, "dofs", (3 * hexes[:, :, None] + np.arange(3)).reshape(-1, 24))
+        object.__setattr__(self, "params", {"c": (self.law.constants() if self.constants is None
+                                                  else np.asarray(self.constants, np.float64)),
+                                            "k": np.float64(self.law.k)})
+        object.__setattr__(self, "data", {"grad_n": grad_n, "dv": dv, "a0": a0})
+
+    def static_key(self):
+        return (self.law.structure(), bool(self.law.uncoupled))
+
+    def _point_energy(self, F, c, a0):
+        """W at Gauss points: F (..., 3, 3), a0 (..., n_fib, 3) -> (...)."""
+        from eyefem.fem.materials import febio_law_energy
+        structure = self.law.structure()
+        f = lambda f_, a_: febio_law_energy(structure, f_, c, a_)  # noqa: E731
+        lead = F.shape[:-2]
+        out = jax.vmap(f)(F.reshape(-1, 3, 3), a0.reshape((-1,) + a0.shape[-2:]))
+        return out.reshape(lead)
+
+    def local_energy(self, q_loc, params, data):
+        F = deformation_gradient(q_loc.reshape(-1, 8, 3), data["grad_n"])
+        dv = data["dv"]
+        w = self._point_energy(F, params["c"], data["a0"])
+        out = jnp.sum(w * dv, axis=1)
+        if self.law.uncoupled:
+            out = out + jnp.sum(dv, axis=1) * volumetric_energy(volume_ratio(F, dv),
+                                                                params["k"])
+        return out
+
+    def local_grad_hess(self, q_loc, params, data):
+        """As :meth:`SolidCompressible.local_grad_hess`: the Gauss points' derivatives of
+        phi(F) = W(F) + p J(F), p = U'(Jbar) fixed, plus V U''(Jbar) a a^T."""
+        from eyefem.fem.materials import febio_law_energy
+        G, dv = data["grad_n"], data["dv"]
+        F = deformation_gradient(q_loc.reshape(-1, 8, 3), G)
+        structure, c = self.law.structure(), params["c"]
+        V = jnp.sum(dv, axis=1)
+        jbar = volume_ratio(F, dv)
+        if self.law.uncoupled:
+            kk = jnp.broadcast_to(params["k"], jbar.shape)
+            dU = jax.grad(volumetric_energy)
+            p = jax.vmap(dU)(jbar, kk)
+            ddU = jax.vmap(jax.grad(dU))(jbar, kk)
+        else:
+            p = jnp.zeros_like(jbar)
+            ddU = jnp.zeros_like(jbar)
+
+        def phi(f, a_, p_):
+            return febio_law_energy(structure, f, c, a_) + p_ * det3(f)
+
+        over_points = jax.vmap(jax.vmap(lambda f, a_, p_: (
+            jax.grad(phi)(f, a_, p_), jax.hessian(phi)(f, a_, p_)), (0, 0, None)), (0, 0, 0))
+        P, A = over_points(F, data["a0"], p)
+        g = jnp.einsum("eg,egij,egaj->eai", dv, P, G).reshape(-1, 24)
+        K = jnp.einsum("eg,egaj,egijkl,egbl->eaibk", dv, G, A, G).reshape(-1, 24, 24)
+        a = jnp.einsum("eg,egij,egaj->eai", dv, cofactor(F), G).reshape(-1, 24) / V[:, None]
+        K = K + (V * ddU)[:, None, None] * a[:, :, None] * a[:, None, :]
+        return g, K
+
+    def fields(self, q, params):
+        """Per-element fields as :meth:`SolidCompressible.fields`."""
+        F = deformation_gradient(jnp.asarray(np.asarray(q)[self.dofs]).reshape(-1, 8, 3),
+                                 self.data["grad_n"])
+        dv = self.data["dv"]
+        P = jax.grad(lambda f: jnp.sum(self._point_energy(f, params["c"], self.data["a0"])))(F)
+        J = det3(F)
+        p = (jax.vmap(jax.grad(volumetric_energy))(volume_ratio(F, dv), jnp.broadcast_to(
+            params["k"], (F.shape[0],))) if self.law.uncoupled else jnp.zeros(F.shape[0]))
+        sig = jnp.einsum("egij,egkj->egik", P, F) / J[..., None, None] \
+            + p[:, None, None, None] * jnp.eye(3)
+        E = 0.5 * (jnp.einsum("egki,egkj->egij", F, F) - jnp.eye(3))
+        return element_fields(np.asarray(sig), np.asarray(J), np.asarray(0.5 * p),
+                              np.asarray(E), np.asarray(dv))

@@ -34,8 +34,8 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.fem.materials import (CoupledMooneyRivlin, MooneyRivlin, UncoupledMooneyRivlin,
-                                  febio_neo_hookean)
+from eyefem.fem.materials import (FEBIO_LAWS, CoupledMooneyRivlin, FebioLaw, MooneyRivlin,
+                                  UncoupledMooneyRivlin, febio_neo_hookean)
 from eyefem.fem.mesh import Mesh, hex_geometry
 from eyefem.fem.surface import pressure_term
 from eyefem.fem.terms import NodalForce, Term
@@ -53,6 +53,13 @@ MAX_TIME_STEPS = 10_000
 """Most load steps (``<time_steps>``) a deck may ask for: each is a Newton solve, and
 eyefem ramps a step's loads linearly, so tens of steps suffice. The environment
 variable EYEFEM_MAX_STEPS raises it."""
+
+STIFF_SOLID_C1 = 1e6
+"""MPa: a deck's c1 (or E / (4 (1 + v))) above the case files' impossible bound (1e4 MPa,
+eyefem.io.casefile) and up to this is warned, not refused. An FEBio deck states its own
+materials, and the suite's decks include steel (E = 200 GPa: c1 = 3.8e4 MPa) and stiff
+indenters (c1 = 1e5 MPa); no solid is stiffer than diamond (c1 about 3e5 MPa), so a value
+above 1e6 MPa is still refused as a unit slip (25 MPa rubber written in Pa: 2.5e7)."""
 
 MIN_SHEAR_MODULUS = 1e-6
 """MPa (1 Pa): a material's initial shear modulus 2 (c1 + c2) below it is refused (no
@@ -90,6 +97,10 @@ class FebLoads:
       contacts: one :class:`FebContact` per sliding contact with a rigid surface.
       volumes: (name, face set, FEBio's penalty eps MPa/mm^3, step index or None: the
         model's) per volume constraint (:func:`volume_term`).
+      fibers: material name -> (n, 8, n_fibers, 3) unit fibre directions at the Gauss
+        points of its n elements (mesh order), for the FebioLaw materials with fibres.
+      law_constants: material name -> its constants at t = 0, for the FebioLaw materials
+        with constants on a load curve (each step's are in its params, "solid:<name>").
     """
 
     prescribed: tuple[np.ndarray, np.ndarray]
@@ -102,6 +113,8 @@ class FebLoads:
     rigid: dict = dataclasses.field(default_factory=dict)
     contacts: tuple = ()
     volumes: tuple = ()
+    fibers: dict = dataclasses.field(default_factory=dict)
+    law_constants: dict = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -352,6 +365,9 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
     for el in root:
         if not isinstance(el.tag, str):
             continue
+        if el.tag == "MeshData":
+            _check_mesh_data(el, path)
+            continue
         if el.tag not in _IGNORED and len(el):
             raise _err(path, f"<{el.tag}> is not supported (eyefem reads hex8 solids, "
                        "linear trusses, linear springs and rigid bodies moved as prescribed, "
@@ -396,7 +412,7 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
     for ctrl in [root.find("Control")] + [st.find("Control") for st in step_els]:
         flag = None if ctrl is None else ctrl.findtext("use_three_field_hex")
         if flag is not None and flag.strip().lower() in ("0", "false") and any(
-                isinstance(materials[m], UncoupledMooneyRivlin) for m in used):
+                _uncoupled(materials[m]) for m in used):
             raise _err(path, "<Control><use_three_field_hex> = 0 is not supported; eyefem "
                        "evaluates an uncoupled material's U(J) on the element's volume ratio "
                        "(FEBio's default three-field hex8)")
@@ -405,6 +421,7 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
     face_sets, node_sets, discrete_sets, pairs = _read_sets(root, path, node_index)
     mesh = Mesh(nodes, hexes, mids, tuple(used), node_sets, face_sets)
     density = _densities(root, path, mesh, used, blocks, mat_of_block)
+    fibers = _fibers(root, path, mesh, materials, used, blocks, elem_ids, hexes)
 
     curves = _read_curves(root, path)
     top = _Sources(root.find("Boundary"), root.find("Loads"), root.find("Rigid"))
@@ -454,11 +471,25 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
         mesh = dataclasses.replace(mesh, node_sets={
             **mesh.node_sets, **{f"contact:{c.name}": np.unique(mesh.face_sets[c.primary])
                                  for c in contacts}})
+    law_c = {}  # material -> t -> its constants (those on a load curve scaled)
+    for m in used:
+        law = materials[m]
+        if isinstance(law, FebioLaw) and law.curves:
+            for _, lc in law.curves:
+                if lc not in curves:
+                    raise _err(path, f"material '{m}': load controller {lc} is not defined in "
+                               "<LoadData>")
+            law_c[m] = (lambda t, law=law: np.array([
+                c * (curves[lc](t) if lc is not None else 1.0) for c, lc in zip(
+                    law.constants(), [dict(law.curves).get(i) for i in
+                                      range(len(law.constants()))])]))
     out_steps = []
     for k, (name, n, t_end, prescribed, params) in enumerate(steps):
         full = {tn: params.get(tn, {"p" if kind == "pressure" else "f":
                                     0.0 if kind == "pressure" else np.zeros(len(dat))})
                 for tn, (kind, dat, _) in terms.items()}
+        for m, c_of in law_c.items():
+            full[f"solid:{m}"] = {"c": c_of(t_end), "k": np.float64(materials[m].k)}
         for c in contacts:
             full[f"contact:{c.name}"] = {"d": np.array([c.d[k]]), "s": np.zeros(1)}
         out_steps.append(FebStep(name, n, t_end, prescribed, full))
@@ -468,7 +499,7 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
                    for tn, (kind, dat, v0) in terms.items() if kind == "force")
     loads = FebLoads(out_steps[0].prescribed, pressures, out_steps[0].n_steps,
                      {m: bulk[m] for m in used}, tuple(out_steps), forces, links, rigid,
-                     contacts, volumes)
+                     contacts, volumes, fibers, {m: c_of(0.0) for m, c_of in law_c.items()})
     log.info("read %s: %d nodes, %d hex8, materials %s, %d step(s), %d pressure loads, "
              "%d nodal force terms, %d truss / spring sets, %d rigid bodies", path,
              mesh.n_nodes, mesh.n_elem, list(used), len(out_steps), len(pressures),
@@ -505,6 +536,12 @@ def _check_constant(value, tag, name, where, path, label=None) -> None:
     for rng, refuse in ((f.refuse, True), (f.warn, False)):
         if rng is None or rng[0] <= value <= rng[1]:
             continue
+        if refuse and material_c10_field("").refuse[1] < value <= STIFF_SOLID_C1:
+            log.warning("%s: %s <%s>: %s = %g MPa is above the case files' range (%g to %g "
+                        "MPa, soft tissues and rubbers): read as a stiff solid (metal, "
+                        "bone); check its unit", path, where, tag, label or tag, value,
+                        rng[0], rng[1])
+            return
         slip = unit_slip(value, f.warn or rng, f.unit, f.slips)
         msg = (f"{where} <{tag}>: {label} = {value:g} MPa is " if label else
                f"{where} <{tag}> = {value:g} MPa is ")
@@ -555,11 +592,16 @@ def _read_materials(root, path):
         name = el.get("name") or f"material_{el.get('id')}"
         where = f"material '{name}' (id {el.get('id')})"
         kind = (el.get("type") or "").lower()
+        if kind in _LAW_TYPES:
+            by_id[el.get("id")] = name
+            materials[name] = _febio_law(el, kind, name, where, path)
+            bulk[name] = materials[name].k
+            continue
         if kind not in _MATERIAL_PARAMETERS:
             raise _err(path, f"{where}: type '{el.get('type')}' is not supported; eyefem "
                        "reads \"Mooney-Rivlin\" (c1, c2, k), \"neo-Hookean\" (E, v), "
-                       "\"coupled Mooney-Rivlin\" (c1, c2, k), \"rigid body\" and \"linear "
-                       "truss\" (E)")
+                       "\"coupled Mooney-Rivlin\" (c1, c2, k), \"rigid body\", \"linear "
+                       f"truss\" (E), {_LAW_LIST}")
         for child in el:
             if isinstance(child.tag, str) and child.tag not in _MATERIAL_PARAMETERS[kind]:
                 raise _err(path, f"{where}: parameter <{child.tag}> of '{el.get('type')}' is "
@@ -647,6 +689,320 @@ def _mooney_rivlin(el, kind, name, where, path):
         log.warning("%s: %s has k = 0: FEBio needs a bulk modulus > 0; eyefem solves the "
                     "material exactly incompressible (Q1P0)", path, where)
     return MooneyRivlin.from_terms(name, {"c10": c1, "c01": c2, "k": k}), k
+
+
+_MIXTURES = ("solid mixture", "uncoupled solid mixture")
+_LAW_TYPES = tuple(k for k in FEBIO_LAWS if k not in _MATERIAL_PARAMETERS and "fiber-exp" not in k
+                   ) + _MIXTURES
+"""The FEBio types read as eyefem.fem.materials.FebioLaw (top level; fiber-exp-linear and
+the types of _MATERIAL_PARAMETERS also as a mixture's constituents)."""
+
+_LAW_LIST = ("\"Ogden\", \"Ogden unconstrained\", \"isotropic elastic\", \"isotropic "
+             "Hencky\", \"Holmes-Mow\", \"uncoupled Holmes-Mow\", \"Arruda-Boyce\", "
+             "\"Veronda-Westmann\", \"Yeoh\", \"trans iso Mooney-Rivlin\", \"trans iso "
+             "Veronda-Westmann\", \"orthotropic elastic\", \"Fung orthotropic\", "
+             "\"Fung-ortho-compressible\" and solid mixtures of these with "
+             "\"fiber-exp-linear\" and the prescribed active contractions")
+
+_FIBER_TYPES = ("vector", "local", "spherical", "user")
+
+
+def _law_part(el, kind, where, path, top_uncoupled):
+    """(type, constants, fibre spec or None) of one law (a material or a mixture's
+    <solid>): its parameters in FEBIO_LAWS' order with FEBio's defaults."""
+    fn, uncoupled, params, fibred = FEBIO_LAWS[kind]
+    names = {n for n, _ in params}
+    allowed = names | {"density"} | ({"k", "pressure_model"} if uncoupled or kind.startswith(
+        "uncoupled") else set())
+    fiber, curves = None, []
+    for child in el:
+        if not isinstance(child.tag, str):
+            continue
+        if child.tag == "fiber" and fibred == 1:
+            fiber = _fiber_spec(child, where, path)
+            continue
+        if child.tag == "mat_axis" and fibred == 3:
+            fiber = _mat_axis(child, where, path)
+            continue
+        if child.tag not in allowed:
+            why = {"active_contraction": "active contraction (a non-conservative fibre stress)",
+                   "mat_axis": "a material axis (the fibre is read in global coordinates)"
+                   }.get(child.tag, "")
+            raise _err(path, f"{where}: parameter <{child.tag}> of '{el.get('type')}' is not "
+                       f"supported{' (' + why + ')' if why else ''} (eyefem reads "
+                       f"{', '.join(sorted(allowed | ({'fiber'} if fibred == 1 else set()) | ({'mat_axis'} if fibred == 3 else set())))}); "
+                       "remove it or run the deck in FEBio")
+        if child.get("type") is not None:
+            raise _err(path, f"{where} <{child.tag}>: a parameter map (type=\"{child.get('type')}"
+                       "\") is not supported; give a constant")
+        if child.get("lc") is not None:
+            if child.tag not in names:
+                raise _err(path, f"{where} <{child.tag}>: a load curve on this parameter is not "
+                           "supported")
+            curves.append(([n for n, _ in params].index(child.tag), child.get("lc")))
+    if fibred == 1 and fiber is None:
+        fiber = ("vector", (1.0, 0.0, 0.0))  # FEBio's default fibre: the x axis
+    if fibred == 3 and fiber is None:
+        fiber = ("axes", tuple(map(tuple, np.eye(3))))  # no mat_axis: the global axes
+    if _flag(el, "pressure_model") not in _PRESSURE_MODELS:
+        raise _err(path, f"{where} <pressure_model> = '{el.findtext('pressure_model')}': "
+                   "eyefem implements FEBio's default U(J) = k/2 (ln J)^2 only")
+    consts = []
+    for n, default in params:
+        consts.append(_child_float(el, n, path, where, default=default,
+                                   hint=f"give {n}, a finite number"))
+    c = dict(zip([n for n, _ in params], consts))
+    if "E" in c and "v" in c and not (c["E"] > 0 and -1.0 < c["v"] < 0.5):
+        raise _err(path, f"{where}: E = {c['E']:g}, v = {c['v']:g}; FEBio needs E > 0 and "
+                   "-1 < v < 0.5")
+    for n in ("m1", "m2", "m3", "m4", "m5", "m6"):
+        if c.get(n, 1.0) == 0:
+            raise _err(path, f"{where} <{n}> = 0: FEBio's Ogden exponents must not be 0")
+    if kind in ("uncoupled holmes-mow", "holmes-mow") and not c["beta"] > 0:
+        raise _err(path, f"{where} <beta> = {c['beta']:g}: eyefem needs beta > 0 (W divides "
+                   "by it)")
+    lam1 = c.get("lambda", c.get("lam_max"))
+    if lam1 is not None:  # the fibre of fiber-exp-linear and the trans iso laws
+        if min(c["c3"], c["c4"], c["c5"]) < 0 or lam1 < 1 or (c["c3"] == 0 and c["c4"] == 0):
+            raise _err(path, f"{where}: c3 = {c['c3']:g}, c4 = {c['c4']:g}, c5 = "
+                       f"{c['c5']:g}, lambda = {lam1:g}; FEBio's fibre needs c3, c4, c5 >= 0, "
+                       "lambda >= 1 and c4 > 0 where c3 = 0")
+    return kind, tuple(consts), fiber, tuple(curves)
+
+
+def _mat_axis(el, where, path):
+    """A <mat_axis type="vector"> (a, d) as ("axes", rows e1, e2, e3): FEBio's
+    FEMat3dVectorMap, e1 = a, e3 = a x d, e2 = e3 x e1 (normalised; d replaced by x or y
+    where it is parallel to a)."""
+    if (el.get("type") or "vector") == "angles":  # FEMat3dSphericalAngleMap, degrees
+        th = math.radians(_child_float(el, "theta", path, f"{where} <mat_axis>", default=0.0))
+        ph = math.radians(_child_float(el, "phi", path, f"{where} <mat_axis>", default=90.0))
+        return ("axes", ((math.cos(th) * math.sin(ph), math.sin(th) * math.sin(ph),
+                          math.cos(ph)), (-math.sin(th), math.cos(th), 0.0),
+                         (-math.cos(th) * math.cos(ph), -math.sin(th) * math.cos(ph),
+                          math.sin(ph))))
+    if (el.get("type") or "vector") != "vector":
+        raise _err(path, f"{where}: <mat_axis type=\"{el.get('type')}\"> is not supported "
+                   "(eyefem reads type=\"vector\" and \"angles\")")
+    a = np.array(_floats(el.findtext("a") or "1,0,0", path, f"{where} <mat_axis><a>"))
+    d = np.array(_floats(el.findtext("d") or "0,1,0", path, f"{where} <mat_axis><d>"))
+    if a.shape != (3,) or d.shape != (3,) or not a.any() or not d.any():
+        raise _err(path, f"{where} <mat_axis>: give two non-zero vectors <a> and <d>")
+    a, d = a / np.linalg.norm(a), d / np.linalg.norm(d)
+    if abs(a @ d) > 0.999:
+        d = np.array([1.0, 0.0, 0.0]) if abs(a[0]) <= 0.999 else np.array([0.0, 1.0, 0.0])
+    c = np.cross(a, d)
+    b = np.cross(c, a)
+    return ("axes", tuple(tuple(v / np.linalg.norm(v)) for v in (a, b, c)))
+
+
+def _fiber_spec(el, where, path):
+    """A <fiber type="..."> as ("vector", (3,)), ("local", (n1, n2)), ("spherical",
+    center (3,), vector (3,)) or ("user",) (element data of the <MeshData>)."""
+    kind = (el.get("type") or "vector").lower()
+    if kind not in _FIBER_TYPES:
+        raise _err(path, f"{where}: <fiber type=\"{el.get('type')}\"> is not supported "
+                   f"(eyefem reads {', '.join(_FIBER_TYPES)})")
+    for child in el:
+        if isinstance(child.tag, str) and child.tag not in ("vector", "local", "center"):
+            raise _err(path, f"{where}: <fiber><{child.tag}> is not supported")
+
+    def vec(tag, default):
+        t = el.findtext(tag)
+        v = tuple(default) if t is None else tuple(_floats(t, path, f"{where} <fiber><{tag}>"))
+        if len(v) != 3 or (tag == "vector" and not any(v)):
+            raise _err(path, f"{where} <fiber><{tag}>: give three numbers (a non-zero vector)")
+        return v
+    if kind == "vector":
+        return ("vector", vec("vector", (1.0, 0.0, 0.0)))
+    if kind == "spherical":
+        return ("spherical", vec("center", (0.0, 0.0, 0.0)), vec("vector", (1.0, 0.0, 0.0)))
+    if kind == "local":
+        n = [int(v) for v in _floats(el.findtext("local") or "0,0", path,
+                                     f"{where} <fiber><local>")]
+        if n == [0, 0]:
+            n = [1, 2]
+        if len(n) != 2 or not all(1 <= i <= 8 for i in n) or n[0] == n[1]:
+            raise _err(path, f"{where} <fiber><local>: give two local node numbers 1-8")
+        return ("local", tuple(n))
+    return ("user",)
+
+
+def _febio_law(el, kind, name, where, path) -> FebioLaw:
+    """One of FEBio's further laws or a solid mixture of them (FebioLaw)."""
+    if kind in _MIXTURES:
+        uncoupled = kind == "uncoupled solid mixture"
+        allowed = {"density", "solid"} | ({"k", "pressure_model"} if uncoupled else set())
+        parts = []
+        for child in el:
+            if not isinstance(child.tag, str):
+                continue
+            if child.tag not in allowed:
+                raise _err(path, f"{where}: <{child.tag}> of a '{el.get('type')}' is not "
+                           f"supported (eyefem reads {', '.join(sorted(allowed))})")
+            if child.tag != "solid":
+                continue
+            ck = (child.get("type") or "").lower()
+            cw = f"{where} <solid type=\"{child.get('type')}\">"
+            if ck not in FEBIO_LAWS or ck in _MIXTURES:
+                raise _err(path, f"{cw} is not supported; a mixture's constituents may be "
+                           f"{_LAW_LIST}, \"Mooney-Rivlin\", \"neo-Hookean\", \"coupled "
+                           "Mooney-Rivlin\"")
+            parts.append(_law_part(child, ck, cw, path, uncoupled))
+        if not parts:
+            raise _err(path, f"{where}: a solid mixture without <solid> constituents")
+        if _flag(el, "pressure_model") not in _PRESSURE_MODELS:
+            raise _err(path, f"{where} <pressure_model> = '{el.findtext('pressure_model')}': "
+                       "eyefem implements FEBio's default U(J) = k/2 (ln J)^2 only")
+    else:
+        uncoupled = FEBIO_LAWS[kind][1]
+        parts = [_law_part(el, kind, where, path, uncoupled)]
+    k = _child_float(el, "k", path, where, default=0.0) if uncoupled else 0.0
+    if uncoupled and not k > 0:
+        raise _err(path, f"{where} <k> = {k:g}: FEBio's uncoupled '{el.get('type')}' needs a "
+                   "bulk modulus k > 0 (MPa)")
+    for n in ("E", "c1", "mu"):
+        for pk, consts, _, _ in parts:
+            pn = [p for p, _ in FEBIO_LAWS[pk][2]]
+            if n in pn:
+                val = consts[pn.index(n)]
+                if n == "E":
+                    v = consts[pn.index("v")]
+                    _check_constant(val / (4.0 * (1.0 + v)), "E", name, where, path,
+                                    label="c1 = E / (4 (1 + v))")
+                elif val > 0:
+                    _check_constant(val / 2.0 if n == "mu" else val, n, name, where, path,
+                                    label=("c1 = mu / 2" if n == "mu" else None))
+    curves, at = [], 0
+    for pk, consts, _, pc in parts:
+        curves += [(at + i, lc) for i, lc in pc]
+        at += len(consts)
+    try:
+        return FebioLaw(name, el.get("type"), tuple((pk, c) for pk, c, _, _ in parts),
+                        uncoupled, k, tuple(f for _, _, f, _ in parts if f is not None),
+                        tuple(curves))
+    except ValueError as exc:
+        raise _err(path, f"{where}: {exc}") from None
+
+
+def _uncoupled(mat) -> bool:
+    """True for a material whose U(J) eyefem puts on the element's volume ratio."""
+    return isinstance(mat, UncoupledMooneyRivlin) or (isinstance(mat, FebioLaw)
+                                                       and mat.uncoupled)
+
+
+def _check_mesh_data(sec, path) -> None:
+    """FebError unless every entry of <MeshData> is one eyefem reads: element data of
+    type "fiber" (a material's fibre directions, :func:`_fibers`) or "shell thickness"
+    (shells are read only as a rigid body's facets, whose thickness a static solve does
+    not use; a deformable shell is refused by its domain)."""
+    for d in sec:
+        if not isinstance(d.tag, str):
+            continue
+        kind = d.get("type")
+        if d.tag == "ElementData" and kind in ("fiber", "shell thickness"):
+            continue
+        what = f"type=\"{kind}\"" if kind else f"name=\"{d.get('name')}\""
+        raise _err(path, f"<MeshData><{d.tag} {what}> is not supported (eyefem reads element "
+                   "data of type \"fiber\" and a rigid shell's \"shell thickness\"; no maps "
+                   "of material parameters, material axes or prestrain)")
+
+
+def _element_sets(root, path, blocks, elem_ids) -> dict:
+    """name -> mesh element indices (in the set's order) of every hex8 <Elements> block
+    and <ElementSet> (FEBio element ids) over the solid's elements."""
+    out, start = {}, 0
+    for b, n in blocks:
+        out[b] = np.arange(start, start + n)
+        start += n
+    index = {str(e).strip(): i for i, e in enumerate(elem_ids)}
+    for es in root.find("Mesh").findall("ElementSet"):
+        ids = [e.get("id") for e in es.findall("e")]
+        if not ids:
+            ids = [str(i) for i in _ints(es.text, path, f"element set '{es.get('name')}'",
+                                         max(len(elem_ids), 1) * 10)]
+        out[es.get("name")] = np.array([index.get(i.strip(), -1) for i in ids], np.int64)
+    return out
+
+
+def _fibers(root, path, mesh, materials, used, blocks, elem_ids, hexes) -> dict:
+    """material name -> (n, 8, n_fibers, 3) unit fibre directions (reference
+    configuration) at the 2 x 2 x 2 Gauss points of its n elements, in mesh order, for the
+    FebioLaw materials with fibres: FEBio's "vector" (FEConstValueVec3), "local" (the
+    element's nodes n1 -> n2, FELocalVectorGenerator), "spherical" (the vector rotated as
+    e1 onto X - center at the Gauss point, FESphericalVectorGenerator) and "user" (the
+    <MeshData> element data of type "fiber")."""
+    from eyefem.fem.mesh import hex_gauss_points, hex_shape
+    out = {}
+    need = [m for m in used if isinstance(materials[m], FebioLaw) and materials[m].n_fibers]
+    if not need:
+        return out
+    shape, _ = hex_shape(hex_gauss_points()[0])  # (8g, 8a)
+    user = {}
+    sets = None
+    for sec in root.findall("MeshData"):
+        for d in sec.findall("ElementData"):
+            if d.get("type") != "fiber":
+                continue
+            sets = sets or _element_sets(root, path, blocks, elem_ids)
+            where = f"<MeshData><ElementData type=\"fiber\" elem_set=\"{d.get('elem_set')}\">"
+            if d.get("elem_set") not in sets:
+                raise _err(path, f"{where}: no hex8 element block or element set of that name")
+            members = sets[d.get("elem_set")]
+            for e in d.findall("e"):
+                lid = int(_floats(e.get("lid"), path, f"{where} lid")[0])
+                if not 1 <= lid <= len(members) or members[lid - 1] < 0:
+                    raise _err(path, f"{where}: lid {lid} is not an element of the set")
+                v = _floats(e.text, path, f"{where} <e lid=\"{lid}\">")
+                if len(v) != 3 or not any(v):
+                    raise _err(path, f"{where} <e lid=\"{lid}\">: give a non-zero vector x,y,z")
+                user[int(members[lid - 1])] = v
+    for m in need:
+        law = materials[m]
+        el = np.nonzero(mesh.material_ids == used.index(m))[0]
+        xe = mesh.nodes[hexes[el]]  # (n, 8, 3)
+        xg = np.einsum("ga,eai->egi", shape, xe)
+        dirs = []
+        for spec in law.fibers:
+            if spec[0] == "axes":
+                for row in spec[1]:
+                    dirs.append(np.broadcast_to(np.asarray(row, float), xg.shape))
+                continue
+            if spec[0] == "vector":
+                a = np.broadcast_to(np.asarray(spec[1], float), xg.shape)
+            elif spec[0] == "local":
+                a = np.broadcast_to((xe[:, spec[1][1] - 1] - xe[:, spec[1][0] - 1])[:, None],
+                                    xg.shape)
+            elif spec[0] == "spherical":
+                a = _rotate_e1_onto(xg - np.asarray(spec[1]), np.asarray(spec[2], float))
+            else:
+                missing = [i for i in el if int(i) not in user]
+                if missing:
+                    raise _err(path, f"material '{m}': <fiber type=\"user\"> but element "
+                               f"{elem_ids[missing[0]]} has no <MeshData> ElementData of "
+                               "type \"fiber\"")
+                a = np.broadcast_to(np.array([user[int(i)] for i in el])[:, None], xg.shape)
+            norm = np.linalg.norm(a, axis=-1, keepdims=True)
+            if np.any(norm == 0):
+                raise _err(path, f"material '{m}': a fibre direction of zero length (local "
+                           "nodes that coincide, or a Gauss point at the spherical centre)")
+            dirs.append(a / norm)
+        out[m] = np.stack(dirs, axis=2)
+    return out
+
+
+def _rotate_e1_onto(r, v):
+    """FEBio's spherical fibre: v rotated by the rotation that takes e1 onto r / |r|
+    (quatd(e1, a).RotateVector), r (..., 3) -> (..., 3). Rodrigues' formula about e1 x a."""
+    a = r / np.linalg.norm(r, axis=-1, keepdims=True)
+    e1 = np.array([1.0, 0.0, 0.0])
+    axis = np.cross(e1, a)
+    s = np.linalg.norm(axis, axis=-1, keepdims=True)
+    c = a[..., :1]
+    k = np.where(s > 1e-12, axis / np.where(s > 1e-12, s, 1.0), np.array([0.0, 0.0, 1.0]))
+    vb = np.broadcast_to(v, a.shape)
+    out = vb * c + np.cross(k, vb) * s + k * np.sum(k * vb, axis=-1, keepdims=True) * (1.0 - c)
+    return np.where(s > 1e-12, out, vb)  # parallel or opposite: FEBio leaves v as it is
 
 
 def _read_nodes(root, path):
@@ -781,8 +1137,7 @@ def _read_domains(root, path, blocks, materials, by_id, lines):
             raise _err(path, f"SolidDomain '{d.get('name')}': elem_type=\"{d.get('elem_type')}\""
                        " is not supported; eyefem integrates hex8 with 2 x 2 x 2 Gauss points "
                        "(HEX8G8)")
-        if (d.get("three_field") or "on") != "on" and isinstance(
-                materials[mat], UncoupledMooneyRivlin):
+        if (d.get("three_field") or "on") != "on" and _uncoupled(materials[mat]):
             raise _err(path, f"SolidDomain '{d.get('name')}': three_field=\"{d.get('three_field')}"
                        "\" is not supported; eyefem evaluates an uncoupled material's U(J) on "
                        "the element's volume ratio (FEBio's default three-field hex8)")
@@ -1404,11 +1759,29 @@ def _element_node_integrals(mesh, density):
     return out
 
 
+def _face_node_integrals(mesh, faces):
+    """(n_nodes,) the integral of N_a over the quad4 faces' reference area (2 x 2 Gauss,
+    FEBio's FESurface::LoadVector with the reference coordinates): a traction's nodal
+    weights."""
+    g = 1.0 / np.sqrt(3.0)
+    out = np.zeros(mesh.n_nodes)
+    x = mesh.nodes[faces]  # (f, 4, 3), corners counter-clockwise
+    r0, s0 = np.array([-1.0, 1.0, 1.0, -1.0]), np.array([-1.0, -1.0, 1.0, 1.0])
+    for r, s in ((-g, -g), (g, -g), (g, g), (-g, g)):
+        n = 0.25 * (1 + r0 * r) * (1 + s0 * s)
+        dr = np.einsum("a,fai->fi", 0.25 * r0 * (1 + s0 * s), x)
+        ds = np.einsum("a,fai->fi", 0.25 * s0 * (1 + r0 * r), x)
+        da = np.linalg.norm(np.cross(dr, ds), axis=1)
+        np.add.at(out, faces.ravel(), (n[None, :] * da[:, None]).ravel())
+    return out
+
+
 def _read_loads(sec, path, mesh, curves, scope, density):
     """[(term name, kind, data, value(t))]: kind "pressure" (data: the surface; value in
     MPa) or "force" (data: dofs; value: (n,) N) per load of a <Loads>.
 
-    Surface pressure: FEBio's follower pressure. Nodal loads: ``nodal_force`` (value x, y,
+    Surface pressure: FEBio's follower pressure. Traction (FETractionLoad): the dead force
+    scale(t) t integral N_a dA over the reference faces. Nodal loads: ``nodal_force`` (value x, y,
     z) and ``nodal_load`` (one dof x, y or z, scale), dead loads on the node set's nodes.
     Body load ``const`` (x, y, z per unit mass): FEBio adds -rho b N_a over the reference
     volume to its residual (FEElasticSolidDomain::BodyForce), i.e. the nodal forces
@@ -1453,6 +1826,30 @@ def _read_loads(sec, path, mesh, curves, scope, density):
                 sc = _value(el, path, curves, where)
                 out.append((tname, "force", node_dofs(nodes, comp),
                             lambda t, sc=sc, n=len(nodes): np.full(n, sc(t))))
+        elif sl.tag == "surface_load" and kind == "traction":
+            surf = sl.get("surface")
+            if surf not in mesh.face_sets:
+                raise _err(path, f"{where}: surface '{surf}' is not defined in <Mesh>")
+            for child in sl:
+                if isinstance(child.tag, str) and child.tag not in (
+                        "scale", "traction", "shell_bottom", "linear"):
+                    raise _err(path, f"{where}: <{child.tag}> is not supported (scale, "
+                               "traction)")
+            if (sl.findtext("shell_bottom") or "0").strip() not in ("0", "false"):
+                raise _err(path, f"{where}: shell_bottom = 1 is not supported (no shells)")
+            tr = sl.find("traction")
+            if tr is None or tr.get("type") is not None or tr.get("lc") is not None:
+                raise _err(path, f"{where}: give <traction>x,y,z</traction> (a constant "
+                           "vector; its curve on <scale>)")
+            vec = np.array(_floats(tr.text, path, f"{where} <traction>"))
+            if vec.shape != (3,):
+                raise _err(path, f"{where} <traction>: give three numbers x,y,z")
+            sc = (_value(sl.find("scale"), path, curves, where) if sl.find("scale") is not None
+                  else (lambda t: 1.0))
+            w = _face_node_integrals(mesh, mesh.face_sets[surf])
+            used = np.nonzero(w)[0]
+            out.append((tname, "force", node_dofs(used, "xyz"),
+                        lambda t, sc=sc, w=w[used], v=vec: (w[:, None] * (sc(t) * v)).ravel()))
         elif sl.tag == "body_load" and kind == "const":
             if sl.get("elem_set"):
                 raise _err(path, f"{where}: elem_set is not supported (the whole mesh)")
@@ -1468,8 +1865,8 @@ def _read_loads(sec, path, mesh, curves, scope, density):
                         -(m[:, None] * np.array([c(t) for c in comps])[None, :]).ravel()))
         else:
             raise _err(path, f"{where}: <{sl.tag} type=\"{kind}\"> is not supported (eyefem "
-                       "reads surface_load pressure, nodal_load nodal_force / nodal_load and "
-                       "body_load const)")
+                       "reads surface_load pressure and traction, nodal_load nodal_force / "
+                       "nodal_load and body_load const)")
     return out
 
 
@@ -1486,7 +1883,9 @@ def build_stages(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, l
         term, mesh = volume_term(name, mesh, surf, eps)
         terms.append(term)
     terms += [contact_term(c, mesh) for c in loads.contacts]
-    if mesh.n_elem:
+    if mesh.n_elem and any(isinstance(materials[m], FebioLaw) for m in mesh.materials):
+        model = _law_model(mesh, materials, loads, tuple(terms))
+    elif mesh.n_elem:
         model = solid_model(mesh, materials, tuple(terms))
     else:  # trusses and springs only
         model = Model(mesh, tuple(terms), 3 * mesh.n_nodes)
@@ -1507,6 +1906,38 @@ def build_stages(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, l
                             active=tuple(n for n in names if n not in off) if off else None,
                             before=before))
     return model, stages
+
+
+def _law_model(mesh, materials, loads, extra) -> Model:
+    """The model of a deck with FebioLaw materials: one SolidFebioLaw term per such
+    material ("solid:<name>"), the other materials' elements on the terms solid_model
+    gives them (SolidCompressible; Q1P0 with one multiplier per element for the exactly
+    incompressible ones)."""
+    from eyefem.fem.materials import bulk_modulus, coupled_constants, is_compressible
+    from eyefem.fem.solid import SolidQ1P0
+    from eyefem.fem.solid_compressible import SolidCompressible, SolidFebioLaw
+    n_u = 3 * mesh.n_nodes
+    names = list(mesh.materials)
+    law = np.array([isinstance(materials[m], FebioLaw) for m in names], bool)
+    comp = np.array([not lw and is_compressible(materials[m]) for m, lw in zip(names, law)])
+    terms, n_mult = [], 0
+    coeffs = np.stack([materials[m].coeffs for m in names])
+    inc = np.nonzero(~law[mesh.material_ids] & ~comp[mesh.material_ids])[0]
+    if len(inc):
+        terms.append(SolidQ1P0("solid", mesh, coeffs, multiplier_offset=n_u, elements=inc))
+        n_mult = len(inc)
+    on = np.nonzero(comp[mesh.material_ids])[0]
+    if len(on):
+        k = np.array([0.0 if lw else bulk_modulus(materials[m]) for m, lw in zip(names, law)])
+        cc = np.stack([np.zeros(3) if lw else coupled_constants(materials[m])
+                       for m, lw in zip(names, law)])
+        terms.append(SolidCompressible("solid_compressible", mesh, coeffs, k, cc, elements=on))
+    for i, m in enumerate(names):
+        if law[i]:
+            terms.append(SolidFebioLaw(f"solid:{m}", mesh, materials[m],
+                                       np.nonzero(mesh.material_ids == i)[0],
+                                       loads.fibers.get(m), loads.law_constants.get(m)))
+    return Model(mesh, (*terms, *extra), n_u + n_mult)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
