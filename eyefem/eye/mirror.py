@@ -612,14 +612,20 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
                                if k in theta0}}
     if check:
         check_mirror(whole, theta0, half, mir, "the case")
-    state = {"whole": whole}
+    wholes = {id(half): (half, whole)}  # each half model's whole (kept alive with it)
+
+    def whole_of(model_h):
+        got = wholes.get(id(model_h))
+        return got[1] if got is not None and got[0] is model_h else wholes["last"][1]
+
+    wholes["last"] = (half, whole)
 
     def hooked(before, stage_name):
         if before is None:
             return None
 
         def hook(model_h, q_h, theta_h):
-            mw = state["whole"]
+            mw = whole_of(model_h)
             mw2, qw2, thw2 = before(mw, mir.lift(q_h), theta_whole(theta_h, mw))
             changed = [t.name for t, u in zip(mw.terms, mw2.terms) if t is not u]
             halves = {t.name: t for t in model_h.terms}
@@ -629,7 +635,7 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
                                           for t in new_h.terms])
                 if check:
                     check_mirror(mw2, thw2, new_h, mir, f"stage '{stage_name}'", names=changed)
-            state["whole"] = mw2
+            wholes[id(new_h)] = wholes["last"] = (new_h, mw2)
             q2 = mir.restrict(qw2)
             q2[mir.plane_y_dofs] = 0.0
             return new_h, q2, theta_half(thw2, mw2)
@@ -641,7 +647,7 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
               for st in setup.stages]
 
     def probe(model_h, q_h, theta_h):
-        mw = state["whole"]
+        mw = whole_of(model_h)
         return setup.probe(mw, mir.lift(q_h), theta_whole(theta_h, mw))
 
     log.info("mirror half: %d of %d elements, %d of %d nodes (%d on the plane y = 0), %d of "
