@@ -245,3 +245,75 @@ def test_the_design_simulators_refuse_the_mirror_half():
     with pytest.raises(ValueError, match="symmetry = 'mirror' solves half the eye.*design "
                                          "gradients.*symmetry = 'none'"):
         eyefem.simulate(case, {"tightening": 5.0}, mesh="coarse")
+
+
+def _pulled_box_setup():
+    """The symmetric block (_box, 2 x 4 x 2 hexahedra) held at z = 0 and its top (z = 2)
+    moved by 0.2 mm in z and 0.05 y mm in y (a stretch across the plane: symmetric, with
+    reactions in y that flip sign across it), in two steps."""
+    from eyefem.solve.model import node_dofs
+    from eyefem.solve.problem import Setup
+    from eyefem.solve.solver import Stage
+
+    mesh = _box()
+    model = _model(mesh)
+    X = mesh.nodes
+    bottom = np.nonzero(np.abs(X[:, 2]) < 1e-9)[0]
+    top = np.nonzero(np.abs(X[:, 2] - 2.0) < 1e-9)[0]
+    dofs = np.r_[node_dofs(bottom, "xyz"), 3 * top + 1, 3 * top + 2]
+    vals = np.r_[np.zeros(3 * len(bottom)), 0.05 * X[top, 1], np.full(len(top), 0.2)]
+    order = np.argsort(dofs)
+    stage = Stage("pull", 2, (dofs[order], vals[order]))
+    return Setup("box", model, [stage], lambda m, q, th: {"uz_mm": float(q[3 * top[0] + 2])},
+                 lambda rows, out, plots: {"elements": int(mesh.n_elem)})
+
+
+def test_a_half_run_writes_the_whole_results(tmp_path):
+    """The mirror half of the pulled block writes the whole block: every VTU frame on the
+    whole mesh (node and cell counts) with the whole run's displacements, stresses and
+    reactions (both halves'; on the plane too), run.json's mesh the whole one and
+    "solved" the half's own unknowns; its stability check (the whole model at the lifted
+    state) finds the whole run's eigenvalues. Both runs converge to the solver's tolerance
+    (about 1e-9 of the forces): 1e-7 relative to each field's largest value leaves room."""
+    import json
+
+    import meshio
+
+    from eyefem.eye.mirror import mirror_setup
+    from eyefem.run.runner import run_setup
+
+    setup = _pulled_box_setup()
+    half = mirror_setup(setup)
+    assert half.model.n_dof < 0.7 * setup.model.n_dof
+    runs = {}
+    for name, s in (("whole", setup), ("half", half)):
+        runs[name] = run_setup(s, tmp_path / name, plots=False, stability=3)
+    run = json.loads((tmp_path / "half" / "run.json").read_text())
+    assert run["mesh"] == {"nodes": setup.model.mesh.n_nodes,
+                           "elements": setup.model.mesh.n_elem, "dofs": setup.model.n_dof}
+    assert run["solved"]["dofs"] == half.model.n_dof == runs["half"].summary["solved"]["dofs"]
+    assert "solved" not in runs["whole"].summary
+    frames = sorted((tmp_path / "whole" / "vtu").glob("box_*.vtu"))
+    assert len(frames) == 3  # the undeformed frame and two steps
+    for f in frames:
+        w = meshio.read(f)
+        h = meshio.read(tmp_path / "half" / "vtu" / f.name)
+        assert len(h.points) == len(w.points) and len(h.cells[0].data) == len(w.cells[0].data)
+        np.testing.assert_array_equal(h.points, w.points)
+        np.testing.assert_array_equal(h.cells[0].data, w.cells[0].data)
+        assert set(h.point_data) == set(w.point_data)
+        assert set(h.cell_data) == set(w.cell_data)
+        for k, v in w.point_data.items():
+            scale = max(np.abs(v).max(), 1e-12)
+            np.testing.assert_allclose(h.point_data[k], v, rtol=0, atol=1e-7 * scale,
+                                       err_msg=f"{f.name} {k}")
+        for k, v in w.cell_data.items():
+            v, vh = np.asarray(v[0], float), np.asarray(h.cell_data[k][0], float)
+            scale = max(np.nanmax(np.abs(v), initial=0.0), 1e-12)
+            np.testing.assert_allclose(vh, v, rtol=0, atol=1e-7 * scale, err_msg=f"{f.name} {k}")
+    last = meshio.read(frames[-1]).point_data
+    assert np.abs(last["reaction_force_N"][:, 1]).max() > 1e-3  # reactions in y: non-trivial
+    sw, sh = (runs[k].summary["stability"]["pull"] for k in ("whole", "half"))
+    assert sw["stable"] is True and sh["stable"] is True
+    assert sh["lowest_eigenvalue_N_per_mm"] == pytest.approx(sw["lowest_eigenvalue_N_per_mm"],
+                                                             rel=1e-6)

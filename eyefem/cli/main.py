@@ -205,7 +205,7 @@ def cmd_stability(args) -> int:
     from eyefem.io import manifest
     from eyefem.io.checkpoint import CheckpointError
     from eyefem.io.output import write_text, write_vtu
-    from eyefem.run.runner import completed_state
+    from eyefem.run.runner import completed_state, whole_state
     from eyefem.solve.errors import LinearSolveError
     from eyefem.solve.stability import (
         StabilityError,
@@ -238,7 +238,8 @@ def cmd_stability(args) -> int:
         print(f"eyefem stability: {exc}; it reads the run of this case ({again})",
               file=sys.stderr)
         return 2
-    stage = setup.stages[i]
+    # the whole model at the lifted state of a mirror half (modes that break the symmetry)
+    model, q, theta, stage = whole_state(setup, model, q, theta, i)
     held = np.zeros(model.n_dof, bool)
     held[stage.prescribed[0]] = True
     logging.getLogger(__name__).info(

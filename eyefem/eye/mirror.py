@@ -41,7 +41,10 @@ reflection at random states, the held dofs must be symmetric, and the half must
 reproduce half the whole's energy of every term at random symmetric states; otherwise a
 ValueError says which and why. The outcomes are those of the whole eye: each step's
 half state is lifted to the whole and measured on the whole model (IOP, volumes, forces,
-the plane's nodes).
+the plane's nodes). So are the written results (the Setup's ``whole``: VTU frames on the
+whole mesh with the lifted state's fields, reactions from both halves) and the stability
+checks (``eyefem stability``, ``eyefem run --stability``: the whole model's tangent at the
+lifted state, its modes free to break the symmetry).
 """
 
 from __future__ import annotations
@@ -59,7 +62,7 @@ from eyefem.fem.solid import SolidQ1P0
 from eyefem.fem.surface import PressureLoad
 from eyefem.fem.terms import Term
 from eyefem.solve.model import Model
-from eyefem.solve.problem import Setup
+from eyefem.solve.problem import Setup, Whole
 
 log = logging.getLogger(__name__)
 
@@ -593,7 +596,9 @@ class _NotDifferentiable:
 def mirror_setup(setup: Setup, check: bool = True) -> Setup:
     """The mirror half of a surgery's Setup (module docstring): its model on the half,
     its stages with the plane nodes held in y and their hooks run on the lifted whole
-    state, its probe measuring the whole eye. ValueError (say why) when the case is not
+    state, its probe measuring the whole eye, its ``whole`` (eyefem.solve.problem.Whole)
+    lifting a half state to the whole eye's for the written results (VTU frames on the
+    whole mesh, reactions of both halves) and the stability checks. ValueError (say why) when the case is not
     symmetric about y = 0."""
     p = getattr(setup.parts, "p", {}) or {}
     for key, off, why in (("buckle_body", "rigid", "a deformable buckle's band, tire or sponge"),
@@ -646,9 +651,12 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
                                   before=hooked(st.before, st.name))
               for st in setup.stages]
 
-    def probe(model_h, q_h, theta_h):
+    def lift(model_h, q_h, theta_h):
         mw = whole_of(model_h)
-        return setup.probe(mw, mir.lift(q_h), theta_whole(theta_h, mw))
+        return mw, mir.lift(q_h), theta_whole(theta_h, mw)
+
+    def probe(model_h, q_h, theta_h):
+        return setup.probe(*lift(model_h, q_h, theta_h))
 
     log.info("mirror half: %d of %d elements, %d of %d nodes (%d on the plane y = 0), %d of "
              "%d unknowns; it finds the symmetric state (its stability, against modes that "
@@ -656,5 +664,6 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
              mir.mesh.n_elem, whole.mesh.n_elem, mir.mesh.n_nodes, whole.mesh.n_nodes,
              int(mir.on_plane.sum()), mir.n_dof_half, whole.n_dof)
     q0 = None if setup.q0 is None else mir.restrict(setup.q0)
+    whole_setup = Whole(whole, list(setup.stages), setup.q0, lift, solved="mirror half y > 0")
     return dataclasses.replace(setup, model=half, stages=stages, probe=probe,
-                               parts=_NotDifferentiable(), q0=q0)
+                               parts=_NotDifferentiable(), q0=q0, whole=whole_setup)

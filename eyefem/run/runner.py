@@ -131,11 +131,15 @@ def write_step(writer: SeriesWriter, setup: Setup, stage_name: str, t: float, mo
                q, theta):
     """Append a converged step (stage ``stage_name``, load factor t) to the series; a
     fresh series first gets the undeformed state (``setup.q0`` or zero, default design,
-    the first stage's active terms) at time 0."""
-    stages = setup.stages
+    the first stage's active terms) at time 0. A setup with a ``whole`` (the mirror half)
+    writes the whole model at the lifted state (its mesh, fields and reactions)."""
+    first, q0, stages = setup.model, setup.q0, setup.stages
+    if setup.whole is not None:
+        model, q, theta = setup.whole.lift(model, q, theta)
+        first, q0, stages = setup.whole.model, setup.whole.q0, setup.whole.stages
     if not writer.entries:
-        q0 = np.zeros(setup.model.n_dof) if setup.q0 is None else np.asarray(setup.q0)
-        add_frame(writer, setup.model, q0, setup.model.theta0(), stages, 0, 0.0)
+        q0 = np.zeros(first.n_dof) if q0 is None else np.asarray(q0)
+        add_frame(writer, first, q0, first.theta0(), stages, 0, 0.0)
     last = writer.entries[-1][0]
     names = [s.name for s in stages]
     index = next((i for i, s in enumerate(names) if s == stage_name and i + t > last),
@@ -187,6 +191,26 @@ def completed_state(setup: Setup, out_dir: Path, key: str = "", stage: int | Non
     model = replay_hooks(setup.model, setup.stages[: i + 1], ck["starts"])
     q, theta = (ck["q"], ck["theta"]) if i == last else ck["starts"][i + 1]
     return model, np.array(q, np.float64), theta, i
+
+
+def whole_state(setup: Setup, model: Model, q, theta, index: int):
+    """(model, q, theta, stage) of the whole model at a solved state of stage ``index``:
+    the solved ones when ``setup.whole`` is None, else the whole model at the lifted
+    state with the whole's stage (its prescribed dofs on the whole)."""
+    if setup.whole is None:
+        return model, q, theta, setup.stages[index]
+    model, q, theta = setup.whole.lift(model, q, theta)
+    return model, np.asarray(q, np.float64), theta, setup.whole.stages[index]
+
+
+def solved_model(setup: Setup) -> dict | None:
+    """What a reduced setup solves (run.json's and summary.json's "solved"): its kind and
+    its mesh's nodes, elements and unknowns; None for a setup that solves its whole."""
+    if setup.whole is None:
+        return None
+    m = setup.model
+    return {"model": setup.whole.solved, "nodes": int(m.mesh.n_nodes),
+            "elements": int(m.mesh.n_elem), "dofs": int(m.n_dof)}
 
 
 def stage_stability(model, q, theta, stage: Stage, options: NewtonOptions, k: int = 3) -> dict:
@@ -275,15 +299,18 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
                                    else None)
             for old in (f"{setup.name}.xdmf", f"{setup.name}.h5"):  # an older run's XDMF
                 (out_dir / old).unlink(missing_ok=True)
-        mesh = setup.model.mesh
+        written = setup.model if setup.whole is None else setup.whole.model
+        mesh = written.mesh
         record = manifest.FileRecord(out_dir, since_ns,
                                      kept=(previous or {}).get("files") if resume else None)
+        solved = solved_model(setup)
         run = manifest.write(out_dir, {
             "program": manifest.PROGRAM,
             "format": manifest.FORMAT, "code_version": manifest.code_version(),
             "case_hash": case_hash, "name": setup.name, "resumed": bool(resume),
             "mesh": {"nodes": mesh.n_nodes, "elements": mesh.n_elem,
-                     "dofs": setup.model.n_dof},
+                     "dofs": written.n_dof},
+            **({"solved": solved} if solved else {}),
             "stages": [s.name for s in setup.stages], "status": "running",
             "started": manifest.now()})
     except BaseException:
@@ -319,9 +346,9 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
                         vtu_entries=writer.entries)  # its hashes are then listed at once
         nonlocal run
         run = manifest.updated(out_dir, run, files=record.files())
-        if stability:
-            checks[setup.stages[i].name] = stage_stability(model, q, theta, setup.stages[i],
-                                                           options, stability)
+        if stability:  # on the whole model (a mirror half's symmetric state included)
+            checks[setup.stages[i].name] = stage_stability(
+                *whole_state(setup, model, q, theta, i), options, stability)
 
     progress.start()
     try:
@@ -354,6 +381,8 @@ def run_setup(setup: Setup, out_dir: Path, options: NewtonOptions = NewtonOption
     summary["unbalanced_steps"] = unbalanced_steps(rows)
     if stability:
         summary["stability"] = checks
+    if solved:
+        summary["solved"] = solved
     return RunResult(summary, rows, sol, out_dir, record)
 
 
