@@ -137,9 +137,9 @@ def test_held_dofs_on_the_half():
                         mir, "s")
 
 
-def _whole_and_half(path, tmp_path_factory):
+def _whole_and_half(path, tmp_path_factory, vtu=False):
     """A case run on the coarse eye whole and as the mirror half: (whole, half)
-    RunResults."""
+    RunResults (with ``vtu`` their VTU series in their out_dir)."""
     from eyefem.api import load_case
     from eyefem.eye.surgery import surgery
     from eyefem.run.runner import run_setup
@@ -148,14 +148,14 @@ def _whole_and_half(path, tmp_path_factory):
     out = {}
     for sym in ("none", "mirror"):
         setup = surgery({**case.parameters, "mesh": "coarse", "symmetry": sym}, case.materials)
-        out[sym] = run_setup(setup, tmp_path_factory.mktemp(sym), case.solver, vtu=False,
+        out[sym] = run_setup(setup, tmp_path_factory.mktemp(sym), case.solver, vtu=vtu,
                              plots=False)
     return out["none"], out["mirror"]
 
 
 @pytest.fixture(scope="module")
 def case1_runs(tmp_path_factory):
-    return _whole_and_half(CASE1, tmp_path_factory)
+    return _whole_and_half(CASE1, tmp_path_factory, vtu=True)
 
 
 @pytest.mark.slow
@@ -165,6 +165,88 @@ def test_half_and_whole_agree_on_coarse_case1(case1_runs):
     forces; found within 2e-9). Case 1: an encircling flat tire, 8 sutures at 22.5 + 45 k
     degrees (mirror pairs), contact nodes and zonule bars on the plane."""
     _agree(*case1_runs)
+
+
+@pytest.mark.slow
+def test_a_half_run_writes_the_whole_eyes_frames_on_coarse_case1(case1_runs):
+    """Every VTU frame of the half run is the whole eye's: the whole mesh's nodes and
+    cells, the whole run's nodal displacements (to 1e-6 mm: both converge to about 1e-9
+    of the forces, found within 1e-8 mm), every nodal and cell field (to 1e-6 of its
+    largest value: the contact pressures' and stresses' roundoff is larger than the
+    displacements'), the buckle's and sutures' datasets; summary.json's elements the
+    whole eye's, "solved" the half's own unknowns."""
+    import meshio
+
+    whole, half = case1_runs
+    assert half.summary["elements"] == whole.summary["elements"]
+    assert half.summary["solved"]["dofs"] == half.solution.model.n_dof
+    assert half.summary["solved"]["elements"] < 0.51 * whole.summary["elements"]
+    names = sorted(p.name for p in (whole.out_dir / "vtu").glob("*.vtu"))
+    assert names == sorted(p.name for p in (half.out_dir / "vtu").glob("*.vtu"))
+    assert (whole.out_dir / "surgery.pvd").read_text() == (half.out_dir
+                                                           / "surgery.pvd").read_text()
+    for name in names:
+        w, h = meshio.read(whole.out_dir / "vtu" / name), meshio.read(half.out_dir / "vtu" / name)
+        assert len(h.points) == len(w.points) and len(h.cells[0].data) == len(w.cells[0].data)
+        np.testing.assert_array_equal(h.cells[0].data, w.cells[0].data)
+        assert set(h.point_data) == set(w.point_data), name
+        assert set(h.cell_data) == set(w.cell_data), name
+        if "displacement" in w.point_data:
+            np.testing.assert_allclose(h.point_data["displacement"],
+                                       w.point_data["displacement"], rtol=0, atol=1e-6,
+                                       err_msg=name)
+        for k, v in w.point_data.items():
+            v = np.asarray(v, float)
+            scale = max(np.nanmax(np.abs(v), initial=0.0), 1e-12)
+            np.testing.assert_allclose(np.asarray(h.point_data[k], float), v, rtol=0,
+                                       atol=1e-6 * scale, err_msg=f"{name} {k}")
+        for k, v in w.cell_data.items():
+            v = np.asarray(v[0], float)
+            scale = max(np.nanmax(np.abs(v), initial=0.0), 1e-12)
+            np.testing.assert_allclose(np.asarray(h.cell_data[k][0], float), v, rtol=0,
+                                       atol=1e-6 * scale, err_msg=f"{name} {k}")
+
+
+@pytest.mark.slow
+def test_stability_of_a_half_run_is_the_whole_eyes(case1_runs, tmp_path):
+    """``eyefem stability`` on a run of coarse case 1 as the mirror half checks the whole
+    eye at the lifted state: its eigenvalues are the whole run's end state's (modes free
+    to break the symmetry), to 1e-6 relative (ARPACK's residuals are below 1e-8), and
+    stability.vtu is on the whole mesh."""
+    import json
+
+    import meshio
+
+    from eyefem.api import load_case
+    from eyefem.cli.main import main as cli_main
+    from eyefem.eye.surgery import surgery
+    from eyefem.solve.stability import lowest_modes
+
+    text = CASE1.read_text()
+    if "symmetry" not in text:
+        text = text.replace("[parameters]\n", '[parameters]\nsymmetry = "mirror"\n', 1)
+    case_path = tmp_path / "case1_half.toml"
+    case_path.write_text(text)
+    out = tmp_path / "run"
+    assert cli_main(["-q", "run", str(case_path), "--mesh", "coarse", "--no-vtu",
+                     "--out", str(out)]) == 0
+    assert json.loads((out / "summary.json").read_text())["solved"]["model"].startswith(
+        "mirror half")
+    assert cli_main(["-q", "stability", str(case_path), "--mesh", "coarse", "--out",
+                     str(out), "--modes", "3"]) == 0
+    result = json.loads((out / "stability.json").read_text())
+    got = [m["eigenvalue_N_per_mm"] for m in result["modes"]]
+    whole, _ = case1_runs
+    case = load_case(CASE1)
+    stage = surgery({**case.parameters, "mesh": "coarse", "symmetry": "none"},
+                    case.materials).stages[-1]
+    sol = whole.solution
+    held = np.zeros(sol.model.n_dof, bool)
+    held[stage.prescribed[0]] = True
+    want = lowest_modes(sol.model, sol.q, sol.theta, held, stage.active, k=3,
+                        beta=case.solver.beta, backend=case.solver.backend).values
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    assert len(meshio.read(out / "stability.vtu").points) == sol.model.mesh.n_nodes
 
 
 @pytest.mark.slow
