@@ -261,9 +261,12 @@ DECK = """<?xml version="1.0"?>
   <MeshDomains><SolidDomain name="Part1" mat="m"/></MeshDomains>
   MESHDATA
   <Boundary>
-    <bc name="a" node_set="x0" type="zero displacement"><x_dof>1</x_dof><y_dof>0</y_dof><z_dof>0</z_dof></bc>
-    <bc name="b" node_set="y0" type="zero displacement"><x_dof>0</x_dof><y_dof>1</y_dof><z_dof>0</z_dof></bc>
-    <bc name="c" node_set="z0" type="zero displacement"><x_dof>0</x_dof><y_dof>0</y_dof><z_dof>1</z_dof></bc>
+    <bc name="a" node_set="x0" type="zero displacement"><x_dof>1</x_dof><y_dof>0</y_dof>
+      <z_dof>0</z_dof></bc>
+    <bc name="b" node_set="y0" type="zero displacement"><x_dof>0</x_dof><y_dof>1</y_dof>
+      <z_dof>0</z_dof></bc>
+    <bc name="c" node_set="z0" type="zero displacement"><x_dof>0</x_dof><y_dof>0</y_dof>
+      <z_dof>1</z_dof></bc>
     <bc name="d" node_set="x1" type="prescribed displacement"><dof>x</dof>
       <value lc="1">0.2</value><relative>0</relative></bc>
   </Boundary>

@@ -17,13 +17,18 @@ eyefem.fem.solid_compressible:
 * :class:`CoupledMooneyRivlin`: W = c1 (I1 - 3) + c2 (I2 - 3) - 2 (c1 + 2 c2) ln J
   + lam/2 (ln J)^2 in the unreduced invariants, at every Gauss point: FEBio's
   "coupled Mooney-Rivlin" (lam = its k) and "neo-Hookean" (c1 = mu/2, c2 = 0, lam its
-  Lame constant; :func:`febio_neo_hookean` from E and v).
+  Lame constant; :func:`febio_neo_hookean` from E and v);
+* :class:`FebioLaw`: FEBio's further laws (:data:`FEBIO_LAWS`: Ogden, Holmes-Mow, trans
+  iso Mooney-Rivlin, orthotropic, ...) and their solid mixtures, on
+  eyefem.fem.solid_compressible.SolidFebioLaw.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -262,9 +267,6 @@ def invariant_derivatives(i1b, i2b, coeffs):
 # FEUncoupledElasticMixture: the constituents' energies add, weights 1), plus FEBio's
 # U(J) = k/2 (ln J)^2 on the element's volume ratio where it is uncoupled.
 
-import functools  # noqa: E402
-
-import jax  # noqa: E402  (the laws below need custom derivative rules)
 
 
 def _spectral_f(lam, p, kind: int):
@@ -550,9 +552,9 @@ as FEBio's sources define them: FEOgdenMaterial, FEOgdenUnconstrained, FEIsotrop
 (St Venant-Kirchhoff), FEIsoHencky, FEHolmesMow, FEHolmesMowUC, FEArrudaBoyce (the
 five-term series), FEVerondaWestmann, FEYeoh, FEMooneyRivlin, FENeoHookean,
 FECoupledMooneyRivlin, FETransIsoMooneyRivlin and FETransIsoVerondaWestmann (with
-FEFiberExpLinearUC), FEFiberExpLinear, FEUncoupledFiberExpLinear, FEOrthoElastic, FEFungOrthotropic (of
-Cbar), FEFungOrthoCompressible, FEPrescribedActiveContraction{Isotropic,Uniaxial,TransIso}
-(and their UC versions)."""
+FEFiberExpLinearUC), FEFiberExpLinear, FEUncoupledFiberExpLinear, FEOrthoElastic,
+FEFungOrthotropic (of Cbar), FEFungOrthoCompressible, and
+FEPrescribedActiveContraction{Isotropic,Uniaxial,TransIso} with their UC versions."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -4,7 +4,10 @@ Materials as FEBio defines them (eyefem.fem.materials): "Mooney-Rivlin" is uncou
 W = c1 (I1bar - 3) + c2 (I2bar - 3) + k/2 (ln J)^2 with the deck's k, on FEBio's
 three-field hex8 (U on the element's volume ratio; eyefem.fem.solid_compressible);
 "neo-Hookean" (E, v) and "coupled Mooney-Rivlin" (c1, c2, k) are coupled, at every Gauss
-point. Beyond the hex8 solids: linear trusses (:class:`LinearTruss`, FEBio's E ln(lam)
+point; FEBio's further laws (Ogden, Holmes-Mow, trans iso, orthotropic, ..., solid
+mixtures, prescribed active contraction; eyefem.fem.materials.FEBIO_LAWS) are FebioLaw
+materials on eyefem.fem.solid_compressible.SolidFebioLaw, with their fibres and material
+axes. Beyond the hex8 solids: linear trusses (:class:`LinearTruss`, FEBio's E ln(lam)
 law), discrete linear springs (:class:`LinearSpring`), rigid bodies whose six dofs are
 all fixed or prescribed (their nodes prescribed), frictionless penalty sliding-elastic
 contact against a rigid body's facets (eyefem.fem.rigid_contact.RigidContact) and the
@@ -18,7 +21,7 @@ analysis type (static only). A pressure on an open surface is FEBio's follower l
 (eyefem.fem.surface.pressure_term).
 
 Length: one reader per deck section, each with the messages that name the file, the tag
-and the value it cannot read; about 1500 lines.
+and the value it cannot read; about 2100 lines.
 """
 
 from __future__ import annotations
@@ -330,8 +333,9 @@ def read_feb(path) -> tuple[Mesh, dict, FebLoads]:
       sets from the NodeSets; a rigid body's elements left out), the materials (name ->
       UncoupledMooneyRivlin with c10 = c1, c01 = c2 and the deck's k, or MooneyRivlin where
       k = 0 or laugon = 1; CoupledMooneyRivlin for "neo-Hookean" and "coupled
-      Mooney-Rivlin") and the loads (:class:`FebLoads`: steps, loads, trusses and springs,
-      rigid bodies, contacts, volume constraints).
+      Mooney-Rivlin"; FebioLaw for the further laws and mixtures) and the loads
+      (:class:`FebLoads`: steps, loads, trusses and springs, rigid bodies, contacts, volume
+      constraints, fibre directions).
     Raises: FebError (a ValueError) naming the file and the tag, element or value it
       cannot read: another spec version, tetrahedra or deformable shells, another material
       or material parameter, a pressure model other than FEBio's default, contact or a
@@ -728,10 +732,10 @@ def _law_part(el, kind, where, path, top_uncoupled):
             why = {"active_contraction": "active contraction (a non-conservative fibre stress)",
                    "mat_axis": "a material axis (the fibre is read in global coordinates)"
                    }.get(child.tag, "")
+            known = allowed | {1: {"fiber"}, 3: {"mat_axis"}}.get(int(fibred), set())
             raise _err(path, f"{where}: parameter <{child.tag}> of '{el.get('type')}' is not "
                        f"supported{' (' + why + ')' if why else ''} (eyefem reads "
-                       f"{', '.join(sorted(allowed | ({'fiber'} if fibred == 1 else set()) | ({'mat_axis'} if fibred == 3 else set())))}); "
-                       "remove it or run the deck in FEBio")
+                       f"{', '.join(sorted(known))}); remove it or run the deck in FEBio")
         if child.get("type") is not None:
             raise _err(path, f"{where} <{child.tag}>: a parameter map (type=\"{child.get('type')}"
                        "\") is not supported; give a constant")
