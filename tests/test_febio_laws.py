@@ -345,6 +345,8 @@ def test_reader_mixture_and_material_axes(tmp_path):
      'solid type="Shenoy"> is not supported'),
     ('<material id="1" name="m" type="Holmes-Mow"><E>1</E><v>0.6</v><beta>1</beta></material>',
      "-1 < v < 0.5"),
+    ('<material id="1" name="m" type="solid mixture"><solid type="Mooney-Rivlin"><c1>1</c1>'
+     '<k>10</k></solid></material>', "an uncoupled constituent of a (coupled) solid mixture"),
 ])
 def test_reader_refusals_name_the_feature(tmp_path, material, message):
     with pytest.raises(FebError, match=re.escape(message)):

@@ -852,6 +852,10 @@ def _febio_law(el, kind, name, where, path) -> FebioLaw:
                 raise _err(path, f"{cw} is not supported; a mixture's constituents may be "
                            f"{_LAW_LIST}, \"Mooney-Rivlin\", \"neo-Hookean\", \"coupled "
                            "Mooney-Rivlin\"")
+            if not uncoupled and FEBIO_LAWS[ck][1]:
+                raise _err(path, f"{cw}: an uncoupled constituent of a (coupled) solid mixture "
+                           "is not supported (FEBio adds its own U(J) at the Gauss points); use "
+                           "an \"uncoupled solid mixture\" or a coupled law")
             parts.append(_law_part(child, ck, cw, path, uncoupled))
         if not parts:
             raise _err(path, f"{where}: a solid mixture without <solid> constituents")
