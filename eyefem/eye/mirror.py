@@ -659,8 +659,8 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
         return setup.probe(*lift(model_h, q_h, theta_h))
 
     log.info("mirror half: %d of %d elements, %d of %d nodes (%d on the plane y = 0), %d of "
-             "%d unknowns; it finds the symmetric state (its stability, against modes that "
-             "break the symmetry too, takes the whole eye: symmetry = 'none')",
+             "%d unknowns; it finds the symmetric state (the results are written on the whole "
+             "eye; --stability checks the whole eye's modes, which may break the symmetry)",
              mir.mesh.n_elem, whole.mesh.n_elem, mir.mesh.n_nodes, whole.mesh.n_nodes,
              int(mir.on_plane.sum()), mir.n_dof_half, whole.n_dof)
     q0 = None if setup.q0 is None else mir.restrict(setup.q0)
