@@ -58,7 +58,7 @@ import numpy as np
 
 from eyefem.eye.outcomes import (changes, eye_optics, indentation, outcome_data,
                                  outcome_function, outcome_nodes)
-from eyefem.eye.parts import snug_node, snug_scale
+from eyefem.eye.parts import SurgeryParts, snug_node, snug_scale
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.rigid_buckle import BiteRays, bite_rays, rigid_design_params, suture_term
 from eyefem.eye.surgery import surgery
@@ -91,6 +91,34 @@ def term_kind(term) -> tuple:
     design: its class and static configuration, as the model's kernels are keyed
     (eyefem.solve.model.Model._kernel: its methods read arrays only from their arguments)."""
     return (type(term), term.static_key())
+
+
+def preop_carry(parts: SurgeryParts, nodes, snug: bool) -> Callable:
+    """C_1, what the pressurised eye hands on: (q, theta, data) -> {"volume": the cavity's
+    volume at q (mm^3, closed at it), "optics": its eyefem.eye.outcomes.eye_optics (the
+    pre-operative eye the changes are measured from)} and, with ``snug``, "scale": the
+    buckle's snug radial scale (eyefem.eye.parts.snug_scale at data["node"]); data:
+    {"cavity": (the FluidCavity's data, dofs), "node": the snug node}."""
+    X = parts.eye.mesh.nodes
+
+    def preop(q, theta, data):
+        out = {"volume": cavity_pressures(q, theta["cavity"], *data["cavity"])[1][0],
+               "optics": eye_optics(X, q, nodes)}
+        if snug:
+            out["scale"] = snug_scale(parts, q, data["node"])
+        return out
+    return preop
+
+
+def tied_lengths(sut) -> Callable:
+    """C_2, what the stage that ties the sutures hands on: (q, theta, data) -> {"L0": (n,)
+    the suture bars' lengths at q, mm} (as eyefem.eye.bodies.tie_sutures ties them); data:
+    (the suture term's data, dofs); ``sut``: a suture term of the kind whose data it
+    receives (its methods only, :func:`term_kind`)."""
+    def carry(q, theta, data):
+        sut_data, sut_dofs = data
+        return {"L0": sut.lengths(q[sut_dofs], theta["sutures"], sut_data)}
+    return carry
 
 
 @dataclasses.dataclass(frozen=True)
@@ -259,19 +287,9 @@ class SurgerySimulator:
         """The three stages as data (eyefem.solve.staged.StageMap), one set per kind of
         suture term (their carry functions compiled once)."""
         def build():
-            parts, X, nodes = self.parts, self.parts.eye.mesh.nodes, self._nodes
-
-            def preop(q, theta, data):  # C_1
-                return {"volume": cavity_pressures(q, theta["cavity"], *data["cavity"])[1][0],
-                        "scale": snug_scale(parts, q, data["node"]),
-                        "optics": eye_optics(X, q, nodes)}
-
-            def tied_lengths(q, theta, data):  # C_2
-                sut_data, sut_dofs = data
-                return {"L0": sut.lengths(q[sut_dofs], theta["sutures"], sut_data)}
-
-            return (StageMap("pressurise", lambda d, c, data: self._materials(d), preop),
-                    StageMap("tighten", self.design_map, tied_lengths),
+            return (StageMap("pressurise", lambda d, c, data: self._materials(d),
+                             preop_carry(self.parts, self._nodes, snug=True)),
+                    StageMap("tighten", self.design_map, tied_lengths(sut)),
                     StageMap("suture", self._tied))
         return self._kept_fn(("maps", term_kind(sut)), build)
 
@@ -682,15 +700,14 @@ class TimelineSimulator(SurgerySimulator):
         L0, "shape": also the optics and the indentation), one per kind and suture term
         (its carry compiled once)."""
         def build():
-            X, nodes = self.parts.eye.mesh.nodes, self._nodes
+            X, nodes, tied = self.parts.eye.mesh.nodes, self._nodes, tied_lengths(sut)
 
             def carry(q, theta, data):
                 P = cavity_pressures(q, theta["cavity"], *data["cavity"])[0][0]
                 h = advanced_history(P, theta["cavity"])
                 out = {"history": {k: h[k] for k in HISTORY_KEYS}, "iop": P / MMHG}
                 if kind == "tie":
-                    sut_data, sut_dofs = data["sutures"]
-                    out["L0"] = sut.lengths(q[sut_dofs], theta["sutures"], sut_data)
+                    out.update(tied(q, theta, data["sutures"]))
                 if kind == "shape":
                     out["optics"] = eye_optics(X, q, nodes)
                     out["indentation"] = indentation(X, q, nodes)
@@ -856,27 +873,23 @@ class RingSimulator:
         (DeformableRing.design_params) with the closed volume and the tied lengths."""
         if "maps" in self._compiled:
             return self._compiled["maps"]
-        parts, X, nodes = self.parts, self.parts.eye.mesh.nodes, self._nodes
-
-        def preop(q, theta, data):  # C_1
-            return {"volume": cavity_pressures(q, theta["cavity"], *data["cavity"])[1][0],
-                    "optics": eye_optics(X, q, nodes)}
+        parts = self.parts
 
         def tighten(design, carry, data):  # T_2
             t2, _ = self.body.design_params(parts, design)
             return {**t2, "cavity": {**t2["cavity"], "v_ini": carry["volume"]}}
-
-        def tied_lengths(q, theta, data):  # C_2
-            sut, sut_data, sut_dofs = self._compiled["sutures"], *data
-            return {"L0": sut.lengths(q[sut_dofs], theta["sutures"], sut_data)}
 
         def suture(design, carry, data):  # T_3
             _, t3 = self.body.design_params(parts, design)
             return {**tighten(design, carry, data),
                     "sutures": {**t3["sutures"], "L0": carry["L0"]}}
 
-        self._compiled["maps"] = (StageMap("pressurise", lambda d, c, data: {}, preop),
-                                  StageMap("tighten", tighten, tied_lengths),
+        # the suture term's methods only (term_kind): the one the band is refitted with
+        # in stage 2 is of the same kind
+        self._compiled["maps"] = (StageMap("pressurise", lambda d, c, data: {},
+                                           preop_carry(parts, self._nodes, snug=False)),
+                                  StageMap("tighten", tighten,
+                                           tied_lengths(self.model1.term("sutures"))),
                                   StageMap("suture", suture))
         return self._compiled["maps"]
 
@@ -901,7 +914,6 @@ class RingSimulator:
         sol2 = _kept(solve(self.model1, [stage(self.stage2, t2)], q0=self.sol1.q,
                            theta=self.sol1.theta, options=self.options))
         sut = sol2.model.term("sutures")
-        self._compiled.setdefault("sutures", sut)  # its methods only: one kind per case
         carry2 = hand_on(maps[1], sol2.q, sol2.theta, (sut.data, sut.dofs))
         t3 = stage_params(maps[2], design, {**self.carry1, **carry2})
         sol3 = _kept(solve(sol2.model, [stage(self.stage3, t3)], q0=sol2.q, theta=sol2.theta,
