@@ -314,19 +314,27 @@ def test_the_mirror_half_refuses_a_deformable_buckle_and_the_timeline():
         mirror_setup(setup)
 
 
-def test_the_design_simulators_refuse_the_mirror_half():
-    """eyefem.simulate (and the planner, which runs on it) solves the whole eye: a case
-    with symmetry = 'mirror' is refused with the reason, before any solve."""
+def test_the_design_simulators_solve_the_whole_eye_of_a_mirror_case():
+    """eyefem.simulate (and the planner, which runs on it) takes its design gradients on the
+    whole eye: a case with symmetry = 'mirror' builds the whole model (the half gives the
+    whole's outcomes to 2e-9), and the case's own parameters are left as they were."""
     import dataclasses
 
-    import eyefem
+    from eyefem import api
     from eyefem.api import load_case
+    from eyefem.eye.design import whole_eye
 
+    given = {"symmetry": "mirror", "tightening": 5.0}
+    assert whole_eye(given) == {"symmetry": "none", "tightening": 5.0}
+    assert given["symmetry"] == "mirror"
     case = load_case(CASE1)
     case = dataclasses.replace(case, parameters={**case.parameters, "symmetry": "mirror"})
-    with pytest.raises(ValueError, match="symmetry = 'mirror' solves half the eye.*design "
-                                         "gradients.*symmetry = 'none'"):
-        eyefem.simulate(case, {"tightening": 5.0}, mesh="coarse")
+    host = api._host(case, "coarse")
+    try:
+        assert host.sim.params["symmetry"] == "none"
+        assert host.sim.setup.whole is None  # not a reduced model
+    finally:
+        api.clear_cache()
 
 
 def _pulled_box_setup():

@@ -195,7 +195,7 @@ class SurgerySimulator:
     """The outcomes run() reports and gradients() differentiates, in order."""
 
     def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
-        self.params = dict(params)
+        self.params = whole_eye(params)
         self.options = options
         if self.params.get("buckle_body", "rigid") != "rigid":
             raise ValueError(f"buckle_body = '{self.params['buckle_body']}': the design gradients "
@@ -843,7 +843,7 @@ class RingSimulator:
     def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
         from eyefem.eye.bodies import DeformableRing
 
-        self.params = dict(params)
+        self.params = whole_eye(params)
         self.options = options
         _refuse_timeline(self.params)
         setup = surgery(self.params, materials)
@@ -958,6 +958,17 @@ class RingSimulator:
         names, w = [k for k, _ in items], np.array([w for _, w in items])
         return staged_gradients(res.stages, res.design,
                                 *self.outcome_vector(res, names, w))[1][0]
+
+
+def whole_eye(params: dict) -> dict:
+    """The case's parameters for a design simulator: a mirror-half case (``symmetry =
+    'mirror'``) is simulated whole, since the design gradients are taken on the whole eye
+    (the half gives the whole's outcomes to 2e-9, docs/case_files.md "The mirror half")."""
+    if params.get("symmetry", "none") == "none":
+        return dict(params)
+    log.info("symmetry = '%s': the design gradients and the planner solve the whole eye",
+             params["symmetry"])
+    return {**params, "symmetry": "none"}
 
 
 def _refuse_timeline(params: dict):
