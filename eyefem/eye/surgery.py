@@ -246,8 +246,8 @@ SURGERY_FIELDS = [
           "y, and report the whole eye's outcomes (about half the unknowns: a faster, "
           "smaller run); refused, with the reason, unless the mesh, buckle, sutures, "
           "contact and loads are symmetric about that plane (an encircling buckle with "
-          "sutures spaced evenly about it; not with a deformable buckle, the timeline or "
-          "the design gradients; docs/case_files.md); 'none': the whole eye",
+          "sutures spaced evenly about it; not with a deformable buckle or the timeline; "
+          "the design simulators solve it whole; docs/case_files.md); 'none': the whole eye",
           lambda v: v in ("none", "mirror"), "'none' or 'mirror'"),
 ] + [LENS_SUPPORT_FIELD if f.name == "lens_support" else f
      for f in BIOMETRY_FIELDS] + TIMELINE_FIELDS + RELAXATION_FIELDS
