@@ -75,10 +75,27 @@ def surgery_deck(tmp_path_factory):
 
     case = load_case(ROOT / "cases/surgery/case1.toml", schemas())
     case.parameters["mesh"] = "coarse"
+    case.parameters["symmetry"] = "none"  # the pieces are compared with the whole model's
     setup = problems()[case.problem][1](case.parameters, case.materials)
     deck = tmp_path_factory.mktemp("feb") / "case1.feb"
     warnings = write_feb(setup, deck)
     return setup, deck, warnings
+
+
+def test_a_mirror_half_exports_the_whole_eye(surgery_deck, tmp_path):
+    """A case solved as the mirror half (symmetry = 'mirror') gives FEBio the whole eye:
+    the same deck as the case solved whole."""
+    from eyefem.catalog import problems, schemas
+    from eyefem.io.casefile import load_case
+
+    _, whole_deck, whole_warnings = surgery_deck
+    case = load_case(ROOT / "cases/surgery/case1.toml", schemas())
+    case.parameters.update(mesh="coarse", symmetry="mirror")
+    setup = problems()[case.problem][1](case.parameters, case.materials)
+    assert setup.whole is not None
+    deck = tmp_path / "case1_half.feb"
+    assert write_feb(setup, deck) == whole_warnings
+    assert deck.read_text() == whole_deck.read_text()
 
 
 def test_surgery_exports_every_stage_and_its_pieces(surgery_deck):

@@ -37,6 +37,7 @@ written in the deck's header comment. No deck has been run in FEBio here.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import re
 import xml.etree.ElementTree as ET
@@ -102,7 +103,8 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
     """Write a Setup's stages as an FEBio 4 input deck: one <step> per stage.
 
     Args:
-      setup: a problem's Setup (its model and stages; the terms active in any exported
+      setup: a problem's Setup (its model and stages, or those of its ``whole`` for a
+        reduced model such as the mirror half; the terms active in any exported
         stage are written, from the default design ``model.theta0()``, with each param's
         value at every stage's end on a load curve).
       path: the .feb file to write.
@@ -115,6 +117,10 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
     Raises: ValueError for a stage count outside 1..len(setup.stages) or a model without
       solid elements; OSError.
     """
+    if setup.whole is not None:  # a reduced model (the mirror half): FEBio gets the whole
+        setup = dataclasses.replace(setup, model=setup.whole.model,
+                                    stages=list(setup.whole.stages), q0=setup.whole.q0,
+                                    whole=None)
     n_all = len(setup.stages)
     stages = n_all if stages is None else stages
     if not 1 <= stages <= n_all:
