@@ -325,23 +325,13 @@ class HalfTerm(Term):
 
     def local_grad_hess(self, q_loc, params, data):
         g, H = self.inner.local_grad_hess(*self._args(q_loc, params, data))
-        s, w = data["s"], data["w"]
-        if s is not None:
-            g, H = g * s, H * s[:, :, None] * s[:, None, :]
-        if w is not None:
-            g, H = g * w[:, None], H * w[:, None, None]
-        return g, H
+        return _weighted(g, H, data)
 
     def _gauss_newton(self, q, params, data, dofs):
         x, p, d = self._args(q[dofs], params, data)
         flat = jnp.arange(x.size).reshape(x.shape)
         g, H = self.inner.grad_hess_gauss_newton(x.ravel(), p, d, flat)
-        s, w = data["s"], data["w"]
-        if s is not None:
-            g, H = g * s, H * s[:, :, None] * s[:, None, :]
-        if w is not None:
-            g, H = g * w[:, None], H * w[:, None, None]
-        return g, H
+        return _weighted(g, H, data)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -667,3 +657,14 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
     whole_setup = Whole(whole, list(setup.stages), setup.q0, lift, solved="mirror half y > 0")
     return dataclasses.replace(setup, model=half, stages=stages, probe=probe,
                                parts=_NotDifferentiable(), q0=q0, whole=whole_setup)
+
+
+def _weighted(g, H, data):
+    """Item gradients (n, k) and Hessians (n, k, k) with the half term's dof signs ``s``
+    (n, k) and item weights ``w`` (n,) applied (each None when it does not apply)."""
+    s, w = data["s"], data["w"]
+    if s is not None:
+        g, H = g * s, H * s[:, :, None] * s[:, None, :]
+    if w is not None:
+        g, H = g * w[:, None], H * w[:, None, None]
+    return g, H

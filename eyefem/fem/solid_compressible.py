@@ -74,6 +74,18 @@ def volume_ratio(F, dv):
     return jnp.sum(dv * det3(F), axis=1) / jnp.sum(dv, axis=1)
 
 
+def _element_grad_hess(P, A, F, G, dv, V, ddU):
+    """Element gradients (n, 24) and Hessians (n, 24, 24) of a three-field element from
+    its points' first Piola stress P (n, 8, 3, 3) and tangent A = dP/dF (n, 8, 3, 3, 3, 3)
+    (the Jbar pressure term inside), deformation gradients F, shape-function gradients G
+    (n, 8, 8, 3), point volumes dv (n, 8), element volumes V (n,) and U''(Jbar) (n,):
+    K = sum_g dv G^T A G + V U'' a a^T with a = sum_g dv G^T cof(F) / V."""
+    g = jnp.einsum("eg,egij,egaj->eai", dv, P, G).reshape(-1, 24)
+    K = jnp.einsum("eg,egaj,egijkl,egbl->eaibk", dv, G, A, G).reshape(-1, 24, 24)
+    a = jnp.einsum("eg,egij,egaj->eai", dv, cofactor(F), G).reshape(-1, 24) / V[:, None]
+    return g, K + (V * ddU)[:, None, None] * a[:, :, None] * a[:, None, :]
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class SolidCompressible(Term):
     """Hexahedra of FEBio's nearly incompressible and compressible laws (module docstring).
@@ -148,11 +160,7 @@ class SolidCompressible(Term):
             jax.grad(phi)(f, c_, cc_, p_), jax.hessian(phi)(f, c_, cc_, p_)),
             (0, None, None, None)), (0, 0, 0, 0))
         P, A = over_points(F, c, cc, p)  # (n, 8, 3, 3), (n, 8, 3, 3, 3, 3)
-        g = jnp.einsum("eg,egij,egaj->eai", dv, P, G).reshape(-1, 24)
-        K = jnp.einsum("eg,egaj,egijkl,egbl->eaibk", dv, G, A, G).reshape(-1, 24, 24)
-        a = jnp.einsum("eg,egij,egaj->eai", dv, cofactor(F), G).reshape(-1, 24) / V[:, None]
-        K = K + (V * ddU)[:, None, None] * a[:, :, None] * a[:, None, :]
-        return g, K
+        return _element_grad_hess(P, A, F, G, dv, V, ddU)
 
     def fields(self, q, params):
         """Per-element fields as :meth:`eyefem.fem.solid.SolidQ1P0.fields` ('cauchy',
@@ -275,11 +283,7 @@ class SolidFebioLaw(Term):
         over_points = jax.vmap(jax.vmap(lambda f, a_, p_: (
             jax.grad(phi)(f, a_, p_), jax.hessian(phi)(f, a_, p_)), (0, 0, None)), (0, 0, 0))
         P, A = over_points(F, data["a0"], p)
-        g = jnp.einsum("eg,egij,egaj->eai", dv, P, G).reshape(-1, 24)
-        K = jnp.einsum("eg,egaj,egijkl,egbl->eaibk", dv, G, A, G).reshape(-1, 24, 24)
-        a = jnp.einsum("eg,egij,egaj->eai", dv, cofactor(F), G).reshape(-1, 24) / V[:, None]
-        K = K + (V * ddU)[:, None, None] * a[:, :, None] * a[:, None, :]
-        return g, K
+        return _element_grad_hess(P, A, F, G, dv, V, ddU)
 
     def fields(self, q, params):
         """Per-element fields as :meth:`SolidCompressible.fields`."""
