@@ -195,7 +195,7 @@ class DeformableRing(BuckleBody):
         if p["mesh"] not in ("coarse", "default"):
             log.warning("deformable %s on the %s eye mesh: the deformable band and tires have "
                         "been run to the end on the coarse and default eyes only, with their "
-                        "case files' settings (docs/surgery.md)", buckle.kind, p["mesh"])
+                        "case files' settings (docs/surgery_deformable.md)", buckle.kind, p["mesh"])
 
     def with_mesh(self, mesh, buckle, g, p):
         # parked BAND_PARK mm off the sclera until stage 2 fits it snug
@@ -283,7 +283,7 @@ class DeformableSponge(BuckleBody):
                         "deformable_sponge_default.toml (a meridian off the eye mesh's "
                         "symmetry planes, contact_normals = 'nodal', globe_axial = 1); at "
                         "meridian 0 its suture steps were cut until they stopped "
-                        "(docs/surgery.md)", buckle.kind, p["mesh"], p["buckle_meridian_deg"],
+                        "(docs/surgery_deformable.md)", buckle.kind, p["mesh"], p["buckle_meridian_deg"],
                         p["contact_normals"], p["globe_axial"])
 
     def with_mesh(self, mesh, buckle, g, p):

@@ -88,8 +88,8 @@ TIMELINE_FIELDS = [
           "true: the closed cavity exchanges liquid over the surgery's timeline as a living "
           "eye does (aqueous production and outflow by Goldmann's law, a choroidal blood "
           "compartment, paracentesis), the tightening and suturing take their minutes and "
-          "the run continues after surgery to the follow-up times (docs/surgery.md, 'The "
-          "timeline'); false: the seed's closed cavity, no time"),
+          "the run continues after surgery to the follow-up times ("
+          "docs/surgery_timeline.md); false: the seed's closed cavity, no time"),
     Field("outflow_facility", float, _default("facility", 0.24),
           "aqueous outflow facility C, uL/min/mmHg (Kazemi et al. 2017: 0.24 +- 0.08)",
           lambda v: 0 <= v <= 2, "0 to 2 uL/min/mmHg"),
