@@ -82,19 +82,19 @@ def surgery_deck(tmp_path_factory):
     return setup, deck, warnings
 
 
-def test_a_mirror_half_exports_the_whole_eye(surgery_deck, tmp_path):
-    """A case solved as the mirror half (symmetry = 'mirror') gives FEBio the whole eye:
-    the same deck as the case solved whole."""
-    from eyefem.catalog import problems, schemas
-    from eyefem.io.casefile import load_case
+def test_a_mirror_half_exports_the_whole_eye(surgery_deck, tmp_path, capsys):
+    """A case solved as the mirror half (case1.toml: symmetry = 'mirror') gives FEBio the
+    whole eye through `eyefem export-feb`: the same deck as the case solved whole, and the
+    command names the whole mesh's size."""
+    from eyefem.cli.main import main
 
     _, whole_deck, whole_warnings = surgery_deck
-    case = load_case(ROOT / "cases/surgery/case1.toml", schemas())
-    case.parameters.update(mesh="coarse", symmetry="mirror")
-    setup = problems()[case.problem][1](case.parameters, case.materials)
-    assert setup.whole is not None
     deck = tmp_path / "case1_half.feb"
-    assert write_feb(setup, deck) == whole_warnings
+    assert main(["export-feb", str(ROOT / "cases/surgery/case1.toml"), "--mesh", "coarse",
+                 "-o", str(deck)]) == 0
+    out = capsys.readouterr().out
+    assert "3 stage(s) as steps (3153 mesh nodes, 2470 elements)" in out  # not the half's
+    assert out.count("not exported or approximated") == len(whole_warnings)
     assert deck.read_text() == whole_deck.read_text()
 
 

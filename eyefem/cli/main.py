@@ -418,7 +418,7 @@ def cmd_export_feb(args) -> int:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"eyefem export-feb: {msg}", file=sys.stderr)
         return 2
-    mesh = setup.model.mesh
+    mesh = (setup.whole or setup).model.mesh  # a mirror half is exported whole
     print(f"wrote {args.output}: FEBio 4 deck of '{setup.name}', {len(setup.stages)} stage(s) "
           f"as steps ({mesh.n_nodes} mesh nodes, {mesh.n_elem} elements); not run in FEBio")
     for w in skipped:
