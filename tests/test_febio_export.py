@@ -89,7 +89,7 @@ def test_a_mirror_half_exports_the_whole_eye(surgery_deck, tmp_path, capsys):
     from eyefem.cli.main import main
 
     _, whole_deck, whole_warnings = surgery_deck
-    deck = tmp_path / "case1_half.feb"
+    deck = tmp_path / "case1.feb"  # the name the whole deck has (its log file is named after it)
     assert main(["export-feb", str(ROOT / "cases/surgery/case1.toml"), "--mesh", "coarse",
                  "-o", str(deck)]) == 0
     out = capsys.readouterr().out

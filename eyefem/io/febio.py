@@ -406,6 +406,9 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
     plot = ET.SubElement(out, "plotfile", type="febio")
     for var in ("displacement", "stress", "relative volume"):
         ET.SubElement(plot, "var", type=var)
+    log_file = ET.SubElement(out, "logfile")  # the nodes' displacements as text, every step
+    ET.SubElement(log_file, "node_data", data="ux;uy;uz", delim=",",
+                  file=f"{Path(path).stem}_displacement.txt")
 
     names = ", ".join(f"'{st.name}' ({st.n_steps} steps)" for st in exp)
     lines = [f" written by eyefem from '{setup.name}': {len(exp)} stage(s) {names}; units mm, "
