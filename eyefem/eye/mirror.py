@@ -589,7 +589,8 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
     state, its probe measuring the whole eye, its ``whole`` (eyefem.solve.problem.Whole)
     lifting a half state to the whole eye's for the written results (VTU frames on the
     whole mesh, reactions of both halves) and the stability checks. ValueError (say why) when the case is not
-    symmetric about y = 0."""
+    symmetric about y = 0. A mesh with elements across the plane (odd levels: 'half',
+    'graded_half', ...) cannot be cut between elements: the whole Setup, with a warning."""
     p = getattr(setup.parts, "p", {}) or {}
     for key, off, why in (("buckle_body", "rigid", "a deformable buckle's band, tire or sponge"),
                           ("volume_regulation", False, "the surgery's timeline"),
@@ -599,6 +600,14 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
                              f"is implemented for the rigid buckle without {why}; set "
                              f"symmetry = 'none' or {key} = {off!r}")
     whole = setup.model
+    cy = whole.mesh.nodes[whole.mesh.hexes].mean(1)[:, 1]
+    across = int(np.sum(np.abs(cy) <= MIRROR_TOL * _size(whole.mesh)))
+    if across:  # a symmetric mesh the half cannot cut (an odd count of elements per edge)
+        log.warning("symmetry = 'mirror': %d elements of this mesh lie across the plane y = 0 "
+                    "(a level with an odd number of elements per patch edge, such as 'half'), "
+                    "so the half model cannot cut it between elements: the whole eye is "
+                    "solved", across)
+        return setup
     mir = mirror(whole.mesh, whole.n_dof)
     half = half_model(whole, mir)
     theta0 = whole.theta0()
