@@ -24,6 +24,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import logging
+from typing import Callable
 
 import numpy as np
 
@@ -94,10 +95,23 @@ class LoadPath:
                      active=BASE_TERMS + ("iop",))
 
 
+def tied_lengths(sut) -> Callable:
+    """The suture-tying rule, C_2 of the staged adjoint (eyefem.solve.staged.StageMap's
+    carry of the stage that the sutures are tied after): (q, theta, data) -> {"L0": (n,)
+    the suture bars' lengths at q, mm}; data: (the suture term's data, dofs); ``sut``: a
+    suture term of the kind whose data it receives (its methods only). JAX; the forward
+    run's hook :func:`tie_sutures` evaluates it, the design gradients differentiate it."""
+    def carry(q, theta, data):
+        sut_data, sut_dofs = data
+        return {"L0": sut.lengths(q[sut_dofs], theta["sutures"], sut_data)}
+    return carry
+
+
 def tie_sutures(model, q, theta):
-    """Stage hook: the sutures tied at their current lengths (their rest lengths L0)."""
+    """Stage hook: the sutures tied at their current lengths (their rest lengths L0, by
+    :func:`tied_lengths`)."""
     t = model.term("sutures")
-    L = np.asarray(t.lengths(np.asarray(q)[t.dofs], theta["sutures"], t.data))
+    L = np.asarray(tied_lengths(t)(np.asarray(q), theta, (t.data, t.dofs))["L0"])
     return model, q, {**theta, "sutures": {**theta["sutures"], "L0": L}}
 
 

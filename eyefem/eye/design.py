@@ -14,8 +14,10 @@ stages hand on (eyefem.solve.staged.StageMap, written once in JAX):
 
 with V the cavity volume at which it is closed, s the snug radial scale of the fitted
 buckle (params "dr" of the buckle and its sutures), the pre-operative optics that the
-changes are measured from, and L0 the tied suture lengths. The forward run sets each
-stage's params from T_k and hands C_k on; the gradient of the outcomes
+changes are measured from, and L0 the tied suture lengths (C_2 is
+eyefem.eye.bodies.tied_lengths, the rule by which ``eyefem run``'s suture stage ties them,
+eyefem.eye.bodies.tie_sutures). The forward run sets each stage's params from T_k and
+hands C_k on; the gradient of the outcomes
 (eyefem.eye.outcomes.outcome_function) differentiates the same functions by one backward
 sweep (eyefem.solve.staged.staged_gradients: one adjoint solve per stage on its last
 Newton factorisation, a jax.vjp through each T_k and C_k). The suture bites are a JAX
@@ -40,6 +42,10 @@ cavity's history, its IOP and where needed the optics, so that the timeline's ou
 pressure, the IOP and the shape at the follow-up times) and their gradients in the design
 (the paracentesis's volume and time among its variables) come from one backward sweep.
 
+:class:`SurgerySimulator`, :class:`TimelineSimulator` and :class:`RingSimulator` (a
+deformable band or tire, its T_2 / T_3 eyefem.eye.bodies.DeformableRing.design_params)
+share the outcomes of a converged design and their gradients (:class:`StagedSimulator`).
+
 Warm start: a new design is solved from the previous design's converged states, by
 continuation of the params in one step (cut automatically if needed); the equilibria
 do not depend on the path (hyperelastic, frictionless). Stage 1 is solved again only
@@ -56,6 +62,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from eyefem.eye.bodies import DeformableRing, tied_lengths
 from eyefem.eye.outcomes import (changes, eye_optics, indentation, outcome_data,
                                  outcome_function, outcome_nodes)
 from eyefem.eye.parts import SurgeryParts, snug_node, snug_scale
@@ -108,17 +115,6 @@ def preop_carry(parts: SurgeryParts, nodes, snug: bool) -> Callable:
             out["scale"] = snug_scale(parts, q, data["node"])
         return out
     return preop
-
-
-def tied_lengths(sut) -> Callable:
-    """C_2, what the stage that ties the sutures hands on: (q, theta, data) -> {"L0": (n,)
-    the suture bars' lengths at q, mm} (as eyefem.eye.bodies.tie_sutures ties them); data:
-    (the suture term's data, dofs); ``sut``: a suture term of the kind whose data it
-    receives (its methods only, :func:`term_kind`)."""
-    def carry(q, theta, data):
-        sut_data, sut_dofs = data
-        return {"L0": sut.lengths(q[sut_dofs], theta["sutures"], sut_data)}
-    return carry
 
 
 @dataclasses.dataclass(frozen=True)
@@ -174,7 +170,73 @@ class Result:
         return self.stages[2].solution
 
 
-class SurgerySimulator:
+class StagedSimulator:
+    """What the design simulators share (:class:`SurgerySimulator`, its
+    :class:`TimelineSimulator` and :class:`RingSimulator`): the compiled functions kept
+    per kind, the outcomes of a converged design's last stage and their gradients by one
+    backward sweep over its stages (eyefem.solve.staged.staged_gradients). A subclass sets
+    ``params``, ``parts``, ``_nodes`` (eyefem.eye.outcomes.OutcomeNodes), ``_compiled``
+    ({}) and ``last``, and runs designs into results with ``design``, ``stages`` (the last
+    one's solution: the converged design) and ``sutures`` (its suture term)."""
+
+    outcome_names = tuple(OUTCOMES)
+    """The outcomes run() reports and gradients() differentiates, in order."""
+    variables: tuple = tuple(DESIGN_VARIABLES)
+    """The design variables gradients() differentiates in."""
+
+    def _kept_fn(self, key, build: Callable):
+        """The object cached under ``key`` (built by ``build()`` the first time)."""
+        if key not in self._compiled:
+            self._compiled[key] = build()
+        return self._compiled[key]
+
+    def outcome_vector(self, res, names, weights=None) -> tuple[Callable, dict]:
+        """(f, data): f(q, theta, carry, data) -> (k,) the named outcomes at the converged
+        design ``res`` (eyefem.eye.outcomes.outcome_function: the changes measured from
+        the carried pre-operative optics); with ``weights`` (k,), (1,) their weighted sum.
+        f is one object per outcome list and kind of suture term, so that its derivatives
+        are compiled once for every design; ``data`` holds what belongs to ``res``
+        (eyefem.eye.outcomes.outcome_data)."""
+        names, sut, sol = tuple(names), res.sutures, res.stages[-1].solution
+        f = self._kept_fn(("outcomes", names, term_kind(sut)),
+                          lambda: outcome_function(names, sol.model.mesh.nodes, self._nodes,
+                                                   sut))
+        return f, outcome_data(sol.model, sol.q, sol.theta, weights)
+
+    def _evaluated(self, res, q, theta, carry):
+        """``res`` with its outcomes (:attr:`outcome_names`) at its last state (q, theta)
+        and the carries its stages handed on; kept as ``self.last``."""
+        f, data = self.outcome_vector(res, self.outcome_names)
+        values = f(jnp.asarray(q), theta, carry, data)
+        res = dataclasses.replace(res, outcomes=dict(zip(self.outcome_names,
+                                                         map(float, values))))
+        self.last = res
+        return res
+
+    def gradients(self, res, outcomes=None) -> dict[str, dict[str, float]]:
+        """d outcome / d design variable for the named outcomes (default: every one of
+        :attr:`outcome_names`): one backward sweep over the stages
+        (eyefem.solve.staged.staged_gradients), one right-hand side per outcome."""
+        names = list(self.outcome_names) if outcomes is None else list(outcomes)
+        return dict(zip(names, self._gradients(res, *self.outcome_vector(res, names))))
+
+    def weighted_gradient(self, res, weights: dict) -> dict[str, float]:
+        """d (sum_k w_k outcome_k) / d design variable, for outcome name -> weight w_k: the
+        cost of one outcome's gradient whatever the weights (the backward pass of
+        eyefem.simulate)."""
+        items = [(k, float(w)) for k, w in weights.items() if w]
+        if not items:
+            return {k: 0.0 for k in self.variables}
+        names = [k for k, _ in items]
+        w = np.array([w for _, w in items])
+        return self._gradients(res, *self.outcome_vector(res, names, w))[0]
+
+    def _gradients(self, res, f, data) -> list[dict[str, float]]:
+        """The design gradients of the objectives f (one dict per objective)."""
+        return staged_gradients(res.stages, res.design, f, data)[1]
+
+
+class SurgerySimulator(StagedSimulator):
     """Simulate one rigid-buckle surgery case for many designs, with warm starts and
     adjoint gradients.
 
@@ -190,9 +252,6 @@ class SurgerySimulator:
         if cls is SurgerySimulator and dict(params).get("volume_regulation", False):
             cls = TimelineSimulator
         return super().__new__(cls)
-
-    outcome_names = tuple(OUTCOMES)
-    """The outcomes run() reports and gradients() differentiates, in order."""
 
     def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
         self.params = whole_eye(params)
@@ -292,12 +351,6 @@ class SurgerySimulator:
                     StageMap("tighten", self.design_map, tied_lengths(sut)),
                     StageMap("suture", self._tied))
         return self._kept_fn(("maps", term_kind(sut)), build)
-
-    def _kept_fn(self, key, build: Callable):
-        """The object cached under ``key`` (built by ``build()`` the first time)."""
-        if key not in self._compiled:
-            self._compiled[key] = build()
-        return self._compiled[key]
 
     @staticmethod
     def _with(theta, values) -> dict:
@@ -449,46 +502,13 @@ class SurgerySimulator:
                   StageRecord(maps[1], sol2, bites, sut_data, carry2),
                   StageRecord(maps[2], sol3, bites))
         res = Result(design, {}, stages, sut, bites, its, pre)
-        f, data = self.outcome_vector(res, OUTCOMES)
-        values = f(jnp.asarray(sol3.q), sol3.theta, {**pre.carry, **carry2}, data)
-        res = dataclasses.replace(res, outcomes=dict(zip(OUTCOMES, map(float, values))))
-        self.last = res
-        return res
+        return self._evaluated(res, sol3.q, sol3.theta, {**pre.carry, **carry2})
 
-    # --- outcomes and their gradients -------------------------------------------------
-    def outcome_vector(self, res: Result, names, weights=None) -> tuple[Callable, dict]:
-        """(f, data): f(q, theta, carry, data) -> (k,) the named outcomes at the converged
-        design ``res`` (eyefem.eye.outcomes.outcome_function: the changes measured from
-        the carried pre-operative optics); with ``weights`` (k,), (1,) their weighted sum.
-        f is one object per outcome list and kind of suture term, so that its derivatives
-        are compiled once for every design; ``data`` holds what belongs to ``res``
-        (eyefem.eye.outcomes.outcome_data)."""
-        names, sut = tuple(names), res.sutures
-        f = self._kept_fn(("outcomes", names, term_kind(sut)),
-                          lambda: outcome_function(names, self.parts.eye.mesh.nodes,
-                                                   self._nodes, sut))
-        return f, outcome_data(res.sol3.model, res.sol3.q, res.sol3.theta, weights)
-
-    def gradients(self, res: Result, outcomes=None) -> dict[str, dict[str, float]]:
-        """d outcome / d design variable for the named outcomes (default: all OUTCOMES):
-        one backward sweep over the stages (eyefem.solve.staged.staged_gradients), one
-        right-hand side per outcome."""
-        names = list(OUTCOMES) if outcomes is None else list(outcomes)
-        return dict(zip(names, self._gradients(res, *self.outcome_vector(res, names))))
-
-    def weighted_gradient(self, res: Result, weights: dict) -> dict[str, float]:
-        """d (sum_k w_k outcome_k) / d design variable, for outcome name -> weight w_k: the
-        cost of one outcome's gradient whatever the weights (the backward pass of
-        eyefem.simulate)."""
-        items = [(k, float(w)) for k, w in weights.items() if w]
-        if not items:
-            return {k: 0.0 for k in DESIGN_VARIABLES}
-        names = [k for k, _ in items]
-        w = np.array([w for _, w in items])
-        return self._gradients(res, *self.outcome_vector(res, names, w))[0]
-
+    # --- gradients (outcomes and the backward sweep: StagedSimulator) -----------------
     def _gradients(self, res: Result, f, data) -> list[dict[str, float]]:
-        _, totals = staged_gradients(res.stages, res.design, f, data)
+        """Every design variable's gradient (DESIGN_VARIABLES; an encircling buckle's
+        meridian: 0)."""
+        totals = super()._gradients(res, f, data)
         if self.parts.buckle.encircling:  # its sutures are spread evenly around: no meridian
             for total in totals:
                 total["buckle_meridian_deg"] = 0.0
@@ -617,13 +637,8 @@ class TimelineSimulator(SurgerySimulator):
                                                         "node": pre.node}, pre.carry)
         res = TimelineResult(design, {}, (pre_rec,) + records, sut, bites, its, pre, steps,
                              layout)
-        f, data = self.outcome_vector(res, self.outcome_names)
-        values = f(jnp.asarray(q), records[-1].solution.theta,
-                   _carries((pre_rec,) + records[:-1]), data)
-        res = dataclasses.replace(res, outcomes=dict(zip(self.outcome_names,
-                                                         map(float, values))))
-        self.last = res
-        return res
+        return self._evaluated(res, q, records[-1].solution.theta,
+                               _carries((pre_rec,) + records[:-1]))
 
     def _records(self, rec: Recorder, stages, model, sut, bites, pre, first, p, tie):
         """One StageRecord per recorded step, the steps' (stage, clock, IOP) and the layout
@@ -771,12 +786,6 @@ class TimelineSimulator(SurgerySimulator):
         sol = res.stages[-1].solution
         return f, outcome_data(sol.model, sol.q, sol.theta, weights)
 
-    def gradients(self, res: TimelineResult, outcomes=None) -> dict[str, dict[str, float]]:
-        """d outcome / d design variable for the named outcomes (default: every one of
-        :attr:`outcome_names`): one backward sweep over the steps."""
-        names = list(self.outcome_names) if outcomes is None else list(outcomes)
-        return dict(zip(names, self._gradients(res, *self.outcome_vector(res, names))))
-
     def params_mismatch(self, res: TimelineResult) -> float:
         """The largest difference, relative to the param's size, between each step's
         params as T gives them (JAX, what the adjoint differentiates) and those the load
@@ -825,7 +834,7 @@ class RingResult:
     newton_iterations: int
 
 
-class RingSimulator:
+class RingSimulator(StagedSimulator):
     """Simulate a deformable band or tire case (buckle_body = 'deformable', encircling)
     for many designs, with adjoint gradients, through the stages its body declares
     (eyefem.eye.bodies.DeformableRing.design_params, the same as ``eyefem run``'s).
@@ -841,8 +850,6 @@ class RingSimulator:
     """
 
     def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
-        from eyefem.eye.bodies import DeformableRing
-
         self.params = whole_eye(params)
         self.options = options
         _refuse_timeline(self.params)
@@ -871,8 +878,6 @@ class RingSimulator:
     def _maps(self) -> tuple[StageMap, StageMap, StageMap]:
         """The three stages as data: T_2 / T_3 the ring's design params
         (DeformableRing.design_params) with the closed volume and the tied lengths."""
-        if "maps" in self._compiled:
-            return self._compiled["maps"]
         parts = self.parts
 
         def tighten(design, carry, data):  # T_2
@@ -886,12 +891,11 @@ class RingSimulator:
 
         # the suture term's methods only (term_kind): the one the band is refitted with
         # in stage 2 is of the same kind
-        self._compiled["maps"] = (StageMap("pressurise", lambda d, c, data: {},
-                                           preop_carry(parts, self._nodes, snug=False)),
-                                  StageMap("tighten", tighten,
-                                           tied_lengths(self.model1.term("sutures"))),
-                                  StageMap("suture", suture))
-        return self._compiled["maps"]
+        return self._kept_fn("maps", lambda: (
+            StageMap("pressurise", lambda d, c, data: {},
+                     preop_carry(parts, self._nodes, snug=False)),
+            StageMap("tighten", tighten, tied_lengths(self.model1.term("sutures"))),
+            StageMap("suture", suture)))
 
     def _check(self, design: dict) -> None:
         for k in design:
@@ -923,41 +927,7 @@ class RingSimulator:
                   StageRecord(maps[2], sol3))
         its = sum(r.iterations for r in sol2.history + sol3.history)
         res = RingResult(design, {}, stages, sut, its)
-        f, data = self.outcome_vector(res, OUTCOMES)
-        values = f(jnp.asarray(sol3.q), sol3.theta, {**self.carry1, **carry2}, data)
-        res = dataclasses.replace(res, outcomes=dict(zip(OUTCOMES, map(float, values))))
-        self.last = res
-        return res
-
-    def outcome_vector(self, res: RingResult, names, weights=None) -> tuple[Callable, dict]:
-        """(f, data) as :meth:`SurgerySimulator.outcome_vector`."""
-        names, sol3 = tuple(names), res.stages[2].solution
-        sut = sol3.model.term("sutures")
-        f = self._kept_fn(("outcomes", names),
-                          lambda: outcome_function(names, sol3.model.mesh.nodes, self._nodes,
-                                                   sut))
-        return f, outcome_data(sol3.model, sol3.q, sol3.theta, weights)
-
-    def _kept_fn(self, key, build: Callable):
-        if key not in self._compiled:
-            self._compiled[key] = build()
-        return self._compiled[key]
-
-    def gradients(self, res: RingResult, outcomes=None) -> dict[str, dict[str, float]]:
-        """d outcome / d design variable (self.variables) for the named outcomes (default:
-        all OUTCOMES): one backward sweep over the stages."""
-        names = list(OUTCOMES) if outcomes is None else list(outcomes)
-        _, totals = staged_gradients(res.stages, res.design, *self.outcome_vector(res, names))
-        return dict(zip(names, totals))
-
-    def weighted_gradient(self, res: RingResult, weights: dict) -> dict[str, float]:
-        """d (sum_k w_k outcome_k) / d design variable (one backward sweep)."""
-        items = [(k, float(w)) for k, w in weights.items() if w]
-        if not items:
-            return {k: 0.0 for k in self.variables}
-        names, w = [k for k, _ in items], np.array([w for _, w in items])
-        return staged_gradients(res.stages, res.design,
-                                *self.outcome_vector(res, names, w))[1][0]
+        return self._evaluated(res, sol3.q, sol3.theta, {**self.carry1, **carry2})
 
 
 def whole_eye(params: dict) -> dict:
