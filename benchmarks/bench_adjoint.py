@@ -27,12 +27,8 @@ jax.config.update("jax_enable_x64", True)
 
 from bench_core import _median  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
-from eyefem.eye.design import (  # noqa: E402
-    DESIGN_VARIABLES,
-    OUTCOMES,
-    SurgerySimulator,
-    default_parameters,
-)
+from eyefem.eye.simulators import SurgerySimulator  # noqa: E402
+from eyefem.eye.variables import DESIGN_VARIABLES, OUTCOMES, default_parameters  # noqa: E402
 
 
 def main(argv=None):

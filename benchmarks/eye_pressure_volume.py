@@ -21,7 +21,7 @@ import numpy as np
 
 def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
-    from eyefem.eye.design import default_parameters
+    from eyefem.eye.variables import default_parameters
     from eyefem.eye.surgery import surgery
     from eyefem.fem.units import MMHG
     from eyefem.io.output import plot_curves, write_csv, write_text

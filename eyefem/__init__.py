@@ -20,8 +20,8 @@ imports JAX nor changes its configuration; see docs/api.md):
 _PUBLIC = {  # name -> (module, attribute; None: the module itself)
     "simulate": ("eyefem.api", "simulate"),
     "load_case": ("eyefem.api", "load_case"),
-    "DESIGN_VARIABLES": ("eyefem.eye.design", "DESIGN_VARIABLES"),
-    "OUTCOMES": ("eyefem.eye.design", "OUTCOMES"),
+    "DESIGN_VARIABLES": ("eyefem.eye.variables", "DESIGN_VARIABLES"),
+    "OUTCOMES": ("eyefem.eye.variables", "OUTCOMES"),
     "Mesh": ("eyefem.fem.mesh", "Mesh"),
     "materials": ("eyefem.fem.materials", None),
     "terms": ("eyefem.fem.terms", None),

@@ -41,7 +41,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from eyefem.catalog import schemas, solver_defaults
-from eyefem.eye.design import DESIGN_VARIABLES, OUTCOMES, RingSimulator, SurgerySimulator
+from eyefem.eye.simulators import RingSimulator, SurgerySimulator
+from eyefem.eye.variables import DESIGN_VARIABLES, OUTCOMES
 from eyefem.io import casefile
 from eyefem.io.casefile import Case
 

@@ -116,7 +116,7 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
     """
     from scipy.optimize import minimize
 
-    from eyefem.eye.design import MATERIAL_VARIABLES, SURGICAL_VARIABLES
+    from eyefem.eye.variables import MATERIAL_VARIABLES, SURGICAL_VARIABLES
 
     for n in names:
         if n in MATERIAL_VARIABLES:
@@ -359,7 +359,7 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     from eyefem.catalog import schemas, solver_defaults
     from eyefem.api import with_material_preset
-    from eyefem.eye.design import SurgerySimulator
+    from eyefem.eye.simulators import SurgerySimulator
     from eyefem.io.casefile import CaseError, load_case
     from eyefem.io.output import write_case, write_csv, write_text
     from eyefem.solve.heap import configure_heap

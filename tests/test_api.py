@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 import eyefem
-from eyefem.eye.design import OUTCOMES, SurgerySimulator
+from eyefem.eye.simulators import SurgerySimulator
+from eyefem.eye.variables import OUTCOMES
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE1 = str(ROOT / "cases" / "surgery" / "case1.toml")

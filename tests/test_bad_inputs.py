@@ -603,7 +603,7 @@ def test_device_gpu_without_a_gpu_is_a_message(tmp_path, capsys):
 def test_planned_case_that_does_not_converge_exits_3(tmp_path, capsys, monkeypatch):
     """A case whose own solve fails before the plan starts: exit 3 (did not converge) with
     one line, not a traceback."""
-    import eyefem.eye.design as design
+    import eyefem.eye.simulators as simulators
     import optimize.plan as plan_mod
     from eyefem.solve.solver import ConvergenceError
 
@@ -611,7 +611,7 @@ def test_planned_case_that_does_not_converge_exits_3(tmp_path, capsys, monkeypat
         raise ConvergenceError("stage 'pressurise': step to t = 1 failed after 8 cuts", None,
                                None, [])
 
-    monkeypatch.setattr(design, "SurgerySimulator", failing)
+    monkeypatch.setattr(simulators, "SurgerySimulator", failing)
     case = _write(tmp_path, SURGERY)
     rc = plan_mod.main([str(case), "--target-indentation", "1.0", "--vars", "tightening",
                         "--out", str(tmp_path / "p")])

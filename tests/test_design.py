@@ -8,7 +8,8 @@ started from the base design's converged states; the equilibria are path indepen
 import numpy as np
 import pytest
 
-from eyefem.eye.design import DESIGN_VARIABLES, OUTCOMES, SurgerySimulator, default_parameters
+from eyefem.eye.simulators import SurgerySimulator
+from eyefem.eye.variables import DESIGN_VARIABLES, OUTCOMES, default_parameters
 from eyefem.solve.solver import NewtonOptions
 
 H = {"tightening": 1e-3, "buckle_shift": 1e-3, "suture_width": 1e-3, "suture_tightening": 1e-3,

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import eyefem
-from eyefem.eye.design import OUTCOMES, RingSimulator
+from eyefem.eye.simulators import RingSimulator
+from eyefem.eye.variables import OUTCOMES
 from eyefem.solve.solver import NewtonOptions
 
 CASE = "cases/surgery/deformable_band.toml"

@@ -37,7 +37,7 @@ peak's argmax (the last tightening step) does not move within the steps."""
 def timeline():  # used by the slow tests only
     import jax
 
-    from eyefem.eye.design import SurgerySimulator
+    from eyefem.eye.simulators import SurgerySimulator
 
     jax.config.update("jax_enable_x64", True)
     case = load_case(CASE)
@@ -50,7 +50,7 @@ def timeline():  # used by the slow tests only
 
 @pytest.mark.slow
 def test_a_timeline_case_gets_the_timeline_simulator(timeline):
-    from eyefem.eye.design import TimelineSimulator
+    from eyefem.eye.simulators import TimelineSimulator
 
     sim, res, grads = timeline
     assert isinstance(sim, TimelineSimulator)

@@ -16,7 +16,11 @@ The bodies:
 - :class:`DeformableSponge`: a hexahedral silicone sponge sewn on (:mod:`eyefem.eye.sponge`).
 
 Stage hooks (``Stage.before``) return a new model; the parts they were built from are
-never changed (a refitted deformable buckle lives in the new model's mesh).
+never changed (a refitted deformable buckle lives in the new model's mesh). What the
+stages hand on, as the design gradients differentiate it (eyefem.eye.simulators), is
+written here once in JAX: :func:`preop_carry` (the closed volume, the snug scale, the
+pre-operative optics) and :func:`tied_lengths` (the sutures' rest lengths, which the
+suture stage's hook :func:`tie_sutures` evaluates).
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ from eyefem.eye.band import (
 from eyefem.eye.buckle_meshes import band_n_circ, deformable_band
 from eyefem.eye.buckles import KINDS, Buckle
 from eyefem.eye.eyemodel import EyeGeometry
+from eyefem.eye.outcomes import eye_optics
 from eyefem.eye.parts import SurgeryParts, snug_scale
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.rigid_buckle import buckle_term, rigid_design_params, suture_term
@@ -57,7 +62,7 @@ from eyefem.eye.sponge import (
     sponge_spring_term,
     sponge_suture_term,
 )
-from eyefem.fem.cavity import close_cavity
+from eyefem.fem.cavity import cavity_pressures, close_cavity
 from eyefem.fem.loop_solid import ShortenedLoopSolid
 from eyefem.fem.mesh import Mesh
 from eyefem.fem.terms import DofForce, Term
@@ -105,6 +110,25 @@ def tied_lengths(sut) -> Callable:
         sut_data, sut_dofs = data
         return {"L0": sut.lengths(q[sut_dofs], theta["sutures"], sut_data)}
     return carry
+
+
+def preop_carry(parts: SurgeryParts, nodes, snug: bool) -> Callable:
+    """C_1, what the pressurised eye hands on: (q, theta, data) -> {"volume": the cavity's
+    volume at q (mm^3, closed at it), "optics": its eyefem.eye.outcomes.eye_optics (the
+    pre-operative eye the changes are measured from)} and, with ``snug``, "scale": the
+    buckle's snug radial scale (eyefem.eye.parts.snug_scale at data["node"]); data:
+    {"cavity": (the FluidCavity's data, dofs), "node": the snug node}. JAX: the volume and
+    scale at which the stage hooks that place a buckle close the cavity and fit it
+    (close_cavity, snug_scale), as the design gradients differentiate them."""
+    X = parts.eye.mesh.nodes
+
+    def preop(q, theta, data):
+        out = {"volume": cavity_pressures(q, theta["cavity"], *data["cavity"])[1][0],
+               "optics": eye_optics(X, q, nodes)}
+        if snug:
+            out["scale"] = snug_scale(parts, q, data["node"])
+        return out
+    return preop
 
 
 def tie_sutures(model, q, theta):
