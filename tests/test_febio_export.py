@@ -4,6 +4,7 @@ constraint, the encircling buckle as rigid segments in sliding contact; what FEB
 be given is listed in the deck's header. There is no FEBio binary here: a run in FEBio is
 not verified; the decks are read back with eyefem's own reader."""
 
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -46,17 +47,18 @@ def _linked_block():
 
 def test_steps_bars_and_springs_round_trip_to_the_same_solution(tmp_path):
     """Two stages become two <step>s; the bars become linear springs with E = EA / L0 and
-    the node springs zero-length springs to fixed ground nodes (FEBio's E (l - L0): the
-    same energies). Read back and solved by eyefem, the deck gives the native solution
-    (the one part checkable without FEBio)."""
+    each node spring three springs to fixed ground nodes GROUND_ARM away along x, y, z
+    (FEBio's E (l - L0): the same energies, the node springs' to O(|u| / GROUND_ARM)).
+    Read back and solved by eyefem, the deck gives the native solution."""
     setup = _linked_block()
     deck = tmp_path / "linked.feb"
     assert write_feb(setup, deck) == []
     pieces = deck_pieces(deck)
     n = setup.model.mesh.n_nodes
     assert pieces["steps"] == ["up", "more"]
-    assert pieces["nodes"] == n + len(setup.model.mesh.node_set("x1"))  # + ground nodes
-    assert pieces["springs"] == {"linear spring": 2 + len(setup.model.mesh.node_set("x1"))}
+    n_held = len(setup.model.mesh.node_set("x1"))
+    assert pieces["nodes"] == n + 3 * n_held  # + three ground nodes per held node
+    assert pieces["springs"] == {"linear spring": 2 + 3 * n_held}
     mesh, mats, loads = read_feb(deck)
     model, stages = build_stages(mesh, mats, loads)
     assert [s.n_steps for s in stages] == [2, 2]
@@ -100,20 +102,25 @@ def test_a_mirror_half_exports_the_whole_eye(surgery_deck, tmp_path, capsys):
 
 def test_surgery_exports_every_stage_and_its_pieces(surgery_deck):
     """Case 1 on the coarse mesh: three steps, the zonule's 16 bars and the lens's
-    springs as linear springs, the buckle as 24 rigid segments each in sliding-elastic
-    contact with the sclera, the cavity as one volume constraint."""
+    springs as linear springs (three per lens node), the buckle as 24 rigid segments each
+    in sliding-elastic contact with the sclera in the two steps where the buckle acts (a
+    step's contact: FEBio deactivates it at the step's end), the cavity as one volume
+    constraint."""
     setup, deck, _ = surgery_deck
     model = setup.model
     pieces = deck_pieces(deck)
     assert pieces["steps"] == [s.name for s in setup.stages]
     lens = len(model.term("lens_springs").nodes)
     zonule = len(model.term("zonule").params["EA"])
-    assert pieces["springs"] == {"linear spring": zonule + lens}
+    assert pieces["springs"] == {"linear spring": zonule + 3 * lens}
     assert pieces["elements"]["hex8"] == model.mesh.n_elem
-    assert pieces["rigid_bodies"] == 24 and pieces["contacts"] == {"sliding-elastic": 24}
+    assert pieces["rigid_bodies"] == 24 and pieces["contacts"] == {"sliding-elastic": 48}
+    root = ET.parse(deck).getroot()
+    assert root.find("Contact") is None
+    assert [len(st.findall("Contact/contact")) for st in root.iter("step")] == [0, 24, 24]
     assert pieces["constraints"] == {"volume": 1} and pieces["surface_loads"] == 1
-    # nodes: the mesh's, a ground node per lens spring, the segments' facets (5 x 7 each)
-    assert pieces["nodes"] == model.mesh.n_nodes + lens + 24 * 5 * 7
+    # nodes: the mesh's, three ground nodes per lens spring, the segments' facets (5 x 7)
+    assert pieces["nodes"] == model.mesh.n_nodes + 3 * lens + 24 * 5 * 7
 
 
 def test_surgery_deck_lists_what_febio_is_not_given(surgery_deck):
@@ -132,23 +139,28 @@ def test_surgery_deck_lists_what_febio_is_not_given(surgery_deck):
 def test_surgery_deck_reads_back_into_the_same_pieces(surgery_deck):
     """eyefem's own reader takes the exported deck back: the mesh's nodes and hexahedra
     (plus the ground and segment nodes), the zonule's and the lens's springs, one
-    RigidContact per rigid segment, the cavity as a FluidCavity acting in the tighten
-    stage only (FEBio's step-level constraint), the IOP load and the three stages."""
+    RigidContact per rigid segment acting in the tighten and suture stages (written in
+    both steps), the cavity as a FluidCavity acting in the tighten stage only (FEBio's
+    step-level constraint), the IOP load and the three stages."""
     setup, deck, _ = surgery_deck
     model0 = setup.model
     mesh, mats, loads = read_feb(deck)
     model, stages = build_stages(mesh, mats, loads)
     lens = len(model0.term("lens_springs").nodes)
     assert mesh.n_elem == model0.mesh.n_elem
-    assert mesh.n_nodes == model0.mesh.n_nodes + lens + 24 * 5 * 7
+    assert mesh.n_nodes == model0.mesh.n_nodes + 3 * lens + 24 * 5 * 7
     kinds = [type(t).__name__ for t in model.terms]
     assert kinds.count("RigidContact") == 24 and kinds.count("FluidCavity") == 1
     springs = [t for t in model.terms if type(t).__name__ == "LinearSpring"]
-    assert sum(len(t.dofs) for t in springs) == lens + len(model0.term("zonule").params["EA"])
+    assert sum(len(t.dofs) for t in springs) == 3 * lens + len(
+        model0.term("zonule").params["EA"])
     assert [s.name for s in stages] == [s.name for s in setup.stages]
     assert [s.n_steps for s in stages] == [s.n_steps for s in setup.stages]
     cavity = next(t.name for t in model.terms if type(t).__name__ == "FluidCavity")
     assert [s.active is None or cavity in s.active for s in stages] == [False, True, False]
+    contact = next(t.name for t in model.terms if type(t).__name__ == "RigidContact")
+    assert [s.active is None or contact in s.active for s in stages] == [False, True, True]
+    assert all(c.steps == (1, 2) for c in loads.contacts)
     assert loads.contacts[0].d == pytest.approx((0.0, 0.795775674, 0.795775674), rel=1e-8)
 
 

@@ -10,7 +10,8 @@ Mapping (see docs/febio.md):
 * materials: eyefem's W = c10 (I1bar - 3) + c01 (I2bar - 3), incompressible through the
   element multiplier, becomes FEBio's uncoupled "Mooney-Rivlin" (c1 = c10, c2 = c01) with
   the bulk modulus k = ``bulk_factor`` (c10 + c01) (default 1000) and FEBio's augmented
-  Lagrangian (<laugon>1</laugon>, <atol> AUGMENTATION_TOL): its augmentations drive each
+  Lagrangian (the SolidDomain's <laugon>1</laugon> and <atol> AUGMENTATION_TOL, type
+  "three-field-solid": FEBio 4 reads them there): its augmentations drive each
   three-field element's volume ratio Jbar = v / V to 1, the Q1P0 element's constraint, and
   the reader takes laugon = 1 back as exactly incompressible; higher-order terms (c20,
   c30, ...) have no FEBio "Mooney-Rivlin" equivalent and are dropped with a warning;
@@ -24,7 +25,8 @@ Mapping (see docs/febio.md):
   surface pressure (eyefem.fem.surface.PressureLoad: a follower load, positive against
   the outward normal as in FEBio) a "pressure" surface load;
 * bars (eyefem.fem.bars.Bars) and node springs (NodeSprings) become FEBio's linear
-  springs (the same energies: E = EA / L0; zero-length springs to fixed ground nodes);
+  springs (the same energies: E = EA / L0; node springs as three springs to fixed ground
+  nodes GROUND_ARM away along x, y, z);
 * an encircling rigid buckle (eyefem.fem.buckle_contact.BuckleContact) becomes
   BUCKLE_SEGMENTS rigid bodies of quad4 facets translated radially, each in
   sliding-elastic contact with the sclera; a closed cavity (eyefem.fem.cavity.FluidCavity)
@@ -64,6 +66,14 @@ BULK_FACTOR = 1000.0
 
 _XYZ = "xyz"
 
+GROUND_ARM = 1e6
+"""Rest length (mm) of the three springs along x, y and z that give FEBio a node spring
+(eyefem.fem.terms.NodeSprings, 1/2 k |u|^2): their energy 1/2 k sum_i (|a e_i + u| - a)^2
+is 1/2 k |u|^2 to a relative O(|u| / a) (5e-8 at 0.1 mm). A zero-length spring would be
+the same energy, but FEBio's spring has no stiffness across itself at zero length
+(FESpringMaterial::Stiffness), so a node held only by such springs is loose in the first
+iteration."""
+
 AUGMENTATION_TOL = 1e-3
 """FEBio's <atol> written with <laugon>1</laugon> for an exactly incompressible material:
 its augmentations stop when the norm of the element pressures changes by less than this
@@ -99,7 +109,7 @@ def _ids(values) -> str:
 
 
 def write_feb(setup: Setup, path, *, stages: int | None = None,
-              bulk_factor: float = BULK_FACTOR) -> list[str]:
+              bulk_factor: float = BULK_FACTOR, fit: bool = True) -> list[str]:
     """Write a Setup's stages as an FEBio 4 input deck: one <step> per stage.
 
     Args:
@@ -112,11 +122,15 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
         <Step> (FEBio's single analysis).
       bulk_factor: FEBio's k = bulk_factor (c10 + c01) per exactly incompressible
         material (a material with its own k, or a coupled one, is written as it is).
+      fit: where a stage's hook refits a buckle (a ring fitted snug on the pressurised
+        eye), solve the stages before it with eyefem and write the buckle's segments at
+        that fit (:func:`fitted_buckles`); False: at the buckle's initial fit.
     Returns: the omissions (what FEBio cannot be given, or is given approximately), also
       written in the deck's header comment and logged.
     Raises: ValueError for a stage count outside 1..len(setup.stages) or a model without
       solid elements; OSError.
     """
+    fits = fitted_buckles(setup, stages) if fit else {}
     if setup.whole is not None:  # a reduced model (the mirror half): FEBio gets the whole
         setup = dataclasses.replace(setup, model=setup.whole.model,
                                     stages=list(setup.whole.stages), q0=setup.whole.q0,
@@ -178,6 +192,7 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
 
     mat_names = safe_names([mesh.materials[m] for m in mat_ids])
     mats = ET.SubElement(root, "Material")
+    incompressible = set()  # FEBio 4: laugon and atol are the three-field domain's
     for i, m in enumerate(mat_ids, start=1):
         c = coeffs[m]
         name = mesh.materials[m]
@@ -199,8 +214,7 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
         ET.SubElement(el, "c1").text = _fmt(c[1, 0])
         ET.SubElement(el, "c2").text = _fmt(c[0, 1])
         ET.SubElement(el, "k").text = _fmt(k)
-        ET.SubElement(el, "laugon").text = "1"
-        ET.SubElement(el, "atol").text = _fmt(AUGMENTATION_TOL)
+        incompressible.add(m)
     n_mat = len(mat_ids)
 
     # extra nodes: the springs' fixed ground nodes, the buckle's rigid segments
@@ -215,18 +229,19 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
     for t in links:
         discrete += _bar_springs(t, theta, exp, mesh, warnings)
     ground = []
-    for t in springs:
-        g = add_nodes(mesh.nodes[t.nodes])
+    for t in springs:  # three springs of rest length GROUND_ARM along x, y, z per node
+        arms = mesh.nodes[t.nodes][:, None, :] + GROUND_ARM * np.eye(3)[None]
+        g = add_nodes(arms.reshape(-1, 3))
         ground.append(g)
-        discrete.append((f"{t.name}", np.stack([t.nodes, g], 1), "linear spring",
-                         np.full(len(g), float(theta[t.name]["k"]))))
+        discrete.append((f"{t.name}", np.stack([np.repeat(t.nodes, 3), g], 1),
+                         "linear spring", np.full(len(g), float(theta[t.name]["k"]))))
         if any(float(st.params.get(t.name, {}).get("k", theta[t.name]["k"]))
                != float(theta[t.name]["k"]) for st in exp):
             warnings.append(f"springs '{t.name}': a stiffness changed by a stage is written "
                             "at its initial value")
     segments = []  # (name, quads (f, 4) node ids, direction (3,), d per stage end)
     for t in buckles:
-        segments += _buckle_segments(t, theta, exp, add_nodes, warnings)
+        segments += _buckle_segments(t, theta, exp, add_nodes, warnings, fits.get(t.name))
 
     xml_mesh = ET.SubElement(root, "Mesh")
     nodes = ET.SubElement(xml_mesh, "Nodes", name="nodes")
@@ -291,7 +306,13 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
     doms = ET.SubElement(root, "MeshDomains")
     for m in mat_ids:
         nm = mat_names[mesh.materials[m]]
-        ET.SubElement(doms, "SolidDomain", name=f"part_{nm}", mat=nm)
+        if m in incompressible:  # FEBio's augmented Lagrangian on Jbar, per element
+            dom = ET.SubElement(doms, "SolidDomain", name=f"part_{nm}", mat=nm,
+                                type="three-field-solid")
+            ET.SubElement(dom, "laugon").text = "1"
+            ET.SubElement(dom, "atol").text = _fmt(AUGMENTATION_TOL)
+        else:
+            ET.SubElement(doms, "SolidDomain", name=f"part_{nm}", mat=nm)
     for i, (name, _, _, _) in enumerate(segments, start=n_mat + 1):
         el = ET.SubElement(mats, "material", id=str(i), name=name, type="rigid body")
         ET.SubElement(el, "density").text = "1"
@@ -360,19 +381,9 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
         for i, (name, _, _, _) in enumerate(discrete, start=1):
             ET.SubElement(dis, "discrete", dmat=str(i), discrete_set=name)
 
-    if contact_pairs:
-        con = ET.SubElement(root, "Contact")
-        for t, pair in contact_pairs:
-            area = float(np.mean(t.node_area))
-            eps = float(np.mean(np.asarray(t.data["alpha"]))) / area
-            c = ET.SubElement(con, "contact", name=pair, surface_pair=pair,
-                              type="sliding-elastic")
-            c.append(ET.Comment(f" eyefem's penalty {np.mean(t.data['alpha']):.6g} N/mm per "
-                                f"node over the mean nodal area {area:.6g} mm^2 "))
-            for tag, v in (("laugon", "0"), ("penalty", _fmt(eps)), ("auto_penalty", "0"),
-                           ("two_pass", "0"), ("tension", "0"), ("fric_coeff", "0"),
-                           ("symmetric_stiffness", "0"), ("search_tol", "0.01")):
-                ET.SubElement(c, tag).text = v
+    always = [(t, pair) for t, pair in contact_pairs if all(on(t, st) for st in exp)]
+    if always:
+        _write_contacts(ET.SubElement(root, "Contact"), always)
 
     for t in cavities:
         if all(on(t, st) for st in exp):
@@ -382,6 +393,10 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
         for k, st in enumerate(exp):
             se = ET.SubElement(steps, "step", id=str(k + 1), name=st.name)
             _write_control(ET.SubElement(se, "Control"), st.n_steps)
+            staged = [(t, pair) for t, pair in contact_pairs
+                      if on(t, st) and (t, pair) not in always]
+            if staged:  # FEBio deactivates a step's components at its end: one per step
+                _write_contacts(ET.SubElement(se, "Contact"), staged)
             for t in cavities:
                 if on(t, st) and not all(on(t, s_) for s_ in exp) and (
                         k == 0 or not on(t, exp[k - 1])):
@@ -450,6 +465,21 @@ def _unique(label, taken: set) -> str:
     return nm
 
 
+def _write_contacts(con, pairs) -> None:
+    """FEBio's frictionless sliding-elastic penalty contacts of the sclera against the
+    buckle's rigid segments, one per (term, surface pair), into <Contact> ``con``."""
+    for t, pair in pairs:
+        area = float(np.mean(t.node_area))
+        eps = float(np.mean(np.asarray(t.data["alpha"]))) / area
+        c = ET.SubElement(con, "contact", name=pair, surface_pair=pair, type="sliding-elastic")
+        c.append(ET.Comment(f" eyefem's penalty {np.mean(t.data['alpha']):.6g} N/mm per "
+                            f"node over the mean nodal area {area:.6g} mm^2 "))
+        for tag, v in (("laugon", "0"), ("penalty", _fmt(eps)), ("auto_penalty", "0"),
+                       ("two_pass", "0"), ("tension", "0"), ("fric_coeff", "0"),
+                       ("symmetric_stiffness", "0"), ("search_tol", "0.01")):
+            ET.SubElement(c, tag).text = v
+
+
 def _write_control(ctrl, n_steps: int) -> None:
     ET.SubElement(ctrl, "analysis").text = "STATIC"
     ET.SubElement(ctrl, "time_steps").text = str(n_steps)
@@ -459,6 +489,9 @@ def _write_control(ctrl, n_steps: int) -> None:
     ET.SubElement(ts, "opt_iter").text = "10"
     ET.SubElement(ts, "dtmin").text = "0"
     ET.SubElement(ts, "dtmax").text = _fmt(1.0 / n_steps)
+    solver = ET.SubElement(ctrl, "solver", type="solid")  # FEBio 4 needs it in each step
+    ET.SubElement(solver, "max_refs").text = "25"
+    ET.SubElement(solver, "qn_method", type="BFGS")  # FEBio's default quasi-Newton
 
 
 class _Curves:
@@ -538,10 +571,43 @@ radius through its middle, so their surface stays within d (1 - cos(pi / 24)) = 
 the radial tightening d of eyefem's uniformly shrinking ring."""
 
 
-def _buckle_segments(t, theta, exp, add_nodes, warnings) -> list:
+def _ring(t):
+    """The BuckleContact of a term, or of the term a reduced model wraps (``inner``)."""
+    while not isinstance(t, BuckleContact) and getattr(t, "inner", None) is not None:
+        t = t.inner
+    return t if isinstance(t, BuckleContact) else None
+
+
+def fitted_buckles(setup: Setup, stages: int | None = None) -> dict[str, tuple[float, str]]:
+    """{buckle term name: (dr, stage name)}: the radial fit (mm, added to the ring's radius)
+    that the first stage's hook gives a buckle where the buckle acts from a stage with a
+    ``before`` hook (eyefem fits the ring snug on the pressurised eye there): the stages
+    before it are solved by eyefem from the Setup's start. {} when no hook refits one."""
+    from eyefem.solve.solver import solve
+
+    names = [t.name for t in setup.model.terms if _ring(t) is not None]
+    exp = setup.stages[:stages]
+    k = next((i for i, st in enumerate(exp) if st.before is not None and any(
+        st.active is None or n in st.active for n in names)), None)
+    if not names or not k:
+        return {}
+    log.info("export-feb: solving the stage(s) %s with eyefem to fit the buckle as stage "
+             "'%s' does", ", ".join(repr(st.name) for st in exp[:k]), exp[k].name)
+    sol = solve(setup.model, exp[:k], q0=setup.q0)
+    model, _, _ = exp[k].before(sol.model, sol.q, sol.theta)
+    out = {}
+    for n in names:
+        dr = _ring(model.term(n)).radius - _ring(setup.model.term(n)).radius
+        if dr != 0.0:
+            out[n] = (float(dr), exp[k].name)
+    return out
+
+
+def _buckle_segments(t, theta, exp, add_nodes, warnings, fit=None) -> list:
     """An encircling eyefem.fem.buckle_contact.BuckleContact (its analytic inner surface)
     as BUCKLE_SEGMENTS rigid bodies of quad4 facets: [(name, quads (f, 4) node ids,
-    inward unit direction (3,), the radial motion d at t = 0 and each stage's end)]."""
+    inward unit direction (3,), the radial motion d at t = 0 and each stage's end)];
+    ``fit``: (dr mm, stage) the ring's radius refitted by that stage (:func:`fitted_buckles`)."""
     extra = [0.0]  # the ring's own radial unknown, where a stage prescribes it
     for st in exp if t.extra_dof >= 0 else ():
         hit = np.nonzero(np.asarray(st.prescribed[0]) == t.extra_dof)[0]
@@ -564,6 +630,11 @@ def _buckle_segments(t, theta, exp, add_nodes, warnings) -> list:
                         f"{ridge:g} mm from the start (eyefem raises it over a stage)")
     params = {k: np.zeros(1) for k in ("d", "s", "dr", "rot")}
     params["ridge"] = np.array([ridge])
+    if fit is not None:
+        params["dr"] = np.array([fit[0]])
+        warnings.append(f"buckle '{t.name}': fitted as eyefem's stage '{fit[1]}' fits it (its "
+                        f"radius {fit[0]:+.6g} mm, from eyefem's solve of the stages before; "
+                        "FEBio's segments are placed there from the start)")
     n_seg, per = BUCKLE_SEGMENTS, 4
     P, _ = t.surface(np.zeros(max(3 * t.mesh.n_nodes, t.extra_dof + 1)), params,
                      n_around=n_seg * per,
@@ -573,7 +644,7 @@ def _buckle_segments(t, theta, exp, add_nodes, warnings) -> list:
     warnings.append(f"buckle '{t.name}': written as {n_seg} rigid segments translated along "
                     "their middle's inward radius (eyefem shrinks the ring uniformly), in "
                     "sliding-elastic contact with a penalty per area from eyefem's per-node "
-                    "penalty, from the first step (eyefem's from its stage), without "
+                    "penalty, in the steps of the stages where it is active, without "
                     "eyefem's smoothed penetration")
     out = []
     for j in range(n_seg):

@@ -26,6 +26,7 @@ and the value it cannot read; about 2100 lines.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import logging
@@ -147,7 +148,8 @@ class FebContact:
       node ids of the secondary faces; direction (3,) unit direction of the body's motion;
       d (n_steps,) its motion along it at each step's end, mm; penalty: eyefem's alpha
       per node, N/mm (FEBio's penalty, MPa/mm, times the primary nodes' mean tributary
-      area, mm^2).
+      area, mm^2); steps: the indices of the steps it acts in (a step's <Contact>: FEBio
+      deactivates a step's components at its end), or None (the model's: every step).
     """
 
     name: str
@@ -157,6 +159,7 @@ class FebContact:
     direction: np.ndarray
     d: tuple
     penalty: float
+    steps: tuple | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -388,16 +391,18 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
             raise _err(path, f"<Step><{st.tag}> is not supported; give each step as <step>")
         for child in st:
             if isinstance(child.tag, str) and child.tag not in (
-                    "Control", "Boundary", "Loads", "Rigid", "Constraints") and len(child):
+                    "Control", "Boundary", "Loads", "Rigid", "Constraints",
+                    "Contact") and len(child):
                 raise _err(path, f"<step name=\"{st.get('name')}\"><{child.tag}> is not "
-                           "supported (eyefem reads a step's Control, Boundary, Loads, Rigid "
-                           "and Constraints)")
+                           "supported (eyefem reads a step's Control, Boundary, Loads, Rigid, "
+                           "Constraints and Contact)")
         _check_analysis(st.find("Control"), path)
 
     materials, bulk, by_id = _read_materials(root, path)
     nodes, node_index = _read_nodes(root, path)
     hexes, blocks, elem_ids, lines = _read_elements(root, path, node_index)
-    mat_of_block, truss_of_block = _read_domains(root, path, blocks, materials, by_id, lines)
+    mat_of_block, truss_of_block = _read_domains(root, path, blocks, materials, bulk, by_id,
+                                                 lines)
     shells = {b: lines.pop(b)[1] for b in list(lines) if isinstance(lines[b], tuple)}
     _check_jacobians(nodes, hexes, elem_ids, path)
     # a rigid body's elements leave the solid: their nodes move as the deck prescribes
@@ -467,7 +472,9 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
                 terms.setdefault(tname, (kind, dat, value(t0)))
                 params[tname] = {"p" if kind == "pressure" else "f": value(t)}
         steps.append((name, n, t, prescribed, params))
-    contacts = _read_contacts(root, path, mesh, pairs, rigid, step_moves)
+    contacts = _read_contacts([(None, root.find("Contact"))] + [
+        (k, None if st is None else st.find("Contact")) for k, (_, _, st) in
+        enumerate(specs)], path, mesh, pairs, rigid, step_moves)
     volumes = _read_volumes([(None, root.find("Constraints"))] + [
         (k, None if st is None else st.find("Constraints")) for k, (_, _, st) in
         enumerate(specs)], path, mesh)
@@ -1087,14 +1094,14 @@ def _read_elements(root, path, node_index):
     return np.array(hexes, np.int64).reshape(-1, 8), blocks, elem_ids, lines
 
 
-def _read_domains(root, path, blocks, materials, by_id, lines):
+def _read_domains(root, path, blocks, materials, bulk, by_id, lines):
     """{hex block: material name}, {two-node block: (material name, cross-sectional area
     mm^2)}: SolidDomains (a "rigid body" material's block: a rigid body) and the
     BeamDomains / TrussDomains of type "linear-truss" with a "linear truss" material."""
     doms = root.find("MeshDomains")
     if doms is None:
         raise _err(path, "no <MeshDomains> section; assign a material to every element block")
-    out, trusses = {}, {}
+    out, trusses, laugon_of = {}, {}, {}
     for d in doms:
         if not isinstance(d.tag, str):
             continue
@@ -1149,6 +1156,13 @@ def _read_domains(root, path, blocks, materials, by_id, lines):
             raise _err(path, f"SolidDomain '{d.get('name')}': three_field=\"{d.get('three_field')}"
                        "\" is not supported; eyefem evaluates an uncoupled material's U(J) on "
                        "the element's volume ratio (FEBio's default three-field hex8)")
+        lau = _flag(d, "laugon") not in ("0", "false")  # FEBio 4: the three-field domain's
+        if laugon_of.setdefault(mat, lau) != lau:
+            raise _err(path, f"SolidDomain '{d.get('name')}': material '{mat}' is used with "
+                       "and without <laugon>1</laugon> in different domains; give each "
+                       "its own material")
+        if lau:
+            _domain_laugon(root, d, mat, materials, bulk, path)
         out[d.get("name")] = mat
     for name, _ in blocks:
         if name not in out:
@@ -1158,6 +1172,31 @@ def _read_domains(root, path, blocks, materials, by_id, lines):
             raise _err(path, f"element block '{name}' (line2 or shells) has no linear-truss "
                        "BeamDomain (or rigid ShellDomain) in <MeshDomains>")
     return out, trusses
+
+
+def _domain_laugon(root, dom, mat, materials, bulk, path) -> None:
+    """A SolidDomain with <laugon>1</laugon> (FEBio 4 puts the three-field element's
+    augmented Lagrangian on the domain): its uncoupled Mooney-Rivlin becomes exactly
+    incompressible in ``materials`` (and ``bulk``), as a material with
+    <laugon>1</laugon> (FEBio 2.5 / 3) does. Other laws keep their penalty k, with a
+    warning."""
+    where = f"SolidDomain '{dom.get('name')}'"
+    if _flag(dom, "laugon") not in ("1", "true"):
+        raise _err(path, f"{where} <laugon> = '{dom.findtext('laugon').strip()}'; give 0 "
+                   "(penalty k) or 1 (augmented Lagrangian: exactly incompressible)")
+    if not isinstance(materials[mat], UncoupledMooneyRivlin):
+        if _uncoupled(materials[mat]):
+            log.warning("%s: %s: laugon = 1 on a material other than Mooney-Rivlin; eyefem "
+                        "keeps its penalty k (FEBio's augmentations drive Jbar to 1: the "
+                        "results differ by about c1 / k)", path, where)
+        return
+    el = copy.deepcopy(next(e for e in root.find("Material") if isinstance(e.tag, str) and (
+        e.get("name") or f"material_{e.get('id')}") == mat))
+    for old in el.findall("laugon"):
+        el.remove(old)
+    ET.SubElement(el, "laugon").text = "1"
+    materials[mat], bulk[mat] = _mooney_rivlin(el, "mooney-rivlin", mat,
+                                               f"material '{mat}' in {where}", path)
 
 
 def _check_jacobians(nodes, hexes, elem_ids, path):
@@ -1546,67 +1585,90 @@ the search and augmentation tolerances (tolerance, gaptol, search_tol, search_ra
 minaug, maxaug, knmult, seg_up, symmetric_stiffness) do not change a penalty solution."""
 
 
-def _read_contacts(root, path, mesh, pairs, rigid, step_moves) -> tuple:
+def _read_contacts(secs, path, mesh, pairs, rigid, step_moves) -> tuple:
     """:class:`FebContact` per <contact>: FEBio's "sliding-elastic" with a penalty (laugon
     0 / PENALTY), no friction, no auto-penalty, between a deformable surface and the
     facets of a rigid body moved along one direction. FEBio integrates the traction
     eps <-g> over the primary faces; eyefem's RigidContact puts alpha <-g> at each primary
     node with alpha = eps x the nodes' mean tributary area: the same total force for a
     uniform gap (tests/test_febio_links.py), and both tend to the exact contact
-    constraint as the penalty grows. Other contact is refused by name."""
-    sec = root.find("Contact")
+    constraint as the penalty grows. Other contact is refused by name. ``secs``: (step
+    index or None, <Contact> or None): the model's and each step's; a contact written
+    again in several steps (the same definition) is one contact acting in those steps."""
     out = []
-    for el in ([] if sec is None else sec):
-        if not isinstance(el.tag, str):
-            continue
-        kind, name = el.get("type"), el.get("name") or f"contact_{len(out) + 1}"
-        where = f"<contact name=\"{name}\" type=\"{kind}\">"
-        if el.tag != "contact" or kind != "sliding-elastic":
-            raise _err(path, f"{where} is not supported (eyefem reads frictionless "
-                       "sliding-elastic contact against a rigid body with a penalty)")
-        _penalty_form(path, el, where, "eyefem's contact is a penalty (laugon 0 / PENALTY); "
-                      "the augmented Lagrangian is not supported")
-        for tag, want in _CONTACT_FLAGS.items():
-            got = (el.findtext(tag) or want).strip()
-            if float(got) != float(want):
-                raise _err(path, f"{where}: <{tag}> {got} is not supported (eyefem maps "
-                           f"{tag} = {want} only)")
-        eps = _child_float(el, "penalty", path, where, hint="give the penalty, MPa/mm")
-        if el.find("penalty").get("lc") is not None or not eps > 0:
-            raise _err(path, f"{where}: <penalty> must be a number > 0 without a load curve")
-        pair = pairs.get(el.get("surface_pair"))
-        if pair is None:
-            raise _err(path, f"{where}: surface pair '{el.get('surface_pair')}' is not "
-                       "defined in <Mesh>")
-        primary, secondary = pair
-        for surf in pair:
-            if surf not in mesh.face_sets:
-                raise _err(path, f"{where}: surface '{surf}' is not defined in <Mesh>")
-        sec_nodes = np.unique(mesh.face_sets[secondary])
-        body = [rb for rb, nodes in rigid.items() if np.all(np.isin(sec_nodes, nodes))]
-        on_rigid = [rb for rb, nodes in rigid.items()
-                    if np.any(np.isin(np.unique(mesh.face_sets[primary]), nodes))]
-        if not body or on_rigid:
-            raise _err(path, f"{where}: eyefem reads contact of a deformable primary "
-                       "surface against the facets of one rigid body (secondary); contact "
-                       "between deformable bodies is not supported")
-        rb = body[0]
-        moves = np.array([m[rb] for m in step_moves])
-        big = moves[np.argmax(np.linalg.norm(moves, axis=1))]
-        direction = big / np.linalg.norm(big) if np.linalg.norm(big) > 0 else np.eye(3)[2]
-        d = moves @ direction
-        if np.max(np.linalg.norm(moves - d[:, None] * direction, axis=1), initial=0.0) > \
-                1e-12 * max(1.0, float(np.abs(d).max())):
-            raise _err(path, f"{where}: rigid body '{rb}' moves along different directions "
-                       "in different steps; eyefem's contact body moves along one")
-        faces = mesh.face_sets[primary]
-        x = mesh.nodes[faces]
-        area = 0.5 * np.linalg.norm(np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 1]), axis=1)
-        tributary = np.bincount(faces.ravel(), np.repeat(area / 4, 4),
-                                minlength=mesh.n_nodes)[np.unique(faces)]
-        out.append(FebContact(name, primary, rb, mesh.face_sets[secondary], direction,
-                              tuple(float(v) for v in d), eps * float(tributary.mean())))
+    for step, sec in secs:
+        for el in ([] if sec is None else sec):
+            if isinstance(el.tag, str):
+                c = _read_contact(el, path, mesh, pairs, rigid, step_moves, len(out))
+                same = [i for i, o in enumerate(out) if o.name == c.name]
+                if same and step is not None and out[same[0]].steps is not None and \
+                        _same_contact(out[same[0]], c):
+                    o = out[same[0]]
+                    out[same[0]] = dataclasses.replace(o, steps=o.steps + (step,))
+                elif same:
+                    raise _err(path, f"<contact name=\"{c.name}\">: defined twice with "
+                               "different settings (or in the model and in a step); give "
+                               "each contact its own name")
+                else:
+                    out.append(dataclasses.replace(
+                        c, steps=None if step is None else (step,)))
     return tuple(out)
+
+
+def _same_contact(a: FebContact, b: FebContact) -> bool:
+    return (a.primary, a.body, a.penalty) == (b.primary, b.body, b.penalty) and \
+        np.array_equal(a.facets, b.facets)
+
+
+def _read_contact(el, path, mesh, pairs, rigid, step_moves, n_before) -> FebContact:
+    """One <contact> (see :func:`_read_contacts`)."""
+    kind, name = el.get("type"), el.get("name") or f"contact_{n_before + 1}"
+    where = f"<contact name=\"{name}\" type=\"{kind}\">"
+    if el.tag != "contact" or kind != "sliding-elastic":
+        raise _err(path, f"{where} is not supported (eyefem reads frictionless "
+                   "sliding-elastic contact against a rigid body with a penalty)")
+    _penalty_form(path, el, where, "eyefem's contact is a penalty (laugon 0 / PENALTY); "
+                  "the augmented Lagrangian is not supported")
+    for tag, want in _CONTACT_FLAGS.items():
+        got = (el.findtext(tag) or want).strip()
+        if float(got) != float(want):
+            raise _err(path, f"{where}: <{tag}> {got} is not supported (eyefem maps "
+                       f"{tag} = {want} only)")
+    eps = _child_float(el, "penalty", path, where, hint="give the penalty, MPa/mm")
+    if el.find("penalty").get("lc") is not None or not eps > 0:
+        raise _err(path, f"{where}: <penalty> must be a number > 0 without a load curve")
+    pair = pairs.get(el.get("surface_pair"))
+    if pair is None:
+        raise _err(path, f"{where}: surface pair '{el.get('surface_pair')}' is not "
+                   "defined in <Mesh>")
+    primary, secondary = pair
+    for surf in pair:
+        if surf not in mesh.face_sets:
+            raise _err(path, f"{where}: surface '{surf}' is not defined in <Mesh>")
+    sec_nodes = np.unique(mesh.face_sets[secondary])
+    body = [rb for rb, nodes in rigid.items() if np.all(np.isin(sec_nodes, nodes))]
+    on_rigid = [rb for rb, nodes in rigid.items()
+                if np.any(np.isin(np.unique(mesh.face_sets[primary]), nodes))]
+    if not body or on_rigid:
+        raise _err(path, f"{where}: eyefem reads contact of a deformable primary "
+                   "surface against the facets of one rigid body (secondary); contact "
+                   "between deformable bodies is not supported")
+    rb = body[0]
+    moves = np.array([m[rb] for m in step_moves])
+    big = moves[np.argmax(np.linalg.norm(moves, axis=1))]
+    direction = big / np.linalg.norm(big) if np.linalg.norm(big) > 0 else np.eye(3)[2]
+    d = moves @ direction
+    if np.max(np.linalg.norm(moves - d[:, None] * direction, axis=1), initial=0.0) > \
+            1e-12 * max(1.0, float(np.abs(d).max())):
+        raise _err(path, f"{where}: rigid body '{rb}' moves along different directions "
+                   "in different steps; eyefem's contact body moves along one")
+    faces = mesh.face_sets[primary]
+    x = mesh.nodes[faces]
+    area = 0.5 * np.linalg.norm(np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 1]), axis=1)
+    tributary = np.bincount(faces.ravel(), np.repeat(area / 4, 4),
+                            minlength=mesh.n_nodes)[np.unique(faces)]
+    return FebContact(name, primary, rb, mesh.face_sets[secondary], direction,
+                      tuple(float(v) for v in d), eps * float(tributary.mean()))
 
 
 def contact_term(c: FebContact, mesh: Mesh) -> Term:
@@ -1904,6 +1966,8 @@ def build_stages(mesh: Mesh, materials: dict, loads: FebLoads) -> tuple[Model, l
     for k, st in enumerate(steps):
         scoped = [(f"volume:{n}", eps) for n, _, eps, step in loads.volumes if step == k]
         off = {f"volume:{n}" for n, _, _, step in loads.volumes if step not in (None, k)}
+        off |= {f"contact:{c.name}" for c in loads.contacts
+                if c.steps is not None and k not in c.steps}
         before = None
         if scoped:
             def before(model, q, theta, scoped=scoped):
