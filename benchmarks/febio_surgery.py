@@ -92,6 +92,9 @@ def febio_outcomes(setup, blocks: dict[float, np.ndarray], eps: float) -> list[d
         if preop is None:
             preop, v0 = optics, volume
         rows.append({"stage": name,
+                     "axial_length_mm": optics["axial_length_mm"],
+                     "anterior_chamber_depth_mm": optics["anterior_chamber_depth_mm"],
+                     "volume_mm3": volume,
                      "iop_mmhg": p_iop + abs(eps) * (v0 - volume) / MMHG,
                      "indentation_mm": float(indentation(X, q, nodes)),
                      "axial_length_change_mm": optics["axial_length_mm"]
@@ -102,17 +105,25 @@ def febio_outcomes(setup, blocks: dict[float, np.ndarray], eps: float) -> list[d
     return rows
 
 
-def febio_version(febio: str) -> str:
-    """The first line of ``febio4 -v``'s output that names the version (or 'unknown')."""
-    try:
-        out = subprocess.run([febio, "-v"], capture_output=True, text=True, timeout=60,
-                             stdin=subprocess.DEVNULL)
-    except (OSError, subprocess.TimeoutExpired):
-        return "unknown"
-    for line in (out.stdout + out.stderr).splitlines():
-        if "version" in line.lower():
-            return " ".join(line.split())
+def febio_version(log_text: str) -> str:
+    """FEBio's version from its log's banner ("version 4.11.0"), or 'unknown'."""
+    for line in log_text.splitlines():
+        if line.strip().lower().startswith("version"):
+            return "FEBio " + line.split()[-1]
     return "unknown"
+
+
+def eyefem_pressurised(setup) -> dict:
+    """eyefem's own first stage (the pressurised eye) solved on the whole model, measured
+    as :func:`febio_outcomes` measures FEBio's (its row, with the unloaded eye's under
+    "unloaded")."""
+    from eyefem.solve.solver import solve
+
+    sol = solve(setup.model, setup.stages[:1], q0=setup.q0)
+    n = setup.model.mesh.n_nodes
+    rows = febio_outcomes(setup, {1.0: sol.q[: 3 * n].reshape(-1, 3),
+                                  2.0: np.zeros((n, 3))}, -1.0)
+    return {"pressurised": rows[0], "unloaded": rows[1]}
 
 
 def main(argv=None) -> int:
@@ -162,8 +173,18 @@ def main(argv=None) -> int:
         print(f"FEBio wrote no {log_file.name} (exit {run.returncode}); its output: "
               f"{out / 'febio_stdout.txt'}", file=sys.stderr)
         return 3
-    normal = "N O R M A L   T E R M I N A T I O N" in (run.stdout + run.stderr)
+    febio_log = out / f"{deck.stem}.log"
+    log_text = febio_log.read_text(errors="replace") if febio_log.exists() else ""
+    normal = "N O R M A L   T E R M I N A T I O N" in log_text
     febio = febio_outcomes(setup, read_node_log(log_file), eps)
+    # the pressurised eye (step 1) against eyefem's, measured alike, changes from unloaded
+    ours1 = eyefem_pressurised(setup)
+    base = ours1["unloaded"]
+    first = []
+    for key in ("axial_length_mm", "anterior_chamber_depth_mm", "volume_mm3"):
+        f_d, e_d = febio[0][key] - base[key], ours1["pressurised"][key] - base[key]
+        first.append({"stage": febio[0]["stage"], "outcome": f"{key} change from unloaded",
+                      "febio": f_d, "eyefem": e_d})
 
     run_dir = Path(args.eyefem_run) if args.eyefem_run else out / "eyefem"
     if not args.eyefem_run:
@@ -177,7 +198,11 @@ def main(argv=None) -> int:
           f"(exit {run.returncode}), {wall:.1f} s, {len(febio)} step(s) with results")
     print(f"{'stage':<11} {'outcome':<34} {'FEBio':>10} {'eyefem':>10} {'diff':>9}")
     table = []
-    for f_row in febio:
+    for row in first:
+        print(f"{row['stage']:<11} {row['outcome']:<34} {row['febio']:>10.4f} "
+              f"{row['eyefem']:>10.4f} {row['febio'] - row['eyefem']:>+9.4f}")
+        table.append(row)
+    for f_row in febio[1:]:
         e_row = next((r for r in ours if r["stage"] == f_row["stage"]), None)
         for key in keys:
             e = float(e_row[key]) if e_row else float("nan")
@@ -188,7 +213,7 @@ def main(argv=None) -> int:
     if args.record:
         Path(args.record).write_text(json.dumps({
             "case": str(Path(args.case).relative_to(ROOT)) if Path(args.case).is_absolute()
-            else args.case, "mesh": args.mesh, "febio_version": febio_version(args.febio),
+            else args.case, "mesh": args.mesh, "febio_version": febio_version(log_text),
             "febio_command": " ".join(cmd), "febio_threads": env["OMP_NUM_THREADS"],
             "febio_normal_termination": normal, "febio_wall_s": round(wall, 1),
             "volume_penalty_MPa_per_mm3": eps, "omissions": omissions,

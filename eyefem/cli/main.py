@@ -420,7 +420,8 @@ def cmd_export_feb(args) -> int:
         return 2
     mesh = (setup.whole or setup).model.mesh  # a mirror half is exported whole
     print(f"wrote {args.output}: FEBio 4 deck of '{setup.name}', {len(setup.stages)} stage(s) "
-          f"as steps ({mesh.n_nodes} mesh nodes, {mesh.n_elem} elements); not run in FEBio")
+          f"as steps ({mesh.n_nodes} mesh nodes, {mesh.n_elem} elements); what FEBio 4.11 "
+          "gives for it: docs/febio.md")
     for w in skipped:
         print(f"  not exported or approximated: {w}")
     return 0

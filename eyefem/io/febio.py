@@ -427,7 +427,7 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
 
     names = ", ".join(f"'{st.name}' ({st.n_steps} steps)" for st in exp)
     lines = [f" written by eyefem from '{setup.name}': {len(exp)} stage(s) {names}; units mm, "
-             "N, MPa. A run in FEBio is not verified here (no FEBio binary). "]
+             "N, MPa. What FEBio 4.11 gives for eyefem's exported decks: docs/febio.md. "]
     lines += [f" not exported or approximated: {w} " for w in warnings]
     header.text = "\n".join(lines) if len(lines) > 1 else lines[0]
     ET.indent(root, space="  ")
