@@ -81,6 +81,7 @@ from eyefem.eye import timeline
 from eyefem.fem.cavity import cavity_pressures, close_cavity
 from eyefem.fem.regulation import HISTORY_KEYS, advanced_history
 from eyefem.fem.units import MMHG
+from eyefem.fem.viscoelastic import ViscoelasticQ1P0, history_at
 from eyefem.solve.assembly import Assembler
 from eyefem.solve.solver import ConvergenceError, NewtonOptions, Solution, Stage, solve
 from eyefem.solve.staged import StageMap, StageRecord, hand_on, stage_params, staged_gradients
@@ -345,11 +346,18 @@ class SurgerySimulator(StagedSimulator):
     def _preop(self, sol1: Solution, materials: tuple) -> Preop:
         _, _, theta2 = close_cavity(self.model, sol1.q, sol1.theta, "cavity", "iop")
         node = snug_node(self.parts, sol1.q)
-        cav = self.model.term("cavity")
         pre_map = self.maps(self.model.term("sutures"))[0]
-        carry = hand_on(pre_map, sol1.q, sol1.theta, {"cavity": (cav.data, cav.dofs),
-                                                      "node": node})
+        carry = hand_on(pre_map, sol1.q, self._preop_theta(sol1.theta), self._preop_data(node))
         return Preop(sol1, theta2, node, carry, materials)
+
+    def _preop_theta(self, theta) -> dict:
+        """The pre-operative stage's params as its adjoint sees them: stage 1's own."""
+        return theta
+
+    def _preop_data(self, node) -> dict:
+        """The data of the pre-operative stage's carry (its C)."""
+        cav = self.model.term("cavity")
+        return {"cavity": (cav.data, cav.dofs), "node": node}
 
     def _stage1(self, design) -> Preop:
         """The pre-operative eye for the design's material constants (re-solved from the
@@ -566,14 +574,81 @@ class TimelineSimulator(SurgerySimulator):
         if params.get("buckle_body", "rigid") != "rigid":
             _refuse_timeline(params)
         super().__init__(params, materials, options)
-        carried = [t.name for t in self.model.terms
-                   if getattr(t, "history_keys", ()) and t.name != "cavity"]
-        if carried or self.params.get("relaxation_g"):
-            raise ValueError(f"{', '.join(carried) or 'relaxation_g'}: the timeline's design "
-                             "gradients hand on the cavity's history only; a relaxing wall "
-                             "(relaxation_g) is not differentiated through time yet: plan "
-                             "the case without it, or run it with eyefem run")
+        carried = [t.name for t in self.model.terms if getattr(t, "history_keys", ())
+                   and t.name != "cavity"
+                   and not (t.name == "solid" and isinstance(t, ViscoelasticQ1P0))]
+        if carried:
+            raise ValueError(f"{', '.join(carried)}: the timeline's design gradients hand on "
+                             "the history of the cavity and of a relaxing wall (the solid's "
+                             "ViscoelasticQ1P0) only; this term's history is not "
+                             "differentiated through time: plan the case without it, or run "
+                             "it with eyefem run")
         self.outcome_names = tuple(OUTCOMES) + timeline.outcome_names(self.params)
+
+    # --- a relaxing wall: its history handed on as the cavity's is ---------------------
+    def _wall(self):
+        """The relaxing wall (the solid term, a ViscoelasticQ1P0), or None (an elastic one)."""
+        terms = {t.name: t for t in self.model1.terms}
+        return terms["solid"] if isinstance(terms.get("solid"), ViscoelasticQ1P0) else None
+
+    def _preop_theta(self, theta) -> dict:
+        """Stage 1's params with the wall's history before it (none: h = s_prev = 0, time
+        0) and its duration dt (``preop_minutes``; 0: pressurised at once), the one step the
+        pre-operative eye's history is the result of: at dt = 0 the steps of the
+        pressurising stage telescope to it exactly (h = g S0), and the residual at these
+        params is the one the last step solved (A = 0, c = 1; with dt > 0 the stage is one
+        step). Its carry "wall" (history_at) is the history the first step starts from,
+        a function of q_1 and the materials."""
+        wall = self._wall()
+        if wall is None:
+            return theta
+        w = theta["solid"]
+        return {**theta, "solid": {**w, "h": np.zeros_like(w["h"]),
+                                   "s_prev": np.zeros_like(w["s_prev"]), "time": 0.0,
+                                   "dt": float(self.stage1.duration or 0.0)}}
+
+    def _preop_data(self, node) -> dict:
+        out = super()._preop_data(node)
+        wall = self._wall()
+        if wall is not None:
+            out["wall"] = (wall.data, wall.dofs)
+        return out
+
+    def _preop(self, sol1: Solution, materials: tuple) -> Preop:
+        """As SurgerySimulator's; with a relaxing wall, ValueError unless the history its
+        carry hands on is the one the load path left (a pressurising stage of several
+        timed steps, cut by Newton, is not one step)."""
+        pre = super()._preop(sol1, materials)
+        if self._wall() is not None:
+            w = sol1.theta["solid"]
+            for k in ("h", "s_prev", "time"):
+                got, ref = np.asarray(pre.carry["wall"][k]), np.asarray(w[k])
+                scale = max(float(np.max(np.abs(ref), initial=0.0)), 1e-12)
+                if float(np.max(np.abs(got - ref), initial=0.0)) > 1e-9 * scale:
+                    raise ValueError("the pre-operative eye's wall history is not one step of "
+                                     f"preop_minutes = {self.stage1.duration}: the "
+                                     "pressurising stage was cut into several timed steps; "
+                                     "its gradients through the relaxing wall are not "
+                                     "differentiated (run the case with eyefem run)")
+        return pre
+
+    def maps(self, sut) -> tuple[StageMap, StageMap, StageMap]:
+        """As SurgerySimulator's; with a relaxing wall the pre-operative stage also hands on
+        the wall's history ("wall", eyefem.fem.viscoelastic.history_at) at its params
+        (:meth:`_preop_theta`)."""
+        base = super().maps(sut)
+        if self._wall() is None:
+            return base
+
+        def build():
+            pre = base[0]
+
+            def carry(q, theta, data):
+                return {**pre.carry(q, theta, data),
+                        "wall": history_at(q, theta["solid"], *data["wall"])}
+
+            return (StageMap(pre.name, pre.params, carry),) + tuple(base[1:])
+        return self._kept_fn(("timeline maps", term_kind(sut)), build)
 
     def run(self, design: dict | None = None, *, warm: bool = True) -> TimelineResult:
         """Solve the timeline for a design (missing variables: the case's values), from the
@@ -611,9 +686,8 @@ class TimelineSimulator(SurgerySimulator):
         its = sum(r.iterations for r in rec.records)
         records, steps, layout = self._records(rec, stages, model, sut, bites, pre, first, p,
                                                tie)
-        cav = self.model.term("cavity")
-        pre_rec = StageRecord(maps[0], pre.sol1, None, {"cavity": (cav.data, cav.dofs),
-                                                        "node": pre.node}, pre.carry)
+        sol1 = dataclasses.replace(pre.sol1, theta=self._preop_theta(pre.sol1.theta))
+        pre_rec = StageRecord(maps[0], sol1, None, self._preop_data(pre.node), pre.carry)
         res = TimelineResult(design, {}, (pre_rec,) + records, sut, bites, its, pre, steps,
                              layout)
         return self._evaluated(res, q, records[-1].solution.theta,
@@ -638,6 +712,7 @@ class TimelineSimulator(SurgerySimulator):
         kinds = tuple("tie" if i == tie else "shape" if i in shape else "plain"
                       for i in range(len(rec.steps)))
         asms, out, steps = {}, [], []
+        wall = self._wall() is not None
         for i, (name, t, model_i, q_i, th_i) in enumerate(rec.steps):
             stage = by_name[name]
             if name not in asms:
@@ -648,6 +723,7 @@ class TimelineSimulator(SurgerySimulator):
             data = {"stage": name, "t": float(t), "t0": float(t0), "bites": bites,
                     "minutes": float(stage.duration or 0.0), "start": first,
                     "history": f"history/{i - 1}" if i else None,
+                    "wall": (f"wall/{i - 1}" if i else "wall") if wall else None,
                     "h0": None if i else {k: np.asarray(th_i["cavity"][k]) for k in HISTORY_KEYS}}
             smap = self._step_map(kinds[i], sut)
             cdata = self._carry_data(kinds[i], model_i)
@@ -687,6 +763,10 @@ class TimelineSimulator(SurgerySimulator):
         out["cavity"] = {**out["cavity"], "paracentesis": full("cavity", "paracentesis", removed),
                          "dt": full("cavity", "dt", (t - data["t0"]) * minutes),
                          **{k: full("cavity", k, h[k]) for k in HISTORY_KEYS}}
+        if data.get("wall") is not None:  # the relaxing wall's history, handed on as h is
+            w = carry[data["wall"]]
+            out["solid"] = {**out["solid"], "dt": full("solid", "dt", (t - data["t0"]) * minutes),
+                            **{k: full("solid", k, w[k]) for k in ViscoelasticQ1P0.history_keys}}
         return out
 
     def _step_map(self, kind: str, sut) -> StageMap:
@@ -705,6 +785,8 @@ class TimelineSimulator(SurgerySimulator):
                 if kind == "shape":
                     out["optics"] = eye_optics(X, q, nodes)
                     out["indentation"] = indentation(X, q, nodes)
+                if "wall" in data:  # a relaxing wall's history after the step
+                    out["wall"] = history_at(q, theta["solid"], *data["wall"])
                 return out
 
             return StageMap(f"step ({kind})", self._step_params, carry)
@@ -717,6 +799,9 @@ class TimelineSimulator(SurgerySimulator):
         if kind == "tie":
             sut = model.term("sutures")
             out["sutures"] = (sut.data, sut.dofs)
+        wall = {t.name: t for t in model.terms}.get("solid")
+        if isinstance(wall, ViscoelasticQ1P0):
+            out["wall"] = (wall.data, wall.dofs)
         return out
 
     # --- outcomes ---------------------------------------------------------------------

@@ -228,6 +228,14 @@ def _history(q_loc, params, data):
 _history_jit = jax.jit(_history)
 
 
+def history_at(q, params, data, dofs) -> dict:
+    """:meth:`ViscoelasticQ1P0.history_after` of a term given by its ``data`` and ``dofs``
+    (JAX, differentiable in q (n_dof,) and params): what a staged adjoint's carry hands on
+    (eyefem.eye.simulators.TimelineSimulator), the term's arrays passed as data so that one
+    compiled function serves every design."""
+    return _history(q[dofs], params, data)
+
+
 @jax.jit
 def _point_fields_jit(q_loc, params, data):
     """Cauchy stress (n, 8, 3, 3), J (n, 8), lambda (n,), Green-Lagrange strain (n, 8, 3, 3)."""
