@@ -84,7 +84,8 @@ from eyefem.fem.units import MMHG
 from eyefem.fem.viscoelastic import ViscoelasticQ1P0, history_at
 from eyefem.solve.assembly import Assembler
 from eyefem.solve.solver import ConvergenceError, NewtonOptions, Solution, Stage, solve
-from eyefem.solve.staged import StageMap, StageRecord, hand_on, stage_params, staged_gradients
+from eyefem.solve.staged import (StageMap, StageRecord, hand_on, params_mismatch, stage_params,
+                                 staged_gradients)
 from eyefem.solve.transient import Recorder
 
 log = logging.getLogger(__name__)
@@ -854,18 +855,8 @@ class TimelineSimulator(SurgerySimulator):
         """The largest difference, relative to the param's size, between each step's
         params as T gives them (JAX, what the adjoint differentiates) and those the load
         path solved with: roundoff where the two agree (a check of the step maps)."""
-        worst, carry = 0.0, {}
-        for r in res.stages:
-            if isinstance(r.params_data, dict) and "stage" in r.params_data:  # a step's
-                got = stage_params(r.map, res.design, carry, r.params_data)
-                for term, ps in got.items():
-                    for k, v in ps.items():
-                        ref = np.asarray(r.solution.theta[term][k])
-                        scale = max(float(np.max(np.abs(ref), initial=0.0)), 1e-12)
-                        worst = max(worst, float(np.max(np.abs(np.asarray(v) - ref),
-                                                        initial=0.0)) / scale)
-            carry.update(r.carry)
-        return worst
+        return params_mismatch(res.stages, res.design, lambda r: isinstance(
+            r.params_data, dict) and "stage" in r.params_data)  # the timeline's steps
 
 
 def _carries(records) -> dict:

@@ -84,6 +84,25 @@ def stage_params(stage: StageMap, design: Mapping, carry: Mapping, data=None) ->
     return jax.tree_util.tree_map(np.asarray, out)
 
 
+def params_mismatch(records: Sequence["StageRecord"], design: Mapping,
+                    checked: Callable[[Any], bool] = lambda record: True) -> float:
+    """The largest difference, relative to the param's size, between the params each
+    ``checked`` stage's map gives (:func:`stage_params` of the design and the carries
+    handed on before it) and those its solution was solved with: roundoff where the
+    forward run and the stage maps agree."""
+    worst, carry = 0.0, {}
+    for r in records:
+        if checked(r):
+            for term, ps in stage_params(r.map, design, carry, r.params_data).items():
+                for k, v in ps.items():
+                    ref = np.asarray(r.solution.theta[term][k])
+                    scale = max(float(np.max(np.abs(ref), initial=0.0)), 1e-12)
+                    worst = max(worst, float(np.max(np.abs(np.asarray(v) - ref),
+                                                    initial=0.0)) / scale)
+        carry.update(r.carry)
+    return worst
+
+
 def hand_on(stage: StageMap, q, theta, data=None) -> dict:
     """C_k evaluated at a converged state (name -> numpy arrays, or a dict of them); {}
     without a carry."""
