@@ -11,8 +11,10 @@ eyefem measures on its own (eyefem.eye.outcomes: the axial length and the anteri
 depth from the pressurised eye, the buckle's indentation, the IOP from the cavity's volume
 with the deck's volume constraint: p = p_iop + |eps| (V_0 - V), V_0 the volume at the step's
 start). eyefem's figures are those of `eyefem run` of the same case on the same mesh
-(stages.csv). The table goes to stdout; ``--record`` writes both sides, FEBio's version,
-command and wall time as JSON (docs/febio.md quotes it).
+(stages.csv), and for the first step also eyefem's solve of the deck itself read back (the
+same model as FEBio's, the export's omissions included). The table goes to stdout;
+``--record`` writes both sides, FEBio's version, command and wall time as JSON
+(docs/febio.md quotes it).
 
 The deck is not eyefem's model exactly: what it leaves out or approximates is printed
 (the sutures and the orbit's springs are not written, so only the stages before the
@@ -126,6 +128,19 @@ def eyefem_pressurised(setup) -> dict:
     return {"pressurised": rows[0], "unloaded": rows[1]}
 
 
+def eyefem_on_the_deck(setup, deck: Path) -> dict:
+    """eyefem's solve of the deck's first step as eyefem reads it back (FEBio's model: the
+    same springs, segments and omissions), measured as :func:`febio_outcomes` measures."""
+    from eyefem.io.febio_read import build_stages, read_feb
+    from eyefem.solve.solver import solve
+
+    mesh, materials, loads = read_feb(deck)
+    model, stages = build_stages(mesh, materials, loads)
+    n = setup.model.mesh.n_nodes
+    u = np.asarray(solve(model, stages[:1]).q)[: 3 * mesh.n_nodes].reshape(-1, 3)[:n]
+    return febio_outcomes(setup, {1.0: u, 2.0: np.zeros((n, 3))}, -1.0)[0]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--febio", default=os.environ.get("FEBIO", "febio4"),
@@ -181,10 +196,13 @@ def main(argv=None) -> int:
     ours1 = eyefem_pressurised(setup)
     base = ours1["unloaded"]
     first = []
+    same = eyefem_on_the_deck(setup, deck)
     for key in ("axial_length_mm", "anterior_chamber_depth_mm", "volume_mm3"):
         f_d, e_d = febio[0][key] - base[key], ours1["pressurised"][key] - base[key]
         first.append({"stage": febio[0]["stage"], "outcome": f"{key} change from unloaded",
                       "febio": f_d, "eyefem": e_d})
+        first.append({"stage": febio[0]["stage"], "outcome": f"{key} (the deck in eyefem)",
+                      "febio": f_d, "eyefem": same[key] - base[key]})
 
     run_dir = Path(args.eyefem_run) if args.eyefem_run else out / "eyefem"
     if not args.eyefem_run:
