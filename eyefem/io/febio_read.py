@@ -472,12 +472,9 @@ def read_feb_deck(path) -> tuple[Mesh, dict, FebLoads, str]:
                 terms.setdefault(tname, (kind, dat, value(t0)))
                 params[tname] = {"p" if kind == "pressure" else "f": value(t)}
         steps.append((name, n, t, prescribed, params))
-    contacts = _read_contacts([(None, root.find("Contact"))] + [
-        (k, None if st is None else st.find("Contact")) for k, (_, _, st) in
-        enumerate(specs)], path, mesh, pairs, rigid, step_moves)
-    volumes = _read_volumes([(None, root.find("Constraints"))] + [
-        (k, None if st is None else st.find("Constraints")) for k, (_, _, st) in
-        enumerate(specs)], path, mesh)
+    contacts = _read_contacts(_scoped(root, specs, "Contact"), path, mesh, pairs, rigid,
+                              step_moves)
+    volumes = _read_volumes(_scoped(root, specs, "Constraints"), path, mesh)
     if contacts:
         mesh = dataclasses.replace(mesh, node_sets={
             **mesh.node_sets, **{f"contact:{c.name}": np.unique(mesh.face_sets[c.primary])
@@ -1583,6 +1580,13 @@ _CONTACT_FLAGS = {"two_pass": "0", "tension": "0", "auto_penalty": "0", "fric_co
 """sliding-elastic parameters eyefem maps only at these values (anything else refused);
 the search and augmentation tolerances (tolerance, gaptol, search_tol, search_radius,
 minaug, maxaug, knmult, seg_up, symmetric_stiffness) do not change a penalty solution."""
+
+
+def _scoped(root, specs, tag) -> list:
+    """[(step index or None, the <tag> section or None)]: the model's (None: every step)
+    and each step's own (FEBio ends a step's components with the step)."""
+    return [(None, root.find(tag))] + [(k, None if st is None else st.find(tag))
+                                       for k, (_, _, st) in enumerate(specs)]
 
 
 def _read_contacts(secs, path, mesh, pairs, rigid, step_moves) -> tuple:
