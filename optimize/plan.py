@@ -23,6 +23,13 @@ gradient of a feasible design vanishes, or after --iterations simulations. Write
 --out: plan_history.csv (every simulation: design, outcomes, objective, constraint
 values, gradient), plan.png, planned_case.toml (the case with the best design) and
 plan_summary.json (with the active or violated constraints).
+
+**Multi-fidelity** (``--search-mesh LEVEL``): the plan searches on a cheaper level first
+(to --iterations simulations), then finishes on the case's level (or --mesh) from the
+search's best design (to --finish-iterations simulations): the trusted level's first
+simulation measures how far the two levels' outcomes are apart at one design, beside the
+mesh study's error estimates of both levels (eyefem.eye.mesh_error); the plan reports the
+trusted level's outcomes (plan_summary.json: "search", "level_difference", "mesh_error").
 """
 
 from __future__ import annotations
@@ -204,6 +211,79 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
                       message, active, violated)
 
 
+@dataclasses.dataclass
+class LevelsResult:
+    """A multi-fidelity plan: the search on the cheap level, the finish on the trusted one
+    (its best design is the plan's), and per outcome the two levels' values at the search's
+    best design (the finish's first simulation): {outcome: {"search", "trusted",
+    "difference" (trusted - search), "relative" (difference / |trusted|, None at 0)}}."""
+
+    search: PlanResult
+    trusted: PlanResult
+    levels: tuple[str, str]
+    level_difference: dict
+
+
+def plan_levels(make_sim, levels, objective_terms, names, *, constraints=(), bounds=None,
+                iterations=20, finish_iterations=6, tol=1e-2, on_iteration=None) -> LevelsResult:
+    """Multi-fidelity planning: :func:`plan` on the cheap level, then on the trusted one from
+    the search's best design.
+
+    Args:
+      make_sim: (level, start) -> a SurgerySimulator of the case on eye mesh ``level`` whose
+        design starts at ``start`` (name -> value; {} for the case's own).
+      levels: (search level, trusted level), different.
+      finish_iterations: the most simulations on the trusted level (its first is at the
+        search's best design).
+      on_iteration: callback(row) with the row's "mesh" (level) and "simulation" (a count
+        over both levels).
+      The other arguments as :func:`plan`'s, for both levels.
+    """
+    search_level, level = levels
+    if search_level == level:
+        raise ValueError(f"--search-mesh {search_level}: the search level is the trusted level; "
+                         "choose a cheaper one (e.g. coarse) or leave --search-mesh out")
+    count = [0]
+
+    def tagged(mesh):
+        def hook(row):
+            row.update(mesh=mesh, simulation=count[0])
+            count[0] += 1
+            if on_iteration is not None:
+                on_iteration(row)
+        return hook
+
+    kw = dict(constraints=constraints, bounds=bounds, tol=tol)
+    first = plan(make_sim(search_level, {}), objective_terms, names, iterations=iterations,
+                 on_iteration=tagged(search_level), **kw)
+    start = {n: first.best["design"][n] for n in names}
+    final = plan(make_sim(level, start), objective_terms, names, iterations=finish_iterations,
+                 on_iteration=tagged(level), **kw)
+    at_start, cheap = final.history[0], first.best["outcomes"]
+    diff = {}
+    for k, v in cheap.items():
+        if k in at_start and isinstance(v, (int, float)) and np.isfinite(v):
+            t = float(at_start[k])
+            diff[k] = {"search": float(v), "trusted": t, "difference": t - float(v),
+                       "relative": (t - float(v)) / abs(t) if t else None}
+    return LevelsResult(first, final, (search_level, level), diff)
+
+
+def study_errors(levels, encircling: bool) -> dict:
+    """The mesh study's relative error estimates of each level (the largest over the
+    studied cases of the buckle's kind), {outcome: {level: relative or None}}
+    (eyefem.eye.mesh_error; None where the study has no estimate, e.g. on coarse)."""
+    from eyefem.eye.mesh_error import QUOTED, mesh_error
+
+    out: dict = {k: {} for k in QUOTED}
+    for level in levels:
+        err = mesh_error(level, encircling).get("outcomes", {})
+        for k in QUOTED:
+            rel = [e["relative"] for e in err.get(k, {}).values() if e.get("relative") is not None]
+            out[k][level] = max(rel) if rel else None
+    return out
+
+
 def plot_history(path: Path, history: list[dict], objective_terms):
     """objective (log), IOP and indentation against iteration (PNG)."""
     import matplotlib
@@ -213,8 +293,9 @@ def plot_history(path: Path, history: list[dict], objective_terms):
 
     from eyefem.io.output import atomic_path
 
-    it = [r["iteration"] for r in history]
+    it = [r.get("simulation", r["iteration"]) for r in history]
     fig, ax = plt.subplots(1, 3, figsize=(12, 3.4))
+    switch = [r["simulation"] for r, q in zip(history[1:], history) if r.get("mesh") != q.get("mesh")]
     ax[0].semilogy(it, [max(r["objective"], 1e-12) for r in history], "o-")
     ax[0].set_title("objective")
     ax[1].plot(it, [r["iop_mmhg"] for r in history], "o-", color="C3")
@@ -225,8 +306,13 @@ def plot_history(path: Path, history: list[dict], objective_terms):
         if t.name.startswith("indentation="):
             ax[2].axhline(float(t.name.split("=")[1].rstrip("mm")), ls="--", color="k", lw=0.8)
     for a in ax:
-        a.set_xlabel("iteration")
+        a.set_xlabel("simulation")
         a.grid(alpha=0.3)
+        for x in switch:  # multi-fidelity: the search level left of the line, trusted right
+            a.axvline(x - 0.5, color="0.5", lw=0.8, ls=":")
+    if switch:
+        ax[0].text(0.02, 0.04, f"{history[0]['mesh']} | {history[-1]['mesh']}",
+                   transform=ax[0].transAxes, fontsize=8, color="0.3")
     fig.tight_layout()
     with atomic_path(Path(path)) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
@@ -355,6 +441,61 @@ def _check_start(case, start: dict, bounds: dict):
                              f"[{lo:g}, {hi:g}]; change the case or give --bounds {n}=LOW:HIGH")
 
 
+def _check_levels(a, level: str) -> tuple[str, ...]:
+    """(level,) or, with --search-mesh, (search level, trusted level); ValueError for an
+    unknown level, the same level twice or --finish-iterations below 1."""
+    if a.search_mesh is None:
+        return (level,)
+    from eyefem.eye.eyemodel import level_spec
+
+    level_spec(a.search_mesh)
+    if a.search_mesh == level:
+        raise ValueError(f"--search-mesh {a.search_mesh}: the case already plans on "
+                         f"'{level}'; search on a cheaper level (e.g. coarse) or leave "
+                         "--search-mesh out")
+    if a.finish_iterations < 1:
+        raise ValueError(f"--finish-iterations {a.finish_iterations}: need at least 1")
+    return (a.search_mesh, level)
+
+
+QUOTE_DIFFERENCE = ("iop_mmhg", "indentation_mm", "axial_length_change_mm",
+                    "refraction_change_D", "max_suture_force_N")
+"""The outcomes whose level difference the plan prints (all are in plan_summary.json)."""
+STUDY_KEY = {"iop_mmhg": "iop_rise_mmhg"}
+"""The mesh study's name of an outcome where it differs (it estimates the IOP's rise)."""
+
+
+def _levels_summary(r: LevelsResult, encircling: bool) -> dict:
+    """plan_summary.json's multi-fidelity entries."""
+    s = r.search
+    return {"search": {"mesh": r.levels[0], "simulations": len(s.history),
+                       "converged": s.converged, "message": s.message,
+                       "design": s.best["design"], "outcomes": s.best["outcomes"]},
+            "trusted_mesh": r.levels[1], "trusted_simulations": len(r.trusted.history),
+            "level_difference": r.level_difference,
+            "mesh_error": study_errors(r.levels, encircling)}
+
+
+def _levels_lines(summary: dict) -> list[str]:
+    """Terminal lines: the levels' outcomes at the search's design, the study's errors."""
+    lo, hi = summary["search"]["mesh"], summary["trusted_mesh"]
+    lines = [f"  searched on {lo} ({summary['search']['simulations']} simulations), finished on "
+             f"{hi} ({summary['trusted_simulations']}); at the search's design:"]
+    for k in QUOTE_DIFFERENCE:
+        d = summary["level_difference"].get(k)
+        if d is None:
+            continue
+        study_key = STUDY_KEY.get(k, k)
+        est = summary["mesh_error"].get(study_key, {})
+        of = " of the rise" if study_key != k else ""
+        quote = ", ".join(f"{lv} {100 * est[lv]:.1f} %{of}" if est.get(lv) is not None
+                          else f"{lv} not estimated" for lv in (lo, hi))
+        rel = f"{100 * d['relative']:+.1f} %" if d["relative"] is not None else "-"
+        lines.append(f"    {k:<24} {lo} {d['search']:.4f}, {hi} {d['trusted']:.4f} ({rel}; "
+                     f"mesh study: {quote})")
+    return lines
+
+
 def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     from eyefem.catalog import schemas, solver_defaults
@@ -391,6 +532,12 @@ def main(argv=None) -> int:
                     help="refraction change target a week after surgery, dioptres (negative: "
                     "myopic; a case on the timeline)")
     ap.add_argument("--iterations", type=int, default=20, help="the most simulations")
+    ap.add_argument("--search-mesh", metavar="LEVEL",
+                    help="multi-fidelity: search on this cheaper eye mesh level first (to "
+                    "--iterations simulations), then finish on the case's level (or --mesh)")
+    ap.add_argument("--finish-iterations", type=int, default=6, metavar="N",
+                    help="with --search-mesh: the most simulations on the trusted level "
+                    "(default 6)")
     ap.add_argument("--tol", type=float, default=1e-2,
                     help="stop when the objective is below this with every limit met")
     ap.add_argument("--out", default="results/plan", help="output directory")
@@ -429,6 +576,7 @@ def main(argv=None) -> int:
             raise CaseError("give an objective: --target-indentation and/or limits (--iop-max ...)")
         names = [v.strip() for v in a.vars.split(",") if v.strip()]
         _check_timeline(a, params, names)
+        levels = _check_levels(a, params["mesh"])
         log.info("planning %s on the %s mesh: %s subject to %s over %s", case.path,
                  params["mesh"], " + ".join(t.name for t in terms) or "no objective",
                  ", ".join(c.name for c in cons) or "no limit", ", ".join(names))
@@ -439,7 +587,7 @@ def main(argv=None) -> int:
         _check_start(a.case, {n: params[n] for n in names}, {
             n: (-np.inf if lo is None else lo, np.inf if hi is None else hi)
             for n, (lo, hi) in known.items()})
-        sim = SurgerySimulator(params, case.materials, case.solver)
+        sim = SurgerySimulator({**params, "mesh": levels[0]}, case.materials, case.solver)
         bounds = bounds_for(sim, names, overrides)
         _check_start(a.case, sim.design0(), bounds)
     except (CaseError, ValueError) as exc:
@@ -459,18 +607,34 @@ def main(argv=None) -> int:
         peak = (f"  peak IOP {row['peak_iop_on_table_mmhg']:.2f} mmHg, "
                 f"{row['minutes_above_cra_closing']:.2f} min above closing"
                 if "peak_iop_on_table_mmhg" in row else "")
-        log.info("sim %2d  objective %.4g  violation %.3g  %s  IOP %.2f mmHg  indentation %.3f "
-                 "mm%s  (%d Newton its, %.1f s)", row["iteration"], row["objective"],
+        where = f" on {row['mesh']}" if "mesh" in row else ""
+        log.info("sim %2d%s  objective %.4g  violation %.3g  %s  IOP %.2f mmHg  indentation %.3f "
+                 "mm%s  (%d Newton its, %.1f s)", row.get("simulation", row["iteration"]), where,
+                 row["objective"],
                  row["constraint_violation"], "  ".join(f"{n} {row[n]:.3f}" for n in names),
                  row["iop_mmhg"], row["indentation_mm"], peak, row["newton_iterations"],
                  row["wall_s"])
 
     beat = Heartbeat(lambda: f"simulation {len(rows)} (with its adjoints)", interval=60.0,
                      logger=log)
+    levels_result = None
+
+    def make_sim(level, start):
+        if level == levels[0] and not start:
+            return sim
+        return SurgerySimulator({**params, **start, "mesh": level}, case.materials, case.solver)
     try:
         with beat:
-            res = plan(sim, terms, names, constraints=cons, bounds=bounds,
-                       iterations=a.iterations, tol=a.tol, on_iteration=progress)
+            if len(levels) == 2:
+                levels_result = plan_levels(make_sim, levels, terms, names, constraints=cons,
+                                            bounds=bounds, iterations=a.iterations,
+                                            finish_iterations=a.finish_iterations, tol=a.tol,
+                                            on_iteration=progress)
+                res = levels_result.trusted
+                res = dataclasses.replace(res, history=levels_result.search.history + res.history)
+            else:
+                res = plan(sim, terms, names, constraints=cons, bounds=bounds,
+                           iterations=a.iterations, tol=a.tol, on_iteration=progress)
     except (ConvergenceError, ValueError) as exc:
         print(f"plan: {exc}\nthe history so far is in {out / 'plan_history.csv'}", file=sys.stderr)
         return 3
@@ -487,6 +651,8 @@ def main(argv=None) -> int:
                "active_constraints": list(res.active),
                "violated_constraints": list(res.violated), "design": best["design"],
                "outcomes": best["outcomes"], "simulations": len(res.history)}
+    if levels_result is not None:
+        summary.update(_levels_summary(levels_result, sim.parts.buckle.encircling))
     write_text(out / "plan_summary.json", json.dumps(summary, indent=2) + "\n")
     print(f"\n{res.message}: objective {best['objective']:.4g}")
     for k, v in best["constraints"].items():
@@ -499,6 +665,9 @@ def main(argv=None) -> int:
         print(f"  {n:<20} {best['design'][n]:.4f}")
     for k, v in best["outcomes"].items():
         print(f"  {k:<24} {v:.4f}")
+    if levels_result is not None:
+        for line in _levels_lines(summary):
+            print(line)
     print(f"  results in {out}/")
     return 0 if res.converged else 1
 
