@@ -23,8 +23,12 @@ How each term is halved (:func:`half_model`):
   centroid on the plane);
 - the liquid cavity: a FluidCavity on the half of the wetted surface, open on the plane
   (``symmetry_planes = ("y",)``, its cone volumes about a point on the plane), whose
-  volume is half the whole's: its volume-like params (v_ini, dv, c_out) are the whole's
-  halved, so its energy is W(2 V_half) / 2 and its pressure the whole's;
+  volume is half the whole's: its extensive params (CAVITY_VOLUME_KEYS: volumes, the
+  reservoir's compliance and, with volume regulation, the outflow facility, production,
+  choroidal blood, removed volumes and the histories of produced and outflowed aqueous)
+  are the whole's halved, its intensive ones (pressures, p_b, the clock and dt) the
+  whole's, so its energy is W(2 V_half) / 2 and its pressure the whole's at every step
+  of the surgery's timeline; its reported volumes and flows are doubled to the whole's;
 - the surface pressure: a PressureLoad on the half of the wetted surface (its cone
   volumes about a point on the plane);
 - every other term (zonule, lens springs, orbit, rigid buckle contact, sutures, ...),
@@ -78,9 +82,19 @@ ENERGY_RTOL = 1e-8
 """Relative tolerance of the energy checks (invariance under the reflection; the half's
 energy against half the whole's), of each term's largest |energy| over the states tried."""
 
-CAVITY_VOLUME_KEYS = ("v_ini", "dv", "c_out")
-"""A FluidCavity's params that scale with its volume (mm^3, mm^3/MPa): the half cavity's
-are the whole's halved."""
+CAVITY_VOLUME_KEYS = ("v_ini", "dv", "c_out", "facility", "production", "blood_max",
+                      "paracentesis", "drainage", "aq_produced", "aq_outflow")
+"""A FluidCavity's params that scale with its volume (mm^3, mm^3/MPa; with volume
+regulation, eyefem.fem.regulation: mm^3/(min MPa), mm^3/min, mm^3): the half cavity's are
+the whole's halved. The others (p_ini, bulk, p_ev, blood_scale: MPa; time, dt: min) are
+the whole's."""
+
+REGULATION_VOLUME_FIELDS = ("facility", "production", "blood_max")
+"""The extensive constants of a Regulation (the half cavity's are the whole's halved)."""
+
+CAVITY_REPORT_SUFFIXES = ("_mm3", "_ul_min")
+"""A cavity report's keys that scale with its volume (volumes, flows): the half's are
+doubled to the whole eye's."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -410,10 +424,11 @@ def _half_term(term: Term, mir: Mirror, n_nodes: int) -> HalfTerm:
 @dataclasses.dataclass(frozen=True)
 class HalfCavity(FluidCavity):
     """The half of a FluidCavity (open on the plane y = 0): the FluidCavity's energy and
-    pressure, its reported volumes (mm^3) doubled to the whole eye's."""
+    pressure, its reported volumes (mm^3) and flows (uL/min) doubled to the whole eye's
+    (CAVITY_REPORT_SUFFIXES); pressures and the clock as they are."""
 
     def report(self, q, params) -> dict:
-        return {k: (2.0 * v if k.endswith("_mm3") else v)
+        return {k: (2.0 * v if k.endswith(CAVITY_REPORT_SUFFIXES) else v)
                 for k, v in super().report(q, params).items()}
 
 
@@ -437,16 +452,16 @@ def half_model(model: Model, mir: Mirror) -> Model:
             if t.symmetry_planes:
                 raise ValueError(f"cavity '{t.name}' is already open on symmetry planes "
                                  f"{t.symmetry_planes}; the mirror half takes whole cavities")
-            if t.regulation is not None:
-                raise ValueError(f"cavity '{t.name}' has volume regulation (the surgery's "
-                                 "timeline); the mirror half runs without it: set "
-                                 "volume_regulation = false or symmetry = 'none'")
             half = lambda v: None if v is None else np.asarray(v, np.float64) / 2  # noqa: E731
             origin = _plane_origin(t.data["origin"])
             fields = {f.name: getattr(t, f.name) for f in dataclasses.fields(t) if f.init}
+            reg = t.regulation if t.regulation is None else dataclasses.replace(
+                t.regulation, **{k: half(getattr(t.regulation, k))
+                                 for k in REGULATION_VOLUME_FIELDS})
             terms.append(HalfCavity(**{**fields, "mesh": mir.mesh, "symmetry_planes": ("y",),
                                        "origin": origin, "v_ini": half(t.v_ini),
-                                       "outflow_compliance": half(t.outflow_compliance)}))
+                                       "outflow_compliance": half(t.outflow_compliance),
+                                       "regulation": reg}))
         elif type(t) is PressureLoad:
             terms.append(dataclasses.replace(t, mesh=mir.mesh,
                                              origin=_plane_origin(t.origin)))
@@ -533,16 +548,23 @@ def check_mirror(model: Model, theta: dict, half: Model, mir: Mirror, where: str
     whole ``model`` that the half splits item by item (a :class:`HalfTerm`: the buckle's
     contact, the sutures, the zonule, springs...) is invariant under the reflection about
     y = 0 at random states with the design ``theta``, and that its half has half its
-    energy at the symmetric states lifted from random half states. The solid (isotropic
-    tissues), the cavity and the surface pressure are symmetric when the mesh, its
-    tissues and face sets are, which :func:`mirror` checks."""
+    energy at the symmetric states lifted from random half states; and that each liquid
+    cavity's half (:class:`HalfCavity`, its params theta_half's: with volume regulation
+    the step's dt and history as ``theta`` has them) has half the whole cavity's energy
+    at those states. The solid (isotropic tissues), the cavity and the surface pressure
+    are symmetric when the mesh, its tissues and face sets are, which :func:`mirror`
+    checks."""
     rng = np.random.default_rng(seed)
     idx, sign = mir.reflect_dofs
     th_h = theta_half(theta, model)
     states = _random_states(model, rng)
     for t in model.terms:
-        if (names is not None and t.name not in names) or not isinstance(half.term(t.name),
-                                                                         HalfTerm):
+        if names is not None and t.name not in names:
+            continue
+        if isinstance(half.term(t.name), HalfCavity):
+            _check_half_cavity(model, t, theta[t.name], half, th_h[t.name], mir, states,
+                               sign, idx, where)
+        if not isinstance(half.term(t.name), HalfTerm):
             continue  # the solid, cavity and pressure: symmetric with the mesh (mirror())
         p = theta[t.name]
         energy = model._kernel(t, "energy")  # compiled (and shared with the solver's)
@@ -573,6 +595,25 @@ def check_mirror(model: Model, theta: dict, half: Model, mir: Mirror, where: str
                                  "'none'")
 
 
+def _check_half_cavity(model: Model, t: FluidCavity, p: dict, half: Model, ph: dict,
+                       mir: Mirror, states, sign, idx, where: str) -> None:
+    """ValueError unless the half of cavity ``t`` (params ``ph``) has half the energy of
+    the whole's (params ``p``) at the symmetric states of ``states`` (whole, (n_dof,)
+    each): its extensive params halved right (CAVITY_VOLUME_KEYS)."""
+    h = half.term(t.name)
+    energy, energy_h = model._kernel(t, "energy"), half._kernel(h, "energy")
+    for q in states:
+        qs = mir.restrict(0.5 * (q + sign * q[idx]))
+        qs[mir.plane_y_dofs] = 0.0
+        ew = float(energy(jnp.asarray(mir.lift(qs)), p, t.data, t.dofs))
+        eh = float(energy_h(jnp.asarray(qs), ph, h.data, h.dofs))
+        if not abs(2 * eh - ew) <= ENERGY_RTOL * max(abs(ew), abs(2 * eh), 1e-30):
+            raise ValueError(f"{where}: the half of cavity '{t.name}' has energy {eh:.6g} N mm "
+                             f"at a symmetric state, not half the whole's {ew:.6g} N mm: a "
+                             "param of the cavity does not scale with its volume as "
+                             "CAVITY_VOLUME_KEYS says; set symmetry = 'none'")
+
+
 class _NotDifferentiable:
     """The Setup.parts of a mirror half: the design simulators (eyefem.simulate, the
     planner, design gradients) read the parts and are refused here with the reason."""
@@ -593,7 +634,6 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
     'graded_half', ...) cannot be cut between elements: the whole Setup, with a warning."""
     p = getattr(setup.parts, "p", {}) or {}
     for key, off, why in (("buckle_body", "rigid", "a deformable buckle's band, tire or sponge"),
-                          ("volume_regulation", False, "the surgery's timeline"),
                           ("tissue_relaxation", "none", "the tissues' relaxation")):
         if p.get(key, off) != off:
             raise ValueError(f"symmetry = 'mirror' with {key} = {p[key]!r}: the mirror half "
