@@ -51,7 +51,7 @@ from eyefem.eye.buckle_meshes import band_n_circ, deformable_band
 from eyefem.eye.buckles import KINDS, Buckle
 from eyefem.eye.eyemodel import EyeGeometry
 from eyefem.eye.outcomes import eye_optics
-from eyefem.eye.parts import SurgeryParts, snug_scale
+from eyefem.eye.parts import SurgeryParts, drained, snug_scale
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.rigid_buckle import buckle_term, rigid_design_params, suture_term
 from eyefem.eye.sponge import (
@@ -291,10 +291,11 @@ class DeformableRing(BuckleBody):
     @staticmethod
     def design_params(parts: SurgeryParts, design) -> tuple[dict, dict]:
         """The params (term -> param -> value; numpy or JAX) the design (VARIABLES: name
-        -> value) sets in the tightening stage (cavity: dv = -drain_volume, bulk =
-        liquid_bulk; a closed loop's rest-length shortening = tightening) and those the
-        suture stage adds (the sutures' three-bar shortenings and EA)."""
-        tighten = {"cavity": {"dv": -design["drain_volume"], "bulk": design["liquid_bulk"]}}
+        -> value) sets in the tightening stage (cavity: the drained volume,
+        eyefem.eye.parts.drained, and bulk = liquid_bulk; a closed loop's rest-length
+        shortening = tightening) and those the suture stage adds (the sutures' three-bar
+        shortenings and EA)."""
+        tighten = {"cavity": {**drained(design["drain_volume"]), "bulk": design["liquid_bulk"]}}
         if parts.band.closed:
             tighten["solid"] = {"shortening": design["tightening"]}
         n = parts.p["n_sutures"]
@@ -355,7 +356,7 @@ class DeformableSponge(BuckleBody):
         sponge_terms = ("cavity", "buckle", "sponge_springs")
         return [
             path.pressurise(p["steps_pressurise"], parked),
-            Stage("place", 1, parked, params={"cavity": {"dv": -p["drain_volume"]}},
+            Stage("place", 1, parked, params={"cavity": drained(p["drain_volume"])},
                   active=BASE_TERMS + sponge_terms, before=place_sponge),
             Stage("suture", p["steps_suture"], path.held,
                   params={"sutures": {"tightening": three_bar_tightening(p)}},

@@ -1,5 +1,6 @@
 """What the surgery problem is built from (the eye, the buckle, the case parameters), and
-the geometric queries on it: where the buckle sits on the sclera and how snug it fits.
+the geometric queries on it: where the buckle sits on the sclera and how snug it fits; the
+drained volume as the cavity's param (:func:`drained`, every buckle's stages).
 
 :class:`SurgeryParts` is immutable: a stage that moves a deformable buckle's reference
 returns new parts (:meth:`SurgeryParts.refitted`), it never changes the old ones.
@@ -50,6 +51,12 @@ class SurgeryParts:
         """New parts on ``mesh`` (a deformable buckle's reference moved snug) at ``scale``."""
         return dataclasses.replace(self, eye=dataclasses.replace(self.eye, mesh=mesh),
                                    scale=scale)
+
+
+def drained(drain_volume) -> dict:
+    """The cavity's params (eyefem.fem.cavity.FluidCavity) of a volume drained when the
+    buckle is placed: its injected volume dv = -drain_volume, mm^3 (= uL; numpy or JAX)."""
+    return {"dv": -drain_volume}
 
 
 def snug_scale(parts: SurgeryParts, q, node=None):

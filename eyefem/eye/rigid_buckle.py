@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from eyefem.eye.buckles import KINDS, SPONGE_LENGTH, suture_anchor_frame
-from eyefem.eye.parts import SurgeryParts
+from eyefem.eye.parts import SurgeryParts, drained
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.sutures import generate_sutures, radial_bites
 from eyefem.fem.bars import AnchoredBars, end_patches, reference_end_positions
@@ -49,13 +49,13 @@ def rigid_design_params(parts: SurgeryParts, design) -> tuple[dict, dict]:
     """The params (term -> param -> scalar; numpy or JAX) the design (name -> value:
     tightening, buckle_shift, drain_volume, band_tension, suture_tightening) sets in the
     rigid buckle's tightening (or placing) stage - the buckle's and its anchors' motion
-    (:func:`rigid_motion`), the drained volume dv = -drain_volume, a pulled band's
+    (:func:`rigid_motion`), the drained volume (eyefem.eye.parts.drained), a pulled band's
     tension f (cases with band_tension > 0) - and in its suture stage: each bar of a
     two-bar loop shortened by suture_tightening / 2. The forward run
-    (eyefem.eye.bodies.RigidBuckle) and the design map (eyefem.eye.design) both read them
-    from here."""
+    (eyefem.eye.bodies.RigidBuckle) and the design map
+    (eyefem.eye.simulators.SurgerySimulator.design_map) both read them from here."""
     motion = rigid_motion(parts, design["tightening"], design["buckle_shift"])
-    tighten = {"buckle": motion, "sutures": motion, "cavity": {"dv": -design["drain_volume"]}}
+    tighten = {"buckle": motion, "sutures": motion, "cavity": drained(design["drain_volume"])}
     if parts.p["band_tension"] > 0:
         tighten["band_pull"] = {"f": design["band_tension"]}
     return tighten, {"sutures": {"tightening": design["suture_tightening"] / 2}}
