@@ -153,10 +153,17 @@ def indentation(X, q, nodes: OutcomeNodes):
     return r(nodes.beside) - r(nodes.under)
 
 
+def cavity_pressure(q, params, data, dofs):
+    """The closed cavity's pressure, MPa (JAX): its first cavity's, from its volume law
+    (params, data, dofs: the FluidCavity's). The IOP of every outcome and of the
+    timeline's carried steps (eyefem.eye.simulators.TimelineSimulator, which also moves
+    the regulation's history on with it)."""
+    return cavity_pressures(q, params, data, dofs)[0][0]
+
+
 def cavity_iop_mmhg(q, params, data, dofs):
-    """The closed cavity's pressure, mmHg (JAX): its first cavity's, from its volume law
-    (params, data, dofs: the FluidCavity's)."""
-    return cavity_pressures(q, params, data, dofs)[0][0] / MMHG
+    """The closed cavity's pressure (:func:`cavity_pressure`), mmHg (JAX)."""
+    return cavity_pressure(q, params, data, dofs) / MMHG
 
 
 def most_loaded_bar(sutures, q, params) -> int:
@@ -309,8 +316,13 @@ def azimuthal_shares(mesh, u, n_max: int = 4, band_deg: float = 15.0) -> np.ndar
 def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
     """The outcomes every buckle reports at state q (n_dof,): IOP (mmHg), cavity volume
     (mm^3), axial length and its change from the unloaded eye (mm), indentation (mm),
-    largest suture bar force (N), corneal power and astigmatism (D), anterior chamber
-    depth (mm), the peak scleral von Mises stress over a patch (kPa; ``patches``: the
+    largest suture bar force (N; :func:`suture_force` of :func:`most_loaded_bar`, but 0
+    while every suture's tightening param is 0: before the suture stage the sutures are
+    untied, their rest lengths the reference ones, and their bars' force means nothing;
+    :func:`outcome_function`'s, evaluated at the tied last stage, has no such rule, so
+    the two differ at a design with suture_tightening = 0, where it is the tied,
+    untightened sutures' smoothed force), corneal power and astigmatism (D), anterior
+    chamber depth (mm), the peak scleral von Mises stress over a patch (kPa; ``patches``: the
     :func:`stress_patches` of the mesh, built here when not given), and those two as
     fractions of the sclera's strength and of a suture's breaking load
     (:func:`plausibility`). A buckle body adds its own (BuckleBody.outcomes)."""
@@ -353,6 +365,12 @@ def outcome_function(names, X, nodes: OutcomeNodes, sutures):
     Args:
       names: outcome names: iop_mmhg, indentation_mm, max_suture_force_N, the OPTICS and
         the CHANGES (from carry["optics"], the pre-operative eye's :func:`eye_optics`).
+        max_suture_force_N is the most loaded bar's force at every state (the design
+        simulators evaluate f at their last stage, the sutures tied); :func:`outcomes`
+        reports 0 instead while no suture is tightened (untied sutures), so at a design
+        with suture_tightening = 0 the two differ: a single rule would make f jump to 0
+        there, and its derivative in suture_tightening (coarse case 1: 9.5e-5 N, 0.10 N
+        per mm).
       X: (n_nodes, 3) reference node positions, mm; nodes: the mesh's OutcomeNodes.
       sutures: a suture term of the kind whose data f receives (its methods only).
     data: {"cavity": (data, dofs) of the FluidCavity, "sutures": (data, dofs),

@@ -64,8 +64,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from eyefem.eye.bodies import DeformableRing, preop_carry, tied_lengths
-from eyefem.eye.outcomes import (changes, eye_optics, indentation, outcome_data,
-                                 outcome_function, outcome_nodes)
+from eyefem.eye.outcomes import (cavity_pressure, changes, eye_optics, indentation,
+                                 outcome_data, outcome_function, outcome_nodes)
 from eyefem.eye.parts import snug_node, snug_scale
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.rigid_buckle import BiteRays, bite_rays, rigid_design_params, suture_term
@@ -78,7 +78,7 @@ from eyefem.eye.variables import (
     TIMELINE_VARIABLES,
 )
 from eyefem.eye import timeline
-from eyefem.fem.cavity import cavity_pressures, close_cavity
+from eyefem.fem.cavity import close_cavity
 from eyefem.fem.regulation import HISTORY_KEYS, advanced_history
 from eyefem.fem.units import MMHG
 from eyefem.fem.viscoelastic import ViscoelasticQ1P0, history_at
@@ -742,7 +742,11 @@ class TimelineSimulator(SurgerySimulator):
     # --- each step as a stage: its params and what it hands on ------------------------
     def _step_params(self, design, carry, data) -> dict:
         """T of one step (JAX): the stage's params at the step's load factor t, the
-        paracentesis, the step's duration dt and the history the step starts from."""
+        paracentesis, the step's duration dt and the history the step starts from. The
+        forward run's are the load path's own (eyefem.solve.loadpath: the stage's ramp
+        (1 - t) a + t b at the load factors Newton's step cutting chose, the history moved
+        on by each term's advance), built before t is known; :meth:`params_mismatch`
+        checks that the two agree to roundoff."""
         stage, t, bites = data["stage"], data["t"], data["bites"]
         if stage in ("suture", "follow-up"):
             out = self._tied(design, carry, bites)
@@ -778,7 +782,7 @@ class TimelineSimulator(SurgerySimulator):
             X, nodes, tied = self.parts.eye.mesh.nodes, self._nodes, tied_lengths(sut)
 
             def carry(q, theta, data):
-                P = cavity_pressures(q, theta["cavity"], *data["cavity"])[0][0]
+                P = cavity_pressure(q, theta["cavity"], *data["cavity"])  # the IOP, MPa
                 h = advanced_history(P, theta["cavity"])
                 out = {"history": {k: h[k] for k in HISTORY_KEYS}, "iop": P / MMHG}
                 if kind == "tie":
