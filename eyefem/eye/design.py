@@ -6,8 +6,9 @@ the stages' params are declared in eyefem.eye.variables; the simulators of desig
 their adjoint gradients (SurgerySimulator, TimelineSimulator, RingSimulator) are in
 eyefem.eye.simulators; the stages they differentiate, with what each hands on
 (preop_carry, tied_lengths), are the buckle bodies' (eyefem.eye.bodies). This module
-re-exports them under the names the docs use (``eyefem.eye.design.SurgerySimulator``);
-it defines nothing.
+re-exports them under one name (``eyefem.eye.design.SurgerySimulator`` is
+eyefem.eye.simulators.SurgerySimulator; the docs name the defining modules); it defines
+nothing.
 """
 
 from eyefem.eye.bodies import preop_carry, tied_lengths
