@@ -1,8 +1,10 @@
 """Test configuration: float64 everywhere, as the entry points switch it on; the CLI's
 persistent compilation cache off (``EYEFEM_JAX_CACHE``), so that the tests that call the
-CLI write nothing outside their temporary directories; and the coarse comparison of the
+CLI write nothing outside their temporary directories; the coarse comparison of the
 surgical cases 1-6, computed once per session into a temporary directory and shared by
-tests/test_surgery_cases.py and the compare_cases notebook (tests/test_notebooks.py).
+tests/test_surgery_cases.py and the compare_cases notebook (tests/test_notebooks.py); and
+the run of a timeline case with its gradients (``timeline_gradients``), which the slow
+checks of tests/test_timeline_gradients.py and test_relaxation_gradients.py share.
 """
 
 import os
@@ -35,3 +37,27 @@ def coarse_comparison(results_root) -> Path:
     assert len(cases) == 6
     assert cli_main(["-q", "compare", *cases, "--mesh", "coarse", "--out", str(out)]) == 0
     return out
+
+
+def _timeline_gradients(case: str, names) -> tuple:
+    """(simulator, result, gradients of ``names``) of the timeline case file ``case`` on
+    the coarse eye, followed to a week (1h, 48h, 1w) with a paracentesis of 30 uL two
+    minutes after the tightening (eyefem.eye.simulators.SurgerySimulator: a
+    TimelineSimulator)."""
+    from eyefem.api import load_case
+    from eyefem.eye.simulators import SurgerySimulator
+
+    c = load_case(case)
+    p = {**c.parameters, "mesh": "coarse", "followup": "1h, 48h, 1w",
+         "paracentesis_volume": 30.0, "paracentesis_delay_minutes": 2.0}
+    sim = SurgerySimulator(p, c.materials, c.solver)
+    res = sim.run()
+    return sim, res, sim.gradients(res, names)
+
+
+@pytest.fixture(scope="session")
+def timeline_gradients():
+    """The function (case file, outcome names) -> (simulator, result, gradients) that runs
+    a timeline case on the coarse eye (:func:`_timeline_gradients`); a test module keeps
+    its result in a module fixture."""
+    return _timeline_gradients

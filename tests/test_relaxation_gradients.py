@@ -289,19 +289,8 @@ parametrised here) 2.1e-9 to 2.1e-7."""
 
 
 @pytest.fixture(scope="module")
-def relaxing():
-    import jax
-
-    from eyefem.api import load_case
-    from eyefem.eye.simulators import SurgerySimulator
-
-    jax.config.update("jax_enable_x64", True)
-    case = load_case(CASE)
-    p = {**case.parameters, "mesh": "coarse", "followup": "1h, 48h, 1w",
-         "paracentesis_volume": 30.0, "paracentesis_delay_minutes": 2.0}
-    sim = SurgerySimulator(p, case.materials, case.solver)
-    res = sim.run()
-    return sim, res, sim.gradients(res, NAMES)
+def relaxing(timeline_gradients):  # as tests/test_timeline_gradients.py's (tests/conftest.py)
+    return timeline_gradients(CASE, NAMES)
 
 
 @pytest.mark.slow

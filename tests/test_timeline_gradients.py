@@ -1,5 +1,5 @@
-"""Gradients of the surgery's timeline outcomes (eyefem.eye.design.TimelineSimulator, issue
-74) against central differences of whole timelines, and the planner on the timeline
+"""Gradients of the surgery's timeline outcomes (eyefem.eye.simulators.TimelineSimulator,
+issue 74) against central differences of whole timelines, and the planner on the timeline
 (coarse eye, slow: each timeline is a full load path of about 30 steps from the closing to
 a week after surgery, and its gradient one adjoint per step). The fast check: the same
 construction (one staged record per step, the history and the IOP handed on under each
@@ -15,8 +15,6 @@ import functools
 
 import numpy as np
 import pytest
-
-from eyefem.api import load_case
 
 CASE = "cases/surgery/timeline_case1.toml"
 NAMES = ("peak_iop_on_table_mmhg", "minutes_above_cra_closing", "iop_48h_mmhg",
@@ -34,18 +32,8 @@ peak's argmax (the last tightening step) does not move within the steps."""
 
 
 @pytest.fixture(scope="module")
-def timeline():  # used by the slow tests only
-    import jax
-
-    from eyefem.eye.simulators import SurgerySimulator
-
-    jax.config.update("jax_enable_x64", True)
-    case = load_case(CASE)
-    p = {**case.parameters, "mesh": "coarse", "followup": "1h, 48h, 1w",
-         "paracentesis_volume": 30.0, "paracentesis_delay_minutes": 2.0}
-    sim = SurgerySimulator(p, case.materials, case.solver)
-    res = sim.run()
-    return sim, res, sim.gradients(res, NAMES)
+def timeline(timeline_gradients):  # used by the slow tests only (tests/conftest.py)
+    return timeline_gradients(CASE, NAMES)
 
 
 @pytest.mark.slow
