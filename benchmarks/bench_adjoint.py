@@ -5,7 +5,8 @@ is short), then times at the converged state (median of repeats):
   - one Newton iteration: residual + tangent assembly + factorisation + solve;
   - the gradient of one outcome (IOP) with respect to every design variable (surgical
     and material): three adjoint solves (stages 3, 2 and 1) with the reused
-    factorisations + the vector-Jacobian products (eyefem.eye.design.SurgerySimulator.gradients);
+    factorisations + the vector-Jacobian products
+    (eyefem.eye.simulators.SurgerySimulator.gradients);
   - the gradients of every outcome (eyefem.eye.variables.OUTCOMES) with respect to every
     design variable: the same three adjoint solves, one right-hand side per outcome;
 and reports their ratios.

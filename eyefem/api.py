@@ -2,7 +2,7 @@
 
 ``simulate`` runs a surgery case with a rigid buckle or a deformable band or tire (stages:
 pressurise, fit and tighten the buckle, tie the sutures) and returns its outcomes
-(eyefem.eye.design.OUTCOMES)::
+(eyefem.eye.variables.OUTCOMES)::
 
     import jax, eyefem
     jax.config.update("jax_enable_x64", True)
@@ -16,10 +16,10 @@ and returns the gradient of their weighted sum (SurgerySimulator.weighted_gradie
 backward sweep over the stages, eyefem.solve.staged, three adjoint solves on the stages'
 last factorisations, whatever the cotangent), so
 ``jax.grad`` of any scalar of the outcomes costs one forward solve and three adjoint
-solves; ``jax.jacrev`` one backward pass per outcome. Forward-mode (``jax.jvp``, ``jax.jacfwd``) is not
-supported (custom_vjp). On the surgery's timeline the backward pass is one adjoint per
-load step (eyefem.eye.design.TimelineSimulator). A call without traced values runs the host solve directly and
-returns floats.
+solves; ``jax.jacrev`` one backward pass per outcome. Forward-mode (``jax.jvp``,
+``jax.jacfwd``) is not supported (custom_vjp). On the surgery's timeline the backward pass
+is one adjoint per load step (eyefem.eye.simulators.TimelineSimulator). A call without
+traced values runs the host solve directly and returns floats.
 
 One SurgerySimulator is kept per (case, mesh) - keyed by the parsed case's contents, so a
 case-file path and the Case read from it share one - so repeated calls start from the
@@ -92,7 +92,7 @@ def simulate(case: str | Path | Case, design: dict | None = None, *,
         (load_case); its ``[case] problem`` must be "surgery", with a rigid buckle
         (SurgerySimulator) or a deformable band or tire (RingSimulator: the design
         variables its stages take as params, RingSimulator.variables).
-      design: design-variable name -> value (eyefem.eye.design.DESIGN_VARIABLES: mm,
+      design: design-variable name -> value (eyefem.eye.variables.DESIGN_VARIABLES: mm,
         degrees, N, MPa, mm^3 as documented there), overriding the case; scalars, Python
         floats or JAX values (traced under jax.grad / jax.jit).
       mesh: eye mesh level overriding the case's ``[parameters] mesh`` ("coarse", ...).
@@ -102,7 +102,7 @@ def simulate(case: str | Path | Case, design: dict | None = None, *,
       max_suture_force_N, refraction_change_D, corneal_power_change_D,
       corneal_astigmatism_D, anterior_chamber_depth_change_mm) -> float, or 0-d float64
       array when the design is traced. A case on the surgery's timeline
-      (``volume_regulation = true``: eyefem.eye.design.TimelineSimulator) reports these at
+      (``volume_regulation = true``: eyefem.eye.simulators.TimelineSimulator) reports these at
       its last follow-up time and then its timeline outcomes (peak_iop_on_table_mmhg,
       minutes_above_cra_closing, iop_end_of_surgery_mmhg, iop_48h_mmhg, ...,
       refraction_change_1w_D, ...: eyefem.eye.timeline.outcome_names), all

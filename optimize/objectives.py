@@ -1,7 +1,7 @@
 """Composable planning objectives and constraints: functions of the outcome values,
 differentiable.
 
-An objective maps the outcomes (dict name -> JAX scalar, see eyefem.eye.design.OUTCOMES)
+An objective maps the outcomes (dict name -> JAX scalar, see eyefem.eye.variables.OUTCOMES)
 to a non-negative JAX scalar; they are summed. A constraint maps them to a value that
 is >= 0 when the limit holds. The planner differentiates each with respect to the
 outcomes (jax.grad) and chains with the adjoint gradient of that weighted sum of the

@@ -4,7 +4,7 @@
         --target-indentation 1.0 --iop-max 21 --vars tightening,suture_width
 
 A case on the surgery's timeline (``volume_regulation = true``) is planned on its outcomes
-over time (eyefem.eye.design.TimelineSimulator): limits on the peak IOP on the table
+over time (eyefem.eye.simulators.TimelineSimulator): limits on the peak IOP on the table
 (--iop-peak-max) and on the minutes above the central retinal artery's closing pressure
 (--minutes-above-max), targets on the buckle height or the refraction change a week after
 surgery (--target-indentation-1w, --target-refraction-1w), and the paracentesis's volume
@@ -110,7 +110,7 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
     """SLSQP on the design variables ``names`` of a SurgerySimulator.
 
     Args:
-      sim: eyefem.eye.design.SurgerySimulator (its case gives the starting design).
+      sim: eyefem.eye.simulators.SurgerySimulator (its case gives the starting design).
       objective_terms: optimize.objectives.Objective terms, summed (may be empty: then
         the plan looks for a design that meets the constraints).
       names: design variables to optimise (others stay at the case's values).

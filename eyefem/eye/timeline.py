@@ -18,7 +18,7 @@ surgery). Growth and remodelling are not modelled (docs/validation.md).
 
 The outcomes are defined once (:func:`table_outcomes`, :func:`followup_steps`,
 :func:`shape_name`), for summary.json (:func:`timeline_outcomes`, from the rows) and for
-the design gradients (eyefem.eye.design.TimelineSimulator, JAX functions of the steps'
+the design gradients (eyefem.eye.simulators.TimelineSimulator, JAX functions of the steps'
 carried IOPs, clocks and optics; the paracentesis's volume and delay are design
 variables there).
 """

@@ -13,7 +13,7 @@ TIMELINE_VARIABLES = {
                                   "in it: eyefem.eye.timeline.timed_stages)",
 }
 """The surgical variables of the surgery's timeline (eyefem.eye.timeline): they vary only
-in cases with volume_regulation = true (eyefem.eye.design.TimelineSimulator)."""
+in cases with volume_regulation = true (eyefem.eye.simulators.TimelineSimulator)."""
 SURGICAL_VARIABLES = {
     "tightening": "band circumference shortening (segmental: radial push x 2 pi), mm",
     "buckle_shift": "posterior shift of the fitted buckle along the meridian, mm",
