@@ -80,3 +80,65 @@ def test_outcomes_of_a_uniform_shrink_match_the_closed_form(tmp_path):
                                15.0 + 0.4331 * (1 - 0.99 ** 3) * v0 / MMHG, rtol=1e-9)
     assert abs(float(indentation(X, q0, nodes))) < 1e-12  # the unloaded eye is round there
     assert abs(second["indentation_mm"]) < 1e-12  # and a uniform shrink keeps it round
+
+
+def test_the_open_cavity_deck_drops_the_volume_constraints_and_later_steps(tmp_path):
+    """The tighten step's comparison deck: every <Constraints> (the model's and each
+    step's) removed, only the first two steps kept, its node log named after it; the rest
+    of the deck as it was."""
+    deck = tmp_path / "case.feb"
+    deck.write_text(
+        "<?xml version='1.0' encoding='ISO-8859-1'?>\n<febio_spec version=\"4.0\">"
+        "<Constraints><constraint type=\"volume\"/></Constraints><Step>"
+        "<step id=\"1\"><Control/></step>"
+        "<step id=\"2\"><Contact><contact/></Contact><Constraints><constraint "
+        "type=\"volume\"/></Constraints></step><step id=\"3\"><Contact/></step></Step>"
+        "<Output><logfile><node_data data=\"ux;uy;uz\" file=\"case_displacement.txt\"/>"
+        "</logfile></Output></febio_spec>\n")
+    out = fs.open_cavity_deck(deck, tmp_path / "case_open.feb")
+    root = fs.ET.parse(out).getroot()
+    assert not list(root.iter("Constraints")) and not list(root.iter("constraint"))
+    assert [s.get("id") for s in root.iter("step")] == ["1", "2"]
+    assert root.find("Step/step[@id='2']/Contact/contact") is not None
+    assert root.find("Output/logfile/node_data").get("file") == "case_open_displacement.txt"
+    assert "<Constraints>" in deck.read_text()  # the deck itself is untouched
+
+
+def test_the_given_iop_deck_ramps_the_pressure_over_step_2(tmp_path):
+    """The closed deck's IOP given to FEBio: the pressure load's new curve holds its value
+    at t = 1 and reaches ``iop_mmhg`` at t = 2 (read back by given_iop); the other
+    curves are kept; the node log is named after the new deck."""
+    from eyefem.fem.units import MMHG
+
+    deck = tmp_path / "case_open.feb"
+    deck.write_text(
+        "<?xml version='1.0' encoding='ISO-8859-1'?>\n<febio_spec version=\"4.0\"><Loads>"
+        "<surface_load name=\"iop\" type=\"pressure\" surface=\"wetted\"><pressure lc=\"2\">"
+        f"{15 * MMHG!r}</pressure></surface_load></Loads><LoadData>"
+        "<load_controller id=\"1\" type=\"loadcurve\"><points><pt>0,0</pt><pt>1,0</pt>"
+        "<pt>2,0.8</pt></points></load_controller>"
+        "<load_controller id=\"2\" type=\"loadcurve\"><points><pt>0,0</pt><pt>1,1</pt>"
+        "</points></load_controller></LoadData><Output><logfile><node_data "
+        "data=\"ux;uy;uz\" file=\"case_open_displacement.txt\"/></logfile></Output>"
+        "</febio_spec>\n")
+    assert fs.given_iop(deck) == pytest.approx(15.0)
+    out = fs.given_iop_deck(deck, tmp_path / "case_iop.feb", 24.5)
+    root = fs.ET.parse(out).getroot()
+    assert root.find(".//surface_load/pressure").get("lc") == "3"
+    pts = [pt.text for pt in root.find(".//load_controller[@id='3']").iter("pt")]
+    assert [float(p.split(",")[0]) for p in pts] == [0.0, 1.0, 2.0]
+    assert float(pts[1].split(",")[1]) == pytest.approx(1.0)
+    assert fs.given_iop(out) == pytest.approx(24.5)
+    assert len(root.findall(".//load_controller")) == 3
+    assert root.find(".//node_data").get("file") == "case_iop_displacement.txt"
+
+
+def test_the_closed_iop_meets_the_cavitys_own_volume_law():
+    """FEBio's closed-cavity IOP from its open and given-IOP runs: on the line through
+    them, where the volume change equals the closed cavity's -(p - p_open) MMHG / |eps|
+    (a rigid liquid, eps -> -inf: where the line crosses dV = 0)."""
+    from eyefem.fem.units import MMHG
+
+    p = fs.closed_iop(15.0, -30.0, 25.0, 2.0, -0.4331)
+    assert -30.0 + (p - 15.0) * 3.2 == pytest.approx(-(p - 15.0) * MMHG / 0.4331, abs=1e-12)
+    assert fs.closed_iop(15.0, -30.0, 25.0, 2.0, -1e30) == pytest.approx(15.0 + 30.0 / 3.2)

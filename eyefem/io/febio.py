@@ -34,7 +34,8 @@ Mapping (see docs/febio.md):
 
 What FEBio cannot be given (sutures tied and tightened in a later stage, the orbit's
 springs on a ring's rigid motion, ...) or is given approximately is returned, logged and
-written in the deck's header comment. No deck has been run in FEBio here.
+written in the deck's header comment. What FEBio 4.11 gives for the exported decks:
+docs/febio.md.
 """
 
 from __future__ import annotations
@@ -123,18 +124,16 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
       bulk_factor: FEBio's k = bulk_factor (c10 + c01) per exactly incompressible
         material (a material with its own k, or a coupled one, is written as it is).
       fit: where a stage's hook refits a buckle (a ring fitted snug on the pressurised
-        eye), solve the stages before it with eyefem and write the buckle's segments at
-        that fit (:func:`fitted_buckles`); False: at the buckle's initial fit.
+        eye), solve the deck's stages before it with eyefem (read back) and write the
+        buckle's segments at the hook's fit on that state (:func:`fitted_buckles`);
+        False: at the buckle's initial fit.
     Returns: the omissions (what FEBio cannot be given, or is given approximately), also
       written in the deck's header comment and logged.
     Raises: ValueError for a stage count outside 1..len(setup.stages) or a model without
       solid elements; OSError.
     """
-    fits = fitted_buckles(setup, stages) if fit else {}
-    if setup.whole is not None:  # a reduced model (the mirror half): FEBio gets the whole
-        setup = dataclasses.replace(setup, model=setup.whole.model,
-                                    stages=list(setup.whole.stages), q0=setup.whole.q0,
-                                    whole=None)
+    fits = fitted_buckles(setup, stages, bulk_factor=bulk_factor) if fit else {}
+    setup = _whole(setup)  # a reduced model (the mirror half): FEBio gets the whole
     n_all = len(setup.stages)
     stages = n_all if stages is None else stages
     if not 1 <= stages <= n_all:
@@ -188,7 +187,8 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
     root.append(header)
     ET.SubElement(root, "Module", type="solid")
     if len(exp) == 1:
-        _write_control(ET.SubElement(root, "Control"), stage.n_steps)
+        _write_control(ET.SubElement(root, "Control"), stage.n_steps,
+                       newton=bool(buckles))
 
     mat_names = safe_names([mesh.materials[m] for m in mat_ids])
     mats = ET.SubElement(root, "Material")
@@ -392,9 +392,10 @@ def write_feb(setup: Setup, path, *, stages: int | None = None,
         steps = ET.SubElement(root, "Step")
         for k, st in enumerate(exp):
             se = ET.SubElement(steps, "step", id=str(k + 1), name=st.name)
-            _write_control(ET.SubElement(se, "Control"), st.n_steps)
             staged = [(t, pair) for t, pair in contact_pairs
                       if on(t, st) and (t, pair) not in always]
+            _write_control(ET.SubElement(se, "Control"), st.n_steps,
+                           newton=bool(always) or any(on(t, st) for t, _ in contact_pairs))
             if staged:  # FEBio deactivates a step's components at its end: one per step
                 _write_contacts(ET.SubElement(se, "Contact"), staged)
             for t in cavities:
@@ -480,7 +481,11 @@ def _write_contacts(con, pairs) -> None:
             ET.SubElement(c, tag).text = v
 
 
-def _write_control(ctrl, n_steps: int) -> None:
+def _write_control(ctrl, n_steps: int, newton: bool = False) -> None:
+    """A step's <Control>; ``newton``: FEBio's full Newton (qn_method max_ups 0: the
+    stiffness reformed every iteration) for a step with contact: its first iteration
+    moves the rigid segments onto the sclera with no contact stiffness in the matrix,
+    which BFGS would only update; full Newton takes the contact's into the next one."""
     ET.SubElement(ctrl, "analysis").text = "STATIC"
     ET.SubElement(ctrl, "time_steps").text = str(n_steps)
     ET.SubElement(ctrl, "step_size").text = _fmt(1.0 / n_steps)
@@ -491,7 +496,9 @@ def _write_control(ctrl, n_steps: int) -> None:
     ET.SubElement(ts, "dtmax").text = _fmt(1.0 / n_steps)
     solver = ET.SubElement(ctrl, "solver", type="solid")  # FEBio 4 needs it in each step
     ET.SubElement(solver, "max_refs").text = "25"
-    ET.SubElement(solver, "qn_method", type="BFGS")  # FEBio's default quasi-Newton
+    qn = ET.SubElement(solver, "qn_method", type="BFGS")  # FEBio's default quasi-Newton
+    if newton:
+        ET.SubElement(qn, "max_ups").text = "0"
 
 
 class _Curves:
@@ -578,11 +585,20 @@ def _ring(t):
     return t if isinstance(t, BuckleContact) else None
 
 
-def fitted_buckles(setup: Setup, stages: int | None = None) -> dict[str, tuple[float, str]]:
+def fitted_buckles(setup: Setup, stages: int | None = None, *,
+                   bulk_factor: float = BULK_FACTOR) -> dict[str, tuple[float, str]]:
     """{buckle term name: (dr, stage name)}: the radial fit (mm, added to the ring's radius)
     that the first stage's hook gives a buckle where the buckle acts from a stage with a
-    ``before`` hook (eyefem fits the ring snug on the pressurised eye there): the stages
-    before it are solved by eyefem from the Setup's start. {} when no hook refits one."""
+    ``before`` hook (eyefem fits the ring snug on the pressurised eye there), taken on the
+    deck's own pressurised eye: the stages before it are written (whole, without a buckle
+    fit), read back (eyefem.io.febio_read) and solved by eyefem, the state FEBio reaches
+    there (docs/febio.md: to 1.6e-6 mm), and the hook is given that state. eyefem's own
+    pressurised eye differs by the export's omissions (the orbit's springs, ...): a ring
+    fitted on it would start the tighten step pressed into the deck's sclera (0.069 mm on
+    case 1's coarse mesh). {} when no hook refits one."""
+    import tempfile
+
+    from eyefem.io.febio_read import build_stages, read_feb
     from eyefem.solve.solver import solve
 
     names = [t.name for t in setup.model.terms if _ring(t) is not None]
@@ -591,16 +607,36 @@ def fitted_buckles(setup: Setup, stages: int | None = None) -> dict[str, tuple[f
         st.active is None or n in st.active for n in names)), None)
     if not names or not k:
         return {}
-    log.info("export-feb: solving the stage(s) %s with eyefem to fit the buckle as stage "
-             "'%s' does", ", ".join(repr(st.name) for st in exp[:k]), exp[k].name)
-    sol = solve(setup.model, exp[:k], q0=setup.q0)
-    model, _, _ = exp[k].before(sol.model, sol.q, sol.theta)
+    whole = _whole(setup)
+    log.info("export-feb: solving the deck's step(s) %s with eyefem to fit the buckle as "
+             "stage '%s' does", ", ".join(repr(st.name) for st in exp[:k]), exp[k].name)
+    with tempfile.TemporaryDirectory() as tmp:
+        deck = Path(tmp) / "before.feb"
+        quiet, log.disabled = log.disabled, True
+        try:
+            write_feb(whole, deck, stages=k, bulk_factor=bulk_factor, fit=False)
+        finally:
+            log.disabled = quiet
+        model, sts = build_stages(*read_feb(deck))
+    sol = solve(model, sts)
+    n = whole.model.mesh.n_nodes
+    q = np.zeros(whole.model.n_dof)
+    q[: 3 * n] = np.asarray(sol.q)[: 3 * n]
+    refit, _, _ = whole.stages[k].before(whole.model, q, whole.model.theta0())
     out = {}
-    for n in names:
-        dr = _ring(model.term(n)).radius - _ring(setup.model.term(n)).radius
+    for nm in names:
+        dr = _ring(refit.term(nm)).radius - _ring(whole.model.term(nm)).radius
         if dr != 0.0:
-            out[n] = (float(dr), exp[k].name)
+            out[nm] = (float(dr), exp[k].name)
     return out
+
+
+def _whole(setup: Setup) -> Setup:
+    """The Setup itself, or the whole model of a reduced one (the mirror half)."""
+    if setup.whole is None:
+        return setup
+    return dataclasses.replace(setup, model=setup.whole.model,
+                               stages=list(setup.whole.stages), q0=setup.whole.q0, whole=None)
 
 
 def _buckle_segments(t, theta, exp, add_nodes, warnings, fit=None) -> list:
@@ -632,9 +668,10 @@ def _buckle_segments(t, theta, exp, add_nodes, warnings, fit=None) -> list:
     params["ridge"] = np.array([ridge])
     if fit is not None:
         params["dr"] = np.array([fit[0]])
-        warnings.append(f"buckle '{t.name}': fitted as eyefem's stage '{fit[1]}' fits it (its "
-                        f"radius {fit[0]:+.6g} mm, from eyefem's solve of the stages before; "
-                        "FEBio's segments are placed there from the start)")
+        warnings.append(f"buckle '{t.name}': fitted snug as eyefem's stage '{fit[1]}' fits it, "
+                        f"on the deck's own pressurised eye (its radius {fit[0]:+.6g} mm, from "
+                        "eyefem's solve of the deck's steps before; FEBio's segments are placed "
+                        "there from the start)")
     n_seg, per = BUCKLE_SEGMENTS, 4
     P, _ = t.surface(np.zeros(max(3 * t.mesh.n_nodes, t.extra_dof + 1)), params,
                      n_around=n_seg * per,
@@ -669,7 +706,11 @@ def _write_volume_constraint(parent, t, theta, exp, surf_names, warnings) -> Non
     V_ini) as FEBio's volume constraint (FEVolumeConstraint: penalty, laugon 0): FEBio's
     multiplier p = eps (V - V0) pushes along the faces' normals, so eps = -K_eff / V_ini
     reproduces the liquid's stiffness on either orientation of the faces; V0 is the volume
-    when the step activates it (eyefem's closing) and P_ini is the pressure load held."""
+    when the step activates it (eyefem's closing) and P_ini is the pressure load held.
+    FEBio's stiffness of it (FEVolumeConstraint::StiffnessMatrix) is each face's own
+    eps^2 (n da)(n da)^T, not the liquid's eps (dV/du)(dV/du)^T coupling every face: with
+    the liquid's |eps| (0.43 MPa/mm^3 for the eye) a step that presses the cavity in
+    diverges (docs/febio.md, "Surgery case 1 in FEBio")."""
     p = theta[t.name]
     K = float(np.ravel(p["bulk"])[0])
     c = float(np.ravel(p["c_out"])[0])
