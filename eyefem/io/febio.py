@@ -56,12 +56,12 @@ from eyefem.fem.solid import SolidQ1P0
 from eyefem.fem.solid_compressible import SolidCompressible
 from eyefem.fem.surface import PressureLoad
 from eyefem.fem.terms import NodeSprings
+from eyefem.io.febio_read import SPEC_VERSION, FebError, build_stages, read_feb
 from eyefem.solve.problem import Setup
 from eyefem.solve.solver import Stage
 
 log = logging.getLogger(__name__)
 
-SPEC_VERSION = "4.0"
 BULK_FACTOR = 1000.0
 """Default FEBio bulk modulus k as a multiple of c10 + c01 (Poisson's ratio about 0.4997)."""
 
@@ -79,10 +79,6 @@ AUGMENTATION_TOL = 1e-3
 """FEBio's <atol> written with <laugon>1</laugon> for an exactly incompressible material:
 its augmentations stop when the norm of the element pressures changes by less than this
 fraction (FE3FieldElasticSolidDomain::Augment; FEBio's default 0.01)."""
-
-
-class FebError(ValueError):
-    """An FEBio deck that eyefem cannot read (names the file and the offending tag)."""
 
 
 # --------------------------------------------------------------------------- writing
@@ -598,7 +594,6 @@ def fitted_buckles(setup: Setup, stages: int | None = None, *,
     case 1's coarse mesh). {} when no hook refits one."""
     import tempfile
 
-    from eyefem.io.febio_read import build_stages, read_feb
     from eyefem.solve.solver import solve
 
     names = [t.name for t in setup.model.terms if _ring(t) is not None]

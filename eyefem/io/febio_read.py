@@ -44,10 +44,17 @@ from eyefem.fem.mesh import Mesh, hex_geometry
 from eyefem.fem.surface import pressure_term
 from eyefem.fem.terms import NodalForce, Term
 from eyefem.io.casefile import material_c10_field, unit_slip
-from eyefem.io.febio import SPEC_VERSION, FebError
 from eyefem.solve.problem import Setup
 from eyefem.solve.model import Model, node_dofs, solid_model
 from eyefem.solve.solver import Stage
+
+SPEC_VERSION = "4.0"
+"""The FEBio input format written and read (febio_spec version)."""
+
+
+class FebError(ValueError):
+    """An FEBio deck that eyefem cannot read (names the file and the offending tag)."""
+
 
 log = logging.getLogger(__name__)
 
