@@ -392,8 +392,9 @@ def test_sutures_turned_about_the_buckle_normal_are_refused():
         surgery(p, case.materials)
 
 
-def test_the_mirror_half_refuses_a_deformable_buckle_and_a_relaxing_wall():
-    """(The surgery's timeline runs as the half: tests/test_mirror_timeline.py.)"""
+def test_the_mirror_half_refuses_a_deformable_buckle():
+    """(The surgery's timeline and a relaxing wall run as the half:
+    tests/test_mirror_timeline.py.)"""
     from eyefem.eye.mirror import mirror_setup
     from eyefem.solve.problem import Setup
 
@@ -402,9 +403,6 @@ def test_the_mirror_half_refuses_a_deformable_buckle_and_a_relaxing_wall():
 
     setup = Setup("surgery", None, [], None, None, parts=Parts())
     with pytest.raises(ValueError, match="buckle_body = 'deformable'.*rigid buckle"):
-        mirror_setup(setup)
-    Parts.p = {"volume_regulation": True, "tissue_relaxation": "custom"}
-    with pytest.raises(ValueError, match="tissue_relaxation = 'custom'.*relaxation"):
         mirror_setup(setup)
 
 

@@ -20,7 +20,9 @@ tell (an ovalisation breaks the symmetry; ``eyefem stability`` on the whole eye 
 How each term is halved (:func:`half_model`):
 
 - the solid: built on the half mesh (every element on one side: no element has its
-  centroid on the plane);
+  centroid on the plane); a relaxing wall (ViscoelasticQ1P0) too, its per-Gauss-point
+  history the kept elements' (theta_half), lifted to an element with y < 0 from its
+  mirror element's mirror Gauss points, each tensor reflected, R S R (theta_whole);
 - the liquid cavity: a FluidCavity on the half of the wetted surface, open on the plane
   (``symmetry_planes = ("y",)``, its cone volumes about a point on the plane), whose
   volume is half the whole's: its extensive params (CAVITY_VOLUME_KEYS: volumes, the
@@ -61,10 +63,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from eyefem.fem.cavity import FluidCavity
-from eyefem.fem.mesh import Mesh
+from eyefem.fem.mesh import Mesh, hex_gauss_points, hex_shape
 from eyefem.fem.solid import SolidQ1P0
 from eyefem.fem.surface import PressureLoad
 from eyefem.fem.terms import Term
+from eyefem.fem.viscoelastic import ViscoelasticQ1P0
 from eyefem.solve.model import Model
 from eyefem.solve.problem import Setup, Whole
 
@@ -442,7 +445,7 @@ def half_model(model: Model, mir: Mirror) -> Model:
     rebuilt on the half mesh, every other term a :class:`HalfTerm`."""
     terms = []
     for t in model.terms:
-        if type(t) is SolidQ1P0:
+        if type(t) in (SolidQ1P0, ViscoelasticQ1P0):
             if t.elements is not None and len(t.elements) != model.mesh.n_elem:
                 raise ValueError(f"term '{t.name}': a solid on a subset of the elements; the "
                                  "mirror half needs the whole mesh's solid")
@@ -474,15 +477,72 @@ def half_model(model: Model, mir: Mirror) -> Model:
     return Model(mir.mesh, tuple(terms), mir.n_dof_half)
 
 
-def theta_half(theta: dict, model: Model) -> dict:
+def theta_half(theta: dict, model: Model, mir: Mirror | None = None) -> dict:
     """The half's design pytree of the whole's ``theta``: a FluidCavity's volume-like
-    params (CAVITY_VOLUME_KEYS) halved, everything else the whole's."""
-    return _scaled(theta, model, 0.5)
+    params (CAVITY_VOLUME_KEYS) halved, a relaxing solid's per-element history
+    (SOLID_HISTORY_KEYS) that of the kept elements (needs ``mir``), everything else the
+    whole's."""
+    out = _scaled(theta, model, 0.5)
+    for t in _relaxing(model, theta):
+        out[t.name] = {**out[t.name], **{k: np.asarray(theta[t.name][k])[_need(mir).keep_elems]
+                                         for k in SOLID_HISTORY_KEYS}}
+    return out
 
 
-def theta_whole(theta: dict, model: Model) -> dict:
-    """The whole's design pytree of the half's ``theta`` (the inverse of theta_half)."""
-    return _scaled(theta, model, 2.0)
+def theta_whole(theta: dict, model: Model, mir: Mirror | None = None) -> dict:
+    """The whole's design pytree of the half's ``theta`` (the inverse of theta_half): a
+    relaxing solid's history of an element with y < 0 is its mirror element's at the
+    mirror Gauss points, reflected (R S R, R = diag(1, -1, 1))."""
+    out = _scaled(theta, model, 2.0)
+    for t in _relaxing(model, theta):
+        m = _need(mir)
+        e, g = _gauss_partner(m, model.mesh)
+        R = np.array([1.0, -1.0, 1.0])
+        h = np.asarray(theta[t.name]["h"])[m.elem_new[:, None], g]  # (n, 8, k, 3, 3)
+        s = np.asarray(theta[t.name]["s_prev"])[m.elem_new[:, None], g]  # (n, 8, 3, 3)
+        flip = np.where(e, 1.0, R[:, None] * R[None, :])  # (n, 3, 3) per element
+        out[t.name] = {**out[t.name], "h": h * flip[:, None, None], "s_prev": s * flip[:, None]}
+    return out
+
+
+SOLID_HISTORY_KEYS = ("h", "s_prev")
+"""A relaxing solid's (ViscoelasticQ1P0) per-element, per-Gauss-point history params."""
+
+
+def _relaxing(model: Model, theta: dict) -> list:
+    return [t for t in model.terms if isinstance(t, ViscoelasticQ1P0) and t.name in theta]
+
+
+def _need(mir):
+    if mir is None:
+        raise ValueError("a relaxing solid's history needs the mirror map: pass mir")
+    return mir
+
+
+def _gauss_partner(mir: Mirror, mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(own (n_elem, 1, 1) bool: the element is the half's own; g (n_elem, 8): the Gauss
+    point of the half's element that each whole element's Gauss point is the mirror image
+    of (its own for a kept element)), cached on the Mirror."""
+    got = mir.__dict__.get("_gauss")
+    if got is not None:
+        return got
+    n_g, _ = hex_shape(hex_gauss_points()[0])  # (8 g, 8 a)
+    xg = np.einsum("ga,eai->egi", n_g, mesh.nodes[mesh.hexes])  # (n, 8, 3)
+    own = np.zeros(mesh.n_elem, bool)
+    own[mir.keep_elems] = True
+    src = np.where(own, np.arange(mesh.n_elem), mir.partner_elem)
+    target = xg[src]  # the source element's Gauss points
+    mine = xg * np.array([1.0, -1.0, 1.0])
+    mine[own] = xg[own]
+    d = np.linalg.norm(mine[:, :, None, :] - target[:, None, :, :], axis=-1)  # (n, 8, 8)
+    g = np.argmin(d, axis=2)
+    tol = MIRROR_TOL * _size(mesh)
+    if np.any(d.min(axis=2) > tol) or np.any(np.sort(g, axis=1) != np.arange(8)):
+        raise ValueError("the mirror map of the Gauss points is not one to one; set "
+                         "symmetry = 'none'")
+    got = (own[:, None, None], g)
+    object.__setattr__(mir, "_gauss", got)
+    return got
 
 
 def _scaled(theta: dict, model: Model, f: float) -> dict:
@@ -556,7 +616,7 @@ def check_mirror(model: Model, theta: dict, half: Model, mir: Mirror, where: str
     checks."""
     rng = np.random.default_rng(seed)
     idx, sign = mir.reflect_dofs
-    th_h = theta_half(theta, model)
+    th_h = theta_half(theta, model, mir)
     states = _random_states(model, rng)
     for t in model.terms:
         if names is not None and t.name not in names:
@@ -633,8 +693,7 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
     symmetric about y = 0. A mesh with elements across the plane (odd levels: 'half',
     'graded_half', ...) cannot be cut between elements: the whole Setup, with a warning."""
     p = getattr(setup.parts, "p", {}) or {}
-    for key, off, why in (("buckle_body", "rigid", "a deformable buckle's band, tire or sponge"),
-                          ("tissue_relaxation", "none", "the tissues' relaxation")):
+    for key, off, why in (("buckle_body", "rigid", "a deformable buckle's band, tire or sponge"),):
         if p.get(key, off) != off:
             raise ValueError(f"symmetry = 'mirror' with {key} = {p[key]!r}: the mirror half "
                              f"is implemented for the rigid buckle without {why}; set "
@@ -670,7 +729,7 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
 
         def hook(model_h, q_h, theta_h):
             mw = whole_of(model_h)
-            mw2, qw2, thw2 = before(mw, mir.lift(q_h), theta_whole(theta_h, mw))
+            mw2, qw2, thw2 = before(mw, mir.lift(q_h), theta_whole(theta_h, mw, mir))
             changed = [t.name for t, u in zip(mw.terms, mw2.terms) if t is not u]
             halves = {t.name: t for t in model_h.terms}
             new_h = half_model(mw2, mir) if changed else model_h
@@ -682,7 +741,7 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
             wholes[id(new_h)] = wholes["last"] = (new_h, mw2)
             q2 = mir.restrict(qw2)
             q2[mir.plane_y_dofs] = 0.0
-            return new_h, q2, theta_half(thw2, mw2)
+            return new_h, q2, theta_half(thw2, mw2, mir)
         return hook
 
     stages = [dataclasses.replace(st, prescribed=half_prescribed(st.prescribed, mir, st.name),
@@ -692,7 +751,7 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
 
     def lift(model_h, q_h, theta_h):
         mw = whole_of(model_h)
-        return mw, mir.lift(q_h), theta_whole(theta_h, mw)
+        return mw, mir.lift(q_h), theta_whole(theta_h, mw, mir)
 
     def probe(model_h, q_h, theta_h):
         return setup.probe(*lift(model_h, q_h, theta_h))
