@@ -25,11 +25,14 @@ values, gradient), plan.png, planned_case.toml (the case with the best design) a
 plan_summary.json (with the active or violated constraints).
 
 **Multi-fidelity** (``--search-mesh LEVEL``): the plan searches on a cheaper level first
-(to --iterations simulations), then finishes on the case's level (or --mesh) from the
-search's best design (to --finish-iterations simulations): the trusted level's first
-simulation measures how far the two levels' outcomes are apart at one design, beside the
-mesh study's error estimates of both levels (eyefem.eye.mesh_error); the plan reports the
-trusted level's outcomes (plan_summary.json: "search", "level_difference", "mesh_error").
+(to --iterations simulations), then simulates the case's level (or --mesh) at the
+search's best design; while that misses the goal, it searches the cheap level again with
+its outcomes corrected to the trusted level's there (the difference and its gradient:
+additive output correction) and simulates the trusted level at the new design (to
+--finish-iterations trusted simulations). The first trusted simulation measures how far
+the levels are apart at one design, beside the mesh study's error estimates of both
+(eyefem.eye.mesh_error); the plan reports the trusted level's outcomes
+(plan_summary.json: "search", "level_difference", "mesh_error").
 """
 
 from __future__ import annotations
@@ -74,8 +77,10 @@ variables) is below this is stationary: the plan stops there."""
 
 @dataclasses.dataclass
 class PlanResult:
-    """History rows (one per simulation), the best design, whether it converged, why it
-    stopped and the constraints active (within FEASIBLE of their limit) or violated."""
+    """History rows (one per simulation), the best design (with "gradients": d outcome /
+    d design of the outcomes weighed there), whether it converged, why it stopped, the
+    constraints active (within FEASIBLE of their limit) or violated, and the outcomes whose
+    gradients any simulation took."""
 
     history: list[dict]
     best: dict
@@ -83,6 +88,7 @@ class PlanResult:
     message: str = ""
     active: tuple[str, ...] = ()
     violated: tuple[str, ...] = ()
+    outcomes_used: tuple[str, ...] = ()
 
 
 class _Stop(Exception):
@@ -106,7 +112,7 @@ def bounds_for(sim, names, overrides=None) -> dict:
 
 
 def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations=20,
-         tol=1e-2, on_iteration=None) -> PlanResult:
+         tol=1e-2, on_iteration=None, gradient_outcomes=()) -> PlanResult:
     """SLSQP on the design variables ``names`` of a SurgerySimulator.
 
     Args:
@@ -120,6 +126,8 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
       tol: the plan has reached its goal when the objective is below tol and every
         constraint is met (FEASIBLE).
       on_iteration: callback(row) after every simulation (progress, files).
+      gradient_outcomes: outcomes whose gradients every simulation takes besides those
+        the objective and constraints weigh there.
     """
     from scipy.optimize import minimize
 
@@ -142,7 +150,7 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
         raise ValueError(f"the start {dict(zip(names, (d0[n] for n in names)))} is outside the "
                          f"bounds {bnd}")
     f_total = obj.total(objective_terms) if objective_terms else (lambda o: 0.0 * o["iop_mmhg"])
-    history, cache, best = [], {}, {}
+    history, cache, best, used_ever = [], {}, {}, set()
 
     def weights(fn, out):
         g = jax.grad(lambda o: fn(o))({k: jax.numpy.asarray(v) for k, v in out.items()})
@@ -162,8 +170,9 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
         # d fn / d z of the objective and every constraint from one block adjoint of the
         # outcomes they weigh (SurgerySimulator.gradients: one right-hand side per outcome)
         w_all = [weights(fn, out) for fn in (f_total, *constraints)]
-        used = sorted({k for w in w_all for k, v in w.items() if v})
+        used = sorted({k for w in w_all for k, v in w.items() if v} | set(gradient_outcomes))
         g_out = sim.gradients(res, used) if used else {}
+        used_ever.update(used)
 
         def gradient(w):
             return np.array([sum(w[k] * g_out[k][n] for k in used) for n in names]) * (hi - lo)
@@ -183,7 +192,7 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
         history.append(row)
         merit = (0 if feasible else 1, f if feasible else -cv.min())
         if not best or merit < best["merit"]:
-            best.update(merit=merit, objective=f, design=design, outcomes=out,
+            best.update(merit=merit, objective=f, design=design, outcomes=out, gradients=g_out,
                         constraints=dict(zip((c.name for c in constraints), cv.tolist())))
         if on_iteration is not None:
             on_iteration(row)
@@ -208,36 +217,107 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
     violated = tuple(k for k, v in values.items() if v < -FEASIBLE)
     converged = best["merit"][0] == 0 and (best["objective"] < tol or message.startswith("stationary"))
     return PlanResult(history, {k: v for k, v in best.items() if k != "merit"}, converged,
-                      message, active, violated)
+                      message, active, violated, tuple(sorted(used_ever)))
 
 
 @dataclasses.dataclass
 class LevelsResult:
-    """A multi-fidelity plan: the search on the cheap level, the finish on the trusted one
-    (its best design is the plan's), and per outcome the two levels' values at the search's
-    best design (the finish's first simulation): {outcome: {"search", "trusted",
-    "difference" (trusted - search), "relative" (difference / |trusted|, None at 0)}}."""
+    """A multi-fidelity plan: the search on the cheap level; the trusted level's
+    simulations (``trusted``: its best design is the plan's); and per outcome the two
+    levels' values at the search's best design (the first trusted simulation): {outcome:
+    {"search", "trusted", "difference" (trusted - search), "relative" (difference /
+    |trusted|, None at 0)}}; ``corrections``: the corrected searches between the trusted
+    simulations."""
 
     search: PlanResult
     trusted: PlanResult
     levels: tuple[str, str]
     level_difference: dict
+    corrections: list = dataclasses.field(default_factory=list)
+
+
+class _StartedAt:
+    """A simulator whose starting design is ``start`` (the rest as the case's)."""
+
+    def __init__(self, sim, start: dict):
+        self._sim, self._start = sim, dict(start)
+
+    def design0(self) -> dict:
+        return {**self._sim.design0(), **self._start}
+
+    def __getattr__(self, name):
+        return getattr(self._sim, name)
+
+
+@dataclasses.dataclass
+class _CorrectedResult:
+    raw: object
+    outcomes: dict
+    newton_iterations: int
+
+
+class _Corrected(_StartedAt):
+    """The search level's simulator with its outcomes corrected to the trusted level's to
+    first order at the design x_k (additive output correction): y(x) + d + G (x - x_k),
+    d = y_T(x_k) - y(x_k), G = dy_T/dx(x_k) - dy/dx(x_k); so the corrected outcomes and
+    their gradients equal the trusted level's at x_k."""
+
+    def __init__(self, sim, start: dict, delta: dict, slope: dict):
+        super().__init__(sim, start)
+        self._delta, self._slope = delta, slope
+
+    def run(self, design):
+        res = self._sim.run(design)
+        out = dict(res.outcomes)
+        for k, d in self._delta.items():
+            out[k] = out[k] + d + sum(g * (design[n] - self._start[n])
+                                      for n, g in self._slope[k].items())
+        return _CorrectedResult(res, out, res.newton_iterations)
+
+    def gradients(self, res, used):
+        g = self._sim.gradients(res.raw, used)
+        return {k: {n: v + self._slope.get(k, {}).get(n, 0.0) for n, v in gk.items()}
+                for k, gk in g.items()}
+
+
+def _correction(trusted: dict, search: dict, names) -> tuple[dict, dict]:
+    """(d, G) of :class:`_Corrected` from the two levels' best entries at one design
+    (outcomes and gradients; the outcomes both have gradients of)."""
+    keys = sorted(set(trusted["gradients"]) & set(search["gradients"]))
+    delta = {k: float(trusted["outcomes"][k]) - float(search["outcomes"][k]) for k in keys}
+    slope = {k: {n: float(trusted["gradients"][k][n]) - float(search["gradients"][k][n])
+                 for n in names} for k in keys}
+    return delta, slope
+
+
+def _uncorrected(best: dict, delta: dict, slope: dict, x0: dict) -> dict:
+    """The search level's own outcomes and gradients at a corrected search's best design
+    (the correction about x0 taken off)."""
+    d = best["design"]
+    out = {k: v - delta[k] - sum(g * (d[n] - x0[n]) for n, g in slope[k].items())
+           if k in delta else v for k, v in best["outcomes"].items()}
+    grads = {k: {n: v - slope.get(k, {}).get(n, 0.0) for n, v in gk.items()}
+             for k, gk in best["gradients"].items()}
+    return {"outcomes": out, "gradients": grads}
 
 
 def plan_levels(make_sim, levels, objective_terms, names, *, constraints=(), bounds=None,
                 iterations=20, finish_iterations=6, tol=1e-2, on_iteration=None) -> LevelsResult:
-    """Multi-fidelity planning: :func:`plan` on the cheap level, then on the trusted one from
-    the search's best design.
+    """Multi-fidelity planning: :func:`plan` on the cheap level; then, in turn, one trusted
+    simulation at the current design and a search on the cheap level whose outcomes are
+    corrected to the trusted level's there (value and gradient: :class:`_Corrected`),
+    until a trusted simulation meets the goal (or ``finish_iterations`` of them).
 
     Args:
       make_sim: (level, start) -> a SurgerySimulator of the case on eye mesh ``level`` whose
-        design starts at ``start`` (name -> value; {} for the case's own).
+        design starts at ``start`` (name -> value; {} for the case's own); called once
+        per level (each keeps its warm starts).
       levels: (search level, trusted level), different.
       finish_iterations: the most simulations on the trusted level (its first is at the
         search's best design).
-      on_iteration: callback(row) with the row's "mesh" (level) and "simulation" (a count
-        over both levels).
-      The other arguments as :func:`plan`'s, for both levels.
+      on_iteration: callback(row) with the row's "mesh" (the level; the corrected
+        searches' rows "<level>+correction") and "simulation" (a count over all).
+      The other arguments as :func:`plan`'s, for every search.
     """
     search_level, level = levels
     if search_level == level:
@@ -254,19 +334,45 @@ def plan_levels(make_sim, levels, objective_terms, names, *, constraints=(), bou
         return hook
 
     kw = dict(constraints=constraints, bounds=bounds, tol=tol)
-    first = plan(make_sim(search_level, {}), objective_terms, names, iterations=iterations,
+    sim_s = make_sim(search_level, {})
+    first = plan(sim_s, objective_terms, names, iterations=iterations,
                  on_iteration=tagged(search_level), **kw)
-    start = {n: first.best["design"][n] for n in names}
-    final = plan(make_sim(level, start), objective_terms, names, iterations=finish_iterations,
-                 on_iteration=tagged(level), **kw)
-    at_start, cheap = final.history[0], first.best["outcomes"]
+    wanted = first.outcomes_used
+    x, cheap = {n: first.best["design"][n] for n in names}, first.best
+    if set(wanted) - set(cheap["gradients"]):  # weighed elsewhere, not at the best design
+        res = sim_s.run(first.best["design"])  # warm started: a few Newton iterations
+        cheap = {"outcomes": res.outcomes, "gradients": sim_s.gradients(res, list(wanted))}
+    sim_t, runs, corrections = make_sim(level, x), [], []
+    while True:
+        one = plan(_StartedAt(sim_t, x), objective_terms, names, iterations=1,
+                   on_iteration=tagged(level), gradient_outcomes=wanted, **kw)
+        runs.append(one)
+        if one.converged or len(runs) >= finish_iterations:
+            break
+        delta, slope = _correction(one.best, cheap, names)
+        model = _Corrected(sim_s, x, delta, slope)
+        fixed = plan(model, objective_terms, names, iterations=iterations,
+                     on_iteration=tagged(f"{search_level}+correction"),
+                     gradient_outcomes=wanted, **kw)
+        corrections.append(fixed)
+        x_new = {n: fixed.best["design"][n] for n in names}
+        if all(abs(x_new[n] - x[n]) <= 1e-9 * max(1.0, abs(x[n])) for n in names):
+            break  # the corrected search stays where the trusted level was evaluated
+        cheap = _uncorrected(fixed.best, delta, slope, x)
+        x = x_new
+    last = min(runs, key=lambda r: (0 if r.converged else 1, r.best["objective"]))
+    history = [r.history[0] for r in runs]
+    message = last.message if last.converged else (
+        f"{len(runs)} simulations on {level}: " + runs[-1].message)
+    trusted = dataclasses.replace(last, history=history, message=message)
+    at_start, y0 = runs[0].best["outcomes"], first.best["outcomes"]
     diff = {}
-    for k, v in cheap.items():
+    for k, v in y0.items():
         if k in at_start and isinstance(v, (int, float)) and np.isfinite(v):
             t = float(at_start[k])
             diff[k] = {"search": float(v), "trusted": t, "difference": t - float(v),
                        "relative": (t - float(v)) / abs(t) if t else None}
-    return LevelsResult(first, final, (search_level, level), diff)
+    return LevelsResult(first, trusted, (search_level, level), diff, corrections)
 
 
 def study_errors(levels, encircling: bool) -> dict:
@@ -472,6 +578,7 @@ def _levels_summary(r: LevelsResult, encircling: bool) -> dict:
                        "converged": s.converged, "message": s.message,
                        "design": s.best["design"], "outcomes": s.best["outcomes"]},
             "trusted_mesh": r.levels[1], "trusted_simulations": len(r.trusted.history),
+            "corrected_search_simulations": sum(len(c.history) for c in r.corrections),
             "level_difference": r.level_difference,
             "mesh_error": study_errors(r.levels, encircling)}
 
@@ -479,8 +586,9 @@ def _levels_summary(r: LevelsResult, encircling: bool) -> dict:
 def _levels_lines(summary: dict) -> list[str]:
     """Terminal lines: the levels' outcomes at the search's design, the study's errors."""
     lo, hi = summary["search"]["mesh"], summary["trusted_mesh"]
-    lines = [f"  searched on {lo} ({summary['search']['simulations']} simulations), finished on "
-             f"{hi} ({summary['trusted_simulations']}); at the search's design:"]
+    lines = [f"  searched on {lo} ({summary['search']['simulations']} simulations), "
+             f"{hi} {summary['trusted_simulations']} (with {lo} corrected to it: "
+             f"{summary['corrected_search_simulations']}); at the search's design:"]
     for k in QUOTE_DIFFERENCE:
         d = summary["level_difference"].get(k)
         if d is None:
@@ -630,8 +738,7 @@ def main(argv=None) -> int:
                                             bounds=bounds, iterations=a.iterations,
                                             finish_iterations=a.finish_iterations, tol=a.tol,
                                             on_iteration=progress)
-                res = levels_result.trusted
-                res = dataclasses.replace(res, history=levels_result.search.history + res.history)
+                res = dataclasses.replace(levels_result.trusted, history=rows)
             else:
                 res = plan(sim, terms, names, constraints=cons, bounds=bounds,
                            iterations=a.iterations, tol=a.tol, on_iteration=progress)

@@ -58,6 +58,9 @@ def test_the_search_hands_its_design_to_the_trusted_level():
     assert t_search == pytest.approx(4.5, abs=0.05)
     assert sims["trusted"].runs[0] == t_search  # the finish starts at the search's design
     assert r.trusted.converged
+    # the correction makes the linear cheap model the trusted one: one corrected search,
+    # then the trusted level at its answer
+    assert len(r.trusted.history) == 2 and len(r.corrections) == 1
     assert r.trusted.best["design"]["tightening"] == pytest.approx(3.75, abs=0.05)
     assert r.trusted.best["outcomes"]["indentation_mm"] == pytest.approx(0.45, abs=0.005)
     d = r.level_difference["indentation_mm"]
@@ -65,9 +68,36 @@ def test_the_search_hands_its_design_to_the_trusted_level():
     assert d["trusted"] == pytest.approx(0.12 * t_search, rel=1e-12)
     assert d["relative"] == pytest.approx(1.0 / 6.0, rel=1e-12)  # (0.12 - 0.10) / 0.12
     assert [row["simulation"] for row in rows] == list(range(len(rows)))
-    assert [row["mesh"] for row in rows] == (["cheap"] * len(r.search.history)
-                                            + ["trusted"] * len(r.trusted.history))
-    assert len(r.trusted.history) < len(r.search.history) + 2
+    n_s, n_c = len(r.search.history), len(r.corrections[0].history)
+    assert [row["mesh"] for row in rows] == (["cheap"] * n_s + ["trusted"]
+                                            + ["cheap+correction"] * n_c + ["trusted"])
+    assert sims["trusted"].runs == [t_search, r.trusted.best["design"]["tightening"]]
+
+
+def test_the_correction_matches_the_trusted_level_where_it_was_taken():
+    """_Corrected's outcomes and gradients equal the trusted level's at x_k and differ
+    from it by the levels' curvature elsewhere (zero for the linear stand-in)."""
+    from optimize.plan import _correction, _Corrected, _uncorrected
+
+    cheap, trusted = StandIn("cheap", {}), StandIn("trusted", {})
+    used = ["indentation_mm", "iop_mmhg"]
+
+    def entry(sim, t):
+        res = sim.run({"tightening": t})
+        return {"design": {"tightening": t}, "outcomes": res.outcomes,
+                "gradients": sim.gradients(res, used)}
+    delta, slope = _correction(entry(trusted, 4.0), entry(cheap, 4.0), ["tightening"])
+    model = _Corrected(cheap, {"tightening": 4.0}, delta, slope)
+    for t in (4.0, 2.5):
+        got, want = model.run({"tightening": t}), trusted.run({"tightening": t})
+        assert got.outcomes == pytest.approx(want.outcomes, rel=1e-13)
+        g_got, g_want = model.gradients(got, used), trusted.gradients(want, used)
+        for k in used:
+            assert g_got[k]["tightening"] == pytest.approx(g_want[k]["tightening"], rel=1e-13)
+    best = {**entry(trusted, 2.5), "gradients": trusted.gradients(None, used)}
+    back = _uncorrected(best, delta, slope, {"tightening": 4.0})
+    assert back["outcomes"]["indentation_mm"] == pytest.approx(0.25, rel=1e-13)
+    assert back["gradients"]["indentation_mm"]["tightening"] == pytest.approx(0.10)
 
 
 def test_the_same_level_twice_is_refused():
@@ -109,5 +139,6 @@ def test_plan_on_coarse_finishes_on_medium(tmp_path):
     d = s["level_difference"]["indentation_mm"]
     assert d["search"] == pytest.approx(s["search"]["outcomes"]["indentation_mm"], rel=1e-12)
     assert d["difference"] == pytest.approx(d["trusted"] - d["search"], rel=1e-12)
-    assert s["simulations"] == s["search"]["simulations"] + s["trusted_simulations"]
+    assert s["simulations"] == (s["search"]["simulations"] + s["trusted_simulations"]
+                                + s["corrected_search_simulations"])
     assert (tmp_path / "plan.png").exists() and (tmp_path / "planned_case.toml").exists()
