@@ -64,26 +64,17 @@ def _coeffs(model, c10):
 
 
 def _shell_timeline(design):
-    """Pressurised to 15 mmHg (2 steps, no time), closed, pressed from outside by ``load``
-    mmHg over 10 minutes (3 steps), held ``delay`` minutes (2 steps), ``para`` uL removed at
-    once, followed to an hour (3 steps): the recorder."""
-    from eyefem.fem.cavity import closing_hook
-    from eyefem.fem.units import MMHG
-    from eyefem.solve.solver import NewtonOptions, Stage, solve
+    """The relaxing shell on the timeline of tests/test_timeline_gradients.py (shell_stages:
+    pressurised, closed, pressed over 10 minutes, held ``delay`` minutes, ``para`` uL
+    removed, followed to an hour), its wall's c10 from the design: the recorder."""
+    from eyefem.solve.solver import NewtonOptions, solve
     from eyefem.solve.transient import Recorder
+    from test_timeline_gradients import shell_stages
 
     model, cav, fix, _ = _shell()
-    on = ("solid", "buckle", "cav")
     theta = model.theta0()
     theta["solid"] = {**theta["solid"], "coeffs": np.asarray(_coeffs(model, design["c10"]))}
-    stages = [Stage("pressurise", 2, fix, params={"iop": {"p": 15 * MMHG}},
-                    active=("solid", "iop")),
-              Stage("tighten", 3, fix, params={"buckle": {"p": design["load"] * MMHG}}, active=on,
-                    before=closing_hook("cav", "iop"), duration=10.0),
-              Stage("wait", 2, fix, active=on, duration=design["delay"]),
-              Stage("paracentesis", 1, fix, params={"cav": {"paracentesis": design["para"]}},
-                    active=on),
-              Stage("follow-up", 3, fix, active=on, times=(10.0, 30.0, 60.0))]
+    stages = shell_stages(fix, design)
     rec = Recorder(stages)
     solve(model, stages, theta=theta, options=NewtonOptions(rtol=1e-11, atol=1e-14),
           on_step=rec)

@@ -137,24 +137,31 @@ def _shell():
     return model, cav, (d, np.zeros(len(d)))
 
 
-def _shell_timeline(design):
-    """The shell pressurised to 15 mmHg, closed, pressed from outside by ``load`` mmHg over
-    10 minutes (3 steps), held for ``delay`` minutes (2 steps), ``para`` uL removed at one
-    instant, and followed to an hour: (recorder, cavity term)."""
+def shell_stages(fix, design):
+    """The shell's timeline: pressurised to 15 mmHg, closed, pressed from outside by
+    ``load`` mmHg over 10 minutes (3 steps), held for ``delay`` minutes (2 steps), ``para``
+    uL removed at one instant, and followed to an hour (also tests/test_relaxation_gradients.py)."""
     from eyefem.fem.cavity import closing_hook
     from eyefem.fem.units import MMHG
-    from eyefem.solve.solver import NewtonOptions, Stage, solve
+    from eyefem.solve.solver import Stage
+
+    on = ("solid", "buckle", "cav")
+    return [Stage("pressurise", 2, fix, params={"iop": {"p": 15 * MMHG}}, active=("solid", "iop")),
+            Stage("tighten", 3, fix, params={"buckle": {"p": design["load"] * MMHG}}, active=on,
+                  before=closing_hook("cav", "iop"), duration=10.0),
+            Stage("wait", 2, fix, active=on, duration=design["delay"]),
+            Stage("paracentesis", 1, fix, params={"cav": {"paracentesis": design["para"]}},
+                  active=on),
+            Stage("follow-up", 3, fix, active=on, times=(10.0, 30.0, 60.0))]
+
+
+def _shell_timeline(design):
+    """The shell's timeline (shell_stages) solved: (recorder, cavity term)."""
+    from eyefem.solve.solver import NewtonOptions, solve
     from eyefem.solve.transient import Recorder
 
     model, cav, fix = _shell()
-    on = ("solid", "buckle", "cav")
-    stages = [Stage("pressurise", 2, fix, params={"iop": {"p": 15 * MMHG}}, active=("solid", "iop")),
-              Stage("tighten", 3, fix, params={"buckle": {"p": design["load"] * MMHG}}, active=on,
-                    before=closing_hook("cav", "iop"), duration=10.0),
-              Stage("wait", 2, fix, active=on, duration=design["delay"]),
-              Stage("paracentesis", 1, fix, params={"cav": {"paracentesis": design["para"]}},
-                    active=on),
-              Stage("follow-up", 3, fix, active=on, times=(10.0, 30.0, 60.0))]
+    stages = shell_stages(fix, design)
     rec = Recorder(stages)
     solve(model, stages, options=NewtonOptions(rtol=1e-11, atol=1e-14), on_step=rec)
     return rec, cav
