@@ -213,6 +213,14 @@ def condensed_pressure(rhs, m, a, bmax, bscale):
     f(x) = m x + a E(x) increases with slope in [m, m + a E_max / p_b] (m >= 1), so the
     root lies between rhs / m and rhs / (m + a E_max / p_b); Newton steps that leave the
     bracket bisect it. Differentiated implicitly (its JVP rule), to every order."""
+    return _root(rhs, m, a, bmax, bscale)
+
+
+@jax.jit
+def _root(rhs, m, a, bmax, bscale):
+    """:func:`condensed_pressure`'s iteration, compiled once per shape, so that the host's
+    calls outside a traced function (the cavity's pressures and reports at every
+    line-search trial) reuse one executable instead of tracing the loop at each call."""
     M = m + a * bmax / bscale
     lo = jnp.minimum(rhs / m, rhs / M)
     hi = jnp.maximum(rhs / m, rhs / M)
