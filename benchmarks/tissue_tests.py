@@ -192,8 +192,7 @@ def equivalent_strain(a: float) -> float:
 
     if a <= 0.0:
         return 0.0
-    return float(brentq(lambda E: 2 * (1 + 2 * E) + (1 + 2 * E) ** -2 - 3 - a, 0.0, 1.0,
-                        xtol=1e-14))
+    return float(brentq(lambda E: equibiaxial_invariants(E)[0] - 3 - a, 0.0, 1.0, xtol=1e-14))
 
 
 def eye_strains(mesh: str, runs_dir: Path | None) -> dict:
