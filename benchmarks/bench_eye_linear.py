@@ -33,7 +33,7 @@ from eyefem.catalog import (
     problems,  # noqa: E402
     schemas,  # noqa: E402
 )
-from eyefem.io.casefile import load_case  # noqa: E402
+from eyefem.io.casefile import load_case, with_mesh  # noqa: E402
 from eyefem.solve.assembly import Assembler  # noqa: E402
 from eyefem.solve.solver import NewtonOptions, interpolate, solve  # noqa: E402
 
@@ -60,7 +60,7 @@ def main(argv=None):
 
     case = load_case(args.case, schemas())
     if args.mesh:
-        case.parameters["mesh"] = args.mesh
+        case = with_mesh(case, args.mesh)
     setup = problems()[case.problem][1](case.parameters, case.materials)
     sol = solve(setup.model, setup.stages[:1], options=NewtonOptions())
     model, q, theta = sol.model, sol.q, sol.theta

@@ -62,10 +62,10 @@ def shell(size: str):
 
 def eye(case_path: str, mesh: str):
     from eyefem.catalog import problems, schemas
-    from eyefem.io.casefile import load_case
+    from eyefem.io.casefile import load_case, with_mesh
 
     case = load_case(case_path, schemas())
-    case.parameters["mesh"] = mesh
+    case = with_mesh(case, mesh)
     setup = problems()[case.problem][1](case.parameters, case.materials)
     return f"{Path(case_path).stem} on {mesh}", setup.model, setup.stages, case.solver
 

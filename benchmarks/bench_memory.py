@@ -249,7 +249,7 @@ def main(argv=None):
     import numpy as np
 
     from eyefem.catalog import problems, schemas
-    from eyefem.io.casefile import load_case
+    from eyefem.io.casefile import load_case, with_mesh
     from eyefem.io.output import SeriesWriter
     from eyefem.run.runner import write_step
     from eyefem.solve import assembly, linsolve
@@ -262,7 +262,7 @@ def main(argv=None):
     pardiso, asmw = PardisoWatch(linsolve), AssemblyWatch(assembly)
     phases.start("build the case (mesh, model)")
     case = load_case(args.case, schemas())
-    case.parameters["mesh"] = args.mesh
+    case = with_mesh(case, args.mesh)
     setup = problems()[case.problem][1](case.parameters, case.materials)
     n_elem = setup.model.mesh.n_elem
     whole = args.steps == "all"

@@ -125,14 +125,14 @@ def run_one(case_path: str, level: str, out_dir: Path) -> dict:
     from eyefem.catalog import problems, schemas
     from eyefem.eye.eyemodel import level_spec
     from eyefem.io import manifest
-    from eyefem.io.casefile import load_case
+    from eyefem.io.casefile import load_case, with_mesh
     from eyefem.run.runner import run_setup
     from eyefem.solve.heap import configure_heap
 
     configure_heap()  # EYEFEM_HEAP=lean: the finer levels are limited by memory
 
     case = load_case(case_path, schemas())
-    case.parameters["mesh"] = level
+    case = with_mesh(case, level)
     setup = problems()[case.problem][1](case.parameters, case.materials)
     n_sutures = int(setup.parts.p["n_sutures"])
     setup = dataclasses.replace(setup, probe=_study_probe(setup.probe, setup.parts, n_sutures))
@@ -188,14 +188,14 @@ def fill_outcomes(case_path: Path, level: str, out_dir: Path) -> bool:
     from eyefem.catalog import problems, schemas
     from eyefem.eye.outcomes import peak_scleral_stress, stress_patches
     from eyefem.io import checkpoint
-    from eyefem.io.casefile import load_case
+    from eyefem.io.casefile import load_case, with_mesh
 
     f = out_dir / "summary.json"
     summary = json.loads(f.read_text())
     meta = json.loads((out_dir / checkpoint.FILENAME).read_text())
     ck = checkpoint.load(out_dir, meta["key"])
     case = load_case(str(case_path), schemas())
-    case.parameters["mesh"] = level
+    case = with_mesh(case, level)
     setup = problems()[case.problem][1](case.parameters, case.materials)
     if ck["stage"] != len(setup.stages) - 1:
         log.warning("%s: its checkpoint holds stage %d of %d, not the final state; nothing "

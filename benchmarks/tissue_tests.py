@@ -145,11 +145,12 @@ def run_case(path: str, preset: str, mesh: str, out_dir: Path):
     """Run a case file in-process (as ``eyefem run CASE --mesh MESH --materials PRESET
     --no-vtu``) into ``out_dir``; returns (solution, seconds)."""
     from eyefem.api import load_case, with_material_preset
+    from eyefem.io.casefile import with_mesh
     from eyefem.catalog import problems
     from eyefem.run.runner import run_setup
 
     case = load_case(ROOT / path)
-    case.parameters["mesh"] = mesh
+    case = with_mesh(case, mesh)
     case = with_material_preset(case, preset)
     setup = problems()[case.problem][1](case.parameters, case.materials)
     tic = time.perf_counter()

@@ -100,14 +100,14 @@ def profile(case_path: str, level: str, run_dir: Path) -> dict:
     from eyefem.eye.outcomes import axis_point
     from eyefem.fem.cavity import face_cone_volume
     from eyefem.io import checkpoint, manifest
-    from eyefem.io.casefile import load_case
+    from eyefem.io.casefile import load_case, with_mesh
     from eyefem.run.runner import checkpoint_key, completed_state
 
     case = load_case(case_path, schemas())
     if case.problem != "surgery":
         raise checkpoint.CheckpointError(f"{case_path} is a '{case.problem}' case; the profile "
                                          "reads surgical runs (problem = \"surgery\")")
-    case.parameters["mesh"] = level
+    case = with_mesh(case, level)
     setup = problems()[case.problem][1](case.parameters, case.materials)
     key = manifest.case_key(case.problem, case.parameters, case.materials, case.solver)
     ck = checkpoint.load(run_dir, checkpoint_key(setup, key))

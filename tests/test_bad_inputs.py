@@ -127,6 +127,17 @@ def test_case_file_errors_are_refused_before_running(tmp_path, capsys, text, wor
     assert not out.exists() or not any(out.iterdir())  # at most the empty folder
 
 
+def test_a_mesh_level_for_a_problem_without_one_is_refused(tmp_path, capsys):
+    """``--mesh`` on a problem that has no eye mesh: exit 2 naming the file, nothing run."""
+    out = tmp_path / "out"
+    for cmd in (["run", _write(tmp_path, U), "--out", out, "--mesh", "coarse"],
+                ["export-feb", _write(tmp_path, U), "-o", tmp_path / "u.feb", "--mesh", "coarse"]):
+        rc, err = _run(capsys, *cmd)
+        assert rc == 2 and "has no mesh level; drop --mesh" in err and "c.toml" in err
+        assert "Traceback" not in err
+    assert not (tmp_path / "u.feb").exists() and (not out.exists() or not any(out.iterdir()))
+
+
 @pytest.mark.parametrize("text,field,words", [
     (_edit(SURGERY, "iop_mmhg = 15.0", "iop_mmhg = 2.0"), "iop_mmhg",
      "did you give kPa? 15 mmHg = 2 kPa"),

@@ -11,7 +11,7 @@ from eyefem.catalog import schemas
 from eyefem.eye.surgery import (CONVERGING_MODEL, EARLIER_MODEL, SURGERY_FIELDS,
                                 check_parameters, model_fields, resolve_model, solver_settings,
                                 surgery)
-from eyefem.io.casefile import CaseError, load_case
+from eyefem.io.casefile import CaseError, load_case, with_mesh, with_parameters
 
 SHORT = '[case]\nproblem = "surgery"\n[parameters]\nbuckle = "{buckle}"\ntightening = {t}\n'
 
@@ -133,3 +133,20 @@ def test_a_short_case_gets_the_contact_tangent_its_buckle_wants(tmp_path, buckle
     assert load_case(path, schemas()).solver.contact_curvature == 0.0  # no defaults given
     path.write_text(text + "[solver]\ncontact_curvature = 0.0\n")
     assert load_case(path, schemas(), solver_defaults()).solver.contact_curvature == 0.0
+
+
+def test_with_mesh_returns_a_new_case_and_leaves_the_loaded_one(tmp_path):
+    """The case-file overrides of the CLI and the benchmarks (``--mesh``) build new Case
+    objects: the loaded case keeps its parameters."""
+    case = _case(tmp_path, "band")
+    coarse = with_mesh(case, "coarse")
+    assert coarse.parameters["mesh"] == "coarse" and coarse.parameters["buckle"] == "band"
+    assert case.parameters["mesh"] == SURGERY_DEFAULTS["mesh"] != "coarse"
+    both = with_parameters(case, mesh="coarse", symmetry="none")
+    assert (both.parameters["mesh"], both.parameters["symmetry"]) == ("coarse", "none")
+    assert case.parameters["symmetry"] == SURGERY_DEFAULTS["symmetry"]
+    with pytest.raises(CaseError, match="has no parameter 'tightning'.*did you mean 'tightening'"):
+        with_parameters(case, tightning=4.0)
+
+
+SURGERY_DEFAULTS = {f.name: f.default for f in SURGERY_FIELDS}

@@ -74,11 +74,11 @@ def test_steps_bars_and_springs_round_trip_to_the_same_solution(tmp_path):
 @pytest.fixture(scope="module")
 def surgery_deck(tmp_path_factory):
     from eyefem.catalog import problems, schemas
-    from eyefem.io.casefile import load_case
+    from eyefem.io.casefile import load_case, with_parameters
 
     case = load_case(ROOT / "cases/surgery/case1.toml", schemas())
-    case.parameters["mesh"] = "coarse"
-    case.parameters["symmetry"] = "none"  # the pieces are compared with the whole model's
+    # the pieces are compared with the whole model's
+    case = with_parameters(case, mesh="coarse", symmetry="none")
     setup = problems()[case.problem][1](case.parameters, case.materials)
     deck = tmp_path_factory.mktemp("feb") / "case1.feb"
     warnings = write_feb(setup, deck)

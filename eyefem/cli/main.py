@@ -65,15 +65,13 @@ def _load_run_case(args, claim: bool = False):
     from eyefem.api import with_material_preset
     from eyefem.catalog import problems, schemas, solver_defaults
     from eyefem.io import manifest
-    from eyefem.io.casefile import CaseError, check_material_names, load_case
+    from eyefem.io.casefile import CaseError, check_material_names, load_case, with_mesh
 
     try:
         case = load_case(args.case, schemas(), solver_defaults())
         out = Path(args.out or case.output["directory"])
         if args.mesh:
-            if "mesh" not in case.parameters:
-                raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; drop --mesh")
-            case.parameters["mesh"] = args.mesh
+            case = with_mesh(case, args.mesh)
         if args.materials:  # a material preset (eyefem.eye.presets) instead of the case's
             case = with_material_preset(case, args.materials)
     except (CaseError, ValueError, KeyError) as exc:
@@ -398,16 +396,13 @@ def cmd_new_case(args) -> int:
 
 def cmd_export_feb(args) -> int:
     from eyefem.catalog import problems, schemas, solver_defaults
-    from eyefem.io.casefile import CaseError, check_material_names, load_case
+    from eyefem.io.casefile import CaseError, check_material_names, load_case, with_mesh
     from eyefem.io.febio import write_feb
 
     try:
         case = load_case(args.case, schemas(), solver_defaults())
         if args.mesh:
-            if "mesh" not in case.parameters:
-                raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; "
-                                "drop --mesh")
-            case.parameters["mesh"] = args.mesh
+            case = with_mesh(case, args.mesh)
         setup = problems()[case.problem][1](case.parameters, case.materials)
         check_material_names(case, setup.model.mesh.materials)
         skipped = write_feb(setup, Path(args.output))

@@ -182,6 +182,25 @@ class Case:
     raw: dict
 
 
+def with_parameters(case: Case, **values) -> Case:
+    """A new Case with the given ``[parameters]`` replaced (``case`` is left as it was);
+    CaseError naming a parameter the case's problem does not have."""
+    for name in values:
+        if name not in case.parameters:
+            raise CaseError(f"{case.path}: problem '{case.problem}' has no parameter "
+                            f"'{name}'{_suggest(name, case.parameters)}")
+    return dataclasses.replace(case, parameters={**case.parameters, **values})
+
+
+def with_mesh(case: Case, level: str) -> Case:
+    """A new Case on the eye mesh level ``level`` (its ``[parameters] mesh``: "coarse",
+    "fine", ...); CaseError for a problem without a mesh level (``--mesh`` does not
+    apply)."""
+    if "mesh" not in case.parameters:
+        raise CaseError(f"{case.path}: problem '{case.problem}' has no mesh level; drop --mesh")
+    return with_parameters(case, mesh=level)
+
+
 def load_case(path: str | Path, schemas: dict[str, list[Field]],
               solver_defaults: dict | None = None) -> Case:
     """Read and validate a case file against the problem schemas (problem -> fields).
