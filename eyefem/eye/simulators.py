@@ -194,6 +194,18 @@ class StagedSimulator:
         self.last = res
         return res
 
+    def _release_last(self) -> None:
+        """Before a new design is solved: ``self.last`` without its stages' factorisations
+        (kept for its gradients; its states stay for the warm start), so that they are
+        freed unless the caller still holds that result (whose gradients then use them; a
+        solution without one is factorised again, eyefem.solve.records.Solution.factorised).
+        The pre-operative eye's own stays with it. Planning on `fine` held two whole-eye
+        factorisations more without this (docs/performance.md)."""
+        if self.last is not None:
+            self.last = dataclasses.replace(self.last, stages=tuple(
+                dataclasses.replace(r, solution=dataclasses.replace(r.solution, solver=None))
+                for r in self.last.stages))
+
     def gradients(self, res, outcomes=None) -> dict[str, dict[str, float]]:
         """d outcome / d design variable for the named outcomes (default: every one of
         :attr:`outcome_names`): one backward sweep over the stages
@@ -427,6 +439,7 @@ class SurgerySimulator(StagedSimulator):
 
         Warm started from the previous design's converged states when there is one; if
         that continuation fails, the design is solved again along the full load path."""
+        self._release_last()
         if warm and self.last is not None:
             try:
                 return self._run(design, warm=True)
@@ -654,6 +667,7 @@ class TimelineSimulator(SurgerySimulator):
     def run(self, design: dict | None = None, *, warm: bool = True) -> TimelineResult:
         """Solve the timeline for a design (missing variables: the case's values), from the
         pre-operative eye (``warm`` is ignored: the timeline is path-dependent)."""
+        self._release_last()
         return self._run(design, warm=False)
 
     # --- the forward run -----------------------------------------------------------
@@ -966,6 +980,7 @@ class RingSimulator(StagedSimulator):
     def run(self, design: dict | None = None, **_) -> RingResult:
         """Solve stages 2 and 3 for a design (missing variables: the case's values)."""
         self._check(design or {})
+        self._release_last()
         design = {**self.design0(), **(design or {})}
         maps = self._maps()
 
