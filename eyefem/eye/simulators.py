@@ -199,8 +199,8 @@ class StagedSimulator:
         (kept for its gradients; its states stay for the warm start), so that they are
         freed unless the caller still holds that result (whose gradients then use them; a
         solution without one is factorised again, eyefem.solve.records.Solution.factorised).
-        The pre-operative eye's own stays with it. Without this, two whole-eye factorisations
-        more were alive while the planner solved each design."""
+        The pre-operative eye's own stays with it: while a design is solved, only its own
+        and the pre-operative eye's factorisations are alive."""
         if self.last is not None:
             self.last = dataclasses.replace(self.last, stages=tuple(
                 dataclasses.replace(r, solution=dataclasses.replace(r.solution, solver=None))
