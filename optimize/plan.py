@@ -683,6 +683,10 @@ def main(argv=None) -> int:
         if not terms and not cons:
             raise CaseError("give an objective: --target-indentation and/or limits (--iop-max ...)")
         names = [v.strip() for v in a.vars.split(",") if v.strip()]
+        if "buckle_meridian_deg" in names and params.get("symmetry", "none") == "mirror":
+            log.info("symmetry = 'mirror' with the meridian planned: a buckle turned off the "
+                     "plane breaks the symmetry, so the whole eye is solved")
+            params["symmetry"] = "none"
         _check_timeline(a, params, names)
         levels = _check_levels(a, params["mesh"])
         log.info("planning %s on the %s mesh: %s subject to %s over %s", case.path,

@@ -406,10 +406,12 @@ def test_the_mirror_half_refuses_a_deformable_buckle():
         mirror_setup(setup)
 
 
-def test_the_design_simulators_solve_the_whole_eye_of_a_mirror_case():
-    """eyefem.simulate (and the planner, which runs on it) takes its design gradients on the
-    whole eye: a case with symmetry = 'mirror' builds the whole model (the half gives the
-    whole's outcomes to 2e-9), and the case's own parameters are left as they were."""
+def test_the_rigid_design_simulator_solves_the_half_of_a_mirror_case():
+    """eyefem.simulate (and the planner, which runs on it) solves a case with symmetry =
+    'mirror' on its half: its stages' models are the half's, its buckle and sutures fitted
+    on the whole eye (the parts are the whole's). The simulators that solve the whole eye
+    (the timeline's, the deformable ring's) take the case whole (whole_eye), leaving the
+    case's own parameters as they were."""
     import dataclasses
 
     from eyefem import api
@@ -423,10 +425,66 @@ def test_the_design_simulators_solve_the_whole_eye_of_a_mirror_case():
     case = dataclasses.replace(case, parameters={**case.parameters, "symmetry": "mirror"})
     host = api._host(case, "coarse")
     try:
-        assert host.sim.params["symmetry"] == "none"
-        assert host.sim.setup.whole is None  # not a reduced model
+        sim = host.sim
+        assert sim.params["symmetry"] == "mirror" and sim.mir is not None
+        assert sim.model1.n_dof == sim.model.n_dof == sim.mir.n_dof_half
+        assert sim.mir.n_dof == sim.setup.whole.model.n_dof
+        assert 0.45 < sim.mir.mesh.n_elem / sim.parts.eye.mesh.n_elem <= 0.5
     finally:
         api.clear_cache()
+
+
+@pytest.fixture(scope="module")
+def case5_sim():
+    """The design simulator of coarse case 5 (a segmental sponge on the plane y = 0) on
+    its mirror half, its pre-operative eye solved."""
+    from eyefem.api import load_case
+    from eyefem.eye.simulators import SurgerySimulator
+
+    case = load_case(ROOT / "cases" / "surgery" / "case5.toml")
+    return SurgerySimulator({**case.parameters, "mesh": "coarse"}, case.materials, case.solver)
+
+
+def test_the_half_refuses_to_turn_a_segmental_buckle_off_the_plane(case5_sim):
+    """A segmental buckle turned to another meridian breaks the symmetry: the half's
+    simulator refuses the design before solving it and says how to plan the meridian."""
+    assert case5_sim.mir is not None
+    with pytest.raises(ValueError, match=r"'buckle_meridian_deg' = 10.0 cannot vary in this "
+                                         r"case: the case is solved on its mirror half.*"
+                                         r"symmetry = 'none'"):
+        case5_sim.run({"buckle_meridian_deg": 10.0})
+
+
+@pytest.mark.slow
+def test_the_half_design_simulator_gives_the_whole_eyes_outcomes_and_gradients():
+    """Coarse case 1's design simulator on the mirror half against the whole eye's, at the
+    case's design and at a second one (warm started, the bites on other faces): the
+    outcomes to 1e-7 and every design gradient (one backward sweep over the half's stages,
+    its carries and outcomes on the lifted whole state) to 1e-5, or 1e-7 of the outcome's
+    largest one (the liquid's bulk modulus: 8e-8 mmHg/MPa, the two within 1.3e-11); the
+    Newton iterations equal (recorded: 44 and 16, 0.8e-7 and 1e-7 apart at most)."""
+    from eyefem.api import load_case
+    from eyefem.eye.simulators import SurgerySimulator
+
+    case = load_case(CASE1)
+    names = ["iop_mmhg", "indentation_mm", "max_suture_force_N", "refraction_change_D"]
+    runs = {}
+    for sym in ("mirror", "none"):
+        sim = SurgerySimulator({**case.parameters, "mesh": "coarse", "symmetry": sym},
+                               case.materials, case.solver)
+        assert (sim.mir is not None) == (sym == "mirror")
+        first = sim.run()
+        got = [(first.outcomes, sim.gradients(first, names), first.newton_iterations)]
+        second = sim.run({"tightening": 4.5, "suture_width": 10.0})
+        got.append((second.outcomes, sim.gradients(second, names), second.newton_iterations))
+        runs[sym] = got
+    for (oh, gh, ih), (ow, gw, iw) in zip(runs["mirror"], runs["none"]):
+        assert ih == iw
+        for k in names:
+            assert oh[k] == pytest.approx(ow[k], rel=1e-7, abs=1e-12), k
+            ref = np.array(list(gw[k].values()))
+            np.testing.assert_allclose(np.array([gh[k][v] for v in gw[k]]), ref, rtol=1e-5,
+                                       atol=1e-7 * np.abs(ref).max(), err_msg=k)
 
 
 def _pulled_box_setup():

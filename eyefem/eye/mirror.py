@@ -74,7 +74,8 @@ from eyefem.solve.problem import Setup, Whole
 log = logging.getLogger(__name__)
 
 __all__ = ["MIRROR_TOL", "Mirror", "HalfTerm", "HalfContact", "HalfCavity",
-           "mirror", "half_model", "check_mirror", "mirror_setup", "CAVITY_VOLUME_KEYS"]
+           "mirror", "half_model", "half_term", "check_mirror", "mirror_of", "mirror_setup",
+           "theta_half", "theta_whole", "CAVITY_VOLUME_KEYS"]
 
 MIRROR_TOL = 1e-8
 """Tolerance of the mirror map, relative to the mesh's size (its largest |coordinate|):
@@ -150,6 +151,12 @@ class Mirror:
     def lift(self, q_h) -> np.ndarray:
         """The whole eye's symmetric state (n_dof,) of a half state q_h (n_dof_half,)."""
         return self.dof_sign * np.asarray(q_h)[self.dof_map]
+
+    def lift_traced(self, q_h):
+        """:meth:`lift` for a JAX array q_h (n_dof_half,): traceable, so that a function of
+        the whole eye's state is differentiated through it (the design simulators' stage
+        carries and outcomes on the half)."""
+        return jnp.asarray(self.dof_sign) * q_h[jnp.asarray(self.dof_map)]
 
     def restrict(self, q) -> np.ndarray:
         """The half state (n_dof_half,) of a whole state q (n_dof,) (its y >= 0 side)."""
@@ -371,7 +378,7 @@ class HalfContact(HalfTerm):
         return g, dg, (G if s is None else G * s), g_new
 
 
-def _half_term(term: Term, mir: Mirror, n_nodes: int) -> HalfTerm:
+def half_term(term: Term, mir: Mirror, n_nodes: int) -> HalfTerm:
     """The whole model's item term ``term`` restricted to symmetric states on the half
     (module docstring: which items it keeps and how they are weighted)."""
     if type(term).energy is not Term.energy or type(term).grad_hess is not Term.grad_hess \
@@ -473,7 +480,7 @@ def half_model(model: Model, mir: Mirror) -> Model:
                 raise ValueError(f"term '{t.name}' ({type(t).__name__}): the mirror half "
                                  "rebuilds the plain Q1P0 solid and PressureLoad only; set "
                                  "symmetry = 'none' (or wall_element = 'q1p0')")
-            terms.append(_half_term(t, mir, model.mesh.n_nodes))
+            terms.append(half_term(t, mir, model.mesh.n_nodes))
     return Model(mir.mesh, tuple(terms), mir.n_dof_half)
 
 
@@ -675,23 +682,40 @@ def _check_half_cavity(model: Model, t: FluidCavity, p: dict, half: Model, ph: d
 
 
 class _NotDifferentiable:
-    """The Setup.parts of a mirror half: the design simulators (eyefem.simulate, the
-    planner, design gradients) read the parts and are refused here with the reason."""
+    """The Setup.parts of a mirror half: what reads the parts works on the whole eye (the
+    design simulators keep the whole Setup's parts and halve it themselves,
+    eyefem.eye.simulators.SurgerySimulator) and is refused here with the reason."""
 
     def __getattr__(self, name):
-        raise ValueError("symmetry = 'mirror' solves half the eye, and the design gradients "
-                         "(eyefem.simulate, the planner, the adjoint) are written for the "
-                         "whole eye: run them with symmetry = 'none'")
+        raise ValueError("symmetry = 'mirror' solves half the eye, and the parts of a surgery "
+                         "describe the whole eye: build them from the case with symmetry = "
+                         "'none' (eyefem.eye.surgery.surgery)")
 
 
-def mirror_setup(setup: Setup, check: bool = True) -> Setup:
+def mirror_of(model: Model) -> Mirror | None:
+    """The mirror map of ``model``'s mesh (:func:`mirror`), or None with a warning for a
+    symmetric mesh that the half cannot cut between elements (elements across the plane
+    y = 0: odd levels such as 'half', 'graded_half'), which is solved whole."""
+    cy = model.mesh.nodes[model.mesh.hexes].mean(1)[:, 1]
+    across = int(np.sum(np.abs(cy) <= MIRROR_TOL * _size(model.mesh)))
+    if across:
+        log.warning("symmetry = 'mirror': %d elements of this mesh lie across the plane y = 0 "
+                    "(a level with an odd number of elements per patch edge, such as 'half'), "
+                    "so the half model cannot cut it between elements: the whole eye is "
+                    "solved", across)
+        return None
+    return mirror(model.mesh, model.n_dof)
+
+
+def mirror_setup(setup: Setup, check: bool = True, mir: Mirror | None = None) -> Setup:
     """The mirror half of a surgery's Setup (module docstring): its model on the half,
     its stages with the plane nodes held in y and their hooks run on the lifted whole
     state, its probe measuring the whole eye, its ``whole`` (eyefem.solve.problem.Whole)
     lifting a half state to the whole eye's for the written results (VTU frames on the
     whole mesh, reactions of both halves) and the stability checks. ValueError (say why) when the case is not
     symmetric about y = 0. A mesh with elements across the plane (odd levels: 'half',
-    'graded_half', ...) cannot be cut between elements: the whole Setup, with a warning."""
+    'graded_half', ...) cannot be cut between elements: the whole Setup, with a warning.
+    ``mir``: the mesh's mirror map when the caller has it (:func:`mirror_of`)."""
     p = getattr(setup.parts, "p", {}) or {}
     for key, off, why in (("buckle_body", "rigid", "a deformable buckle's band, tire or sponge"),):
         if p.get(key, off) != off:
@@ -699,15 +723,9 @@ def mirror_setup(setup: Setup, check: bool = True) -> Setup:
                              f"is implemented for the rigid buckle without {why}; set "
                              f"symmetry = 'none' or {key} = {off!r}")
     whole = setup.model
-    cy = whole.mesh.nodes[whole.mesh.hexes].mean(1)[:, 1]
-    across = int(np.sum(np.abs(cy) <= MIRROR_TOL * _size(whole.mesh)))
-    if across:  # a symmetric mesh the half cannot cut (an odd count of elements per edge)
-        log.warning("symmetry = 'mirror': %d elements of this mesh lie across the plane y = 0 "
-                    "(a level with an odd number of elements per patch edge, such as 'half'), "
-                    "so the half model cannot cut it between elements: the whole eye is "
-                    "solved", across)
+    mir = mirror_of(whole) if mir is None else mir
+    if mir is None:  # a symmetric mesh the half cannot cut (an odd count of elements per edge)
         return setup
-    mir = mirror(whole.mesh, whole.n_dof)
     half = half_model(whole, mir)
     theta0 = whole.theta0()
     for st in setup.stages:  # each stage's params on the model they act on

@@ -408,7 +408,13 @@ def outcome_data(model, q, theta, weights=None) -> dict:
     """The data of :func:`outcome_function` at a converged state q (n_dof,), theta of
     ``model``: its cavity's and sutures' data and dofs, the most loaded suture bar, and
     ``weights`` (k,) or None."""
-    cav, sut = model.term("cavity"), model.term("sutures")
+    return outcome_data_of(model.term("cavity"), model.term("sutures"), q, theta, weights)
+
+
+def outcome_data_of(cav, sut, q, theta, weights=None) -> dict:
+    """:func:`outcome_data` of a cavity term ``cav`` and a suture term ``sut`` of the model
+    whose state q (n_dof,) and params theta are given (the whole eye's, where a mirror half
+    was solved)."""
     return {"cavity": (cav.data, cav.dofs), "sutures": (sut.data, sut.dofs),
             "largest": jnp.asarray(most_loaded_bar(sut, q, theta["sutures"])),
             "weights": None if weights is None else jnp.asarray(weights, jnp.float64)}

@@ -64,8 +64,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from eyefem.eye.bodies import DeformableRing, preop_carry, tied_lengths
+from eyefem.eye.mirror import half_term, mirror_of, mirror_setup, theta_half, theta_whole
 from eyefem.eye.outcomes import (cavity_pressure, changes, eye_optics, indentation,
-                                 outcome_data, outcome_function, outcome_nodes)
+                                 outcome_data, outcome_data_of, outcome_function, outcome_nodes)
 from eyefem.eye.parts import snug_node, snug_scale
 from eyefem.eye.presets import SEED_MATERIALS
 from eyefem.eye.rigid_buckle import BiteRays, bite_rays, rigid_design_params, suture_term
@@ -246,16 +247,24 @@ class SurgerySimulator(StagedSimulator):
             cls = TimelineSimulator
         return super().__new__(cls)
 
+    halves = True
+    """Whether a case with ``symmetry = 'mirror'`` is simulated on its mirror half
+    (:class:`TimelineSimulator`: the whole eye)."""
+
     def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
-        self.params = whole_eye(params)
+        half = self.halves and params.get("symmetry", "none") == "mirror"
+        self.params = dict(params) if half else whole_eye(params)
         self.options = options
         if self.params.get("buckle_body", "rigid") != "rigid":
             raise ValueError(f"buckle_body = '{self.params['buckle_body']}': the design gradients "
                              "and the planner move the rigid buckle's exact surface by its "
                              "parameters; set buckle_body = 'rigid' (a deformable band or "
                              "tire: RingSimulator)")
-        setup = surgery(self.params, materials)
-        self.setup, self.parts = setup, setup.parts
+        whole = surgery({**self.params, "symmetry": "none"}, materials)
+        self.parts = whole.parts
+        self.mir = mirror_of(whole.model) if half else None
+        setup = whole if self.mir is None else mirror_setup(whole, mir=self.mir)
+        self.setup = setup
         # pressurise, tighten (or place), suture (on the timeline, more stages between)
         self.stage1, self.stage2 = setup.stages[:2]
         self.stage3 = next(s for s in setup.stages if s.name == "suture")
@@ -269,7 +278,10 @@ class SurgerySimulator(StagedSimulator):
         # the buckle and sutures are fitted once, at this eye's snug scale; other designs
         # move them by params
         self.model, _, _ = self.stage2.before(self.model1, sol1.q, sol1.theta)
-        self.scale0 = float(snug_scale(self.parts, sol1.q))
+        # the whole eye's cavity (its carries and outcomes are the whole eye's)
+        self._cavity = (self.model if self.mir is None
+                        else setup.whole.lift(self.model, sol1.q, sol1.theta)[0]).term("cavity")
+        self.scale0 = float(snug_scale(self.parts, self._lifted(sol1.q)))
         self.meridian0 = float(self.params["buckle_meridian_deg"])
         theta0 = self.model.theta0()
         self._shapes = {t: {k: np.shape(v) for k, v in ps.items()} for t, ps in theta0.items()}
@@ -339,11 +351,50 @@ class SurgerySimulator(StagedSimulator):
         """The three stages as data (eyefem.solve.staged.StageMap), one set per kind of
         suture term (their carry functions compiled once)."""
         def build():
-            return (StageMap("pressurise", lambda d, c, data: self._materials(d),
-                             preop_carry(self.parts, self._nodes, snug=True)),
-                    StageMap("tighten", self.design_map, tied_lengths(sut)),
-                    StageMap("suture", self._tied))
+            return tuple(self._on_half(m) for m in (
+                StageMap("pressurise", lambda d, c, data: self._materials(d),
+                         preop_carry(self.parts, self._nodes, snug=True)),
+                StageMap("tighten", self.design_map, tied_lengths(sut)),
+                StageMap("suture", self._tied)))
         return self._kept_fn(("maps", term_kind(sut)), build)
+
+    # --- the mirror half: the stages solved on it, their maps and outcomes the whole's --
+    def _lifted(self, q) -> np.ndarray:
+        """The whole eye's state (n_dof,) of a solved state (numpy)."""
+        return q if self.mir is None else self.mir.lift(q)
+
+    def _on_half(self, stage: StageMap) -> StageMap:
+        """``stage`` on the solved model: on the mirror half, T's params halved where they
+        are the half's (theta_half: the cavity's volumes) and C evaluated on the lifted
+        whole state and params (the whole eye's volume, snug fit, optics, suture lengths),
+        both JAX, so that the staged adjoint on the half differentiates the whole eye's
+        procedure; unchanged for the whole eye."""
+        if self.mir is None:
+            return stage
+        lift, half = self.mir.lift_traced, self.model1
+
+        def params(design, carry, data):
+            return theta_half(stage.params(design, carry, data), half)
+
+        def carry(q, theta, data):
+            return stage.carry(lift(q), theta_whole(theta, half), data)
+        return StageMap(stage.name, params, None if stage.carry is None else carry)
+
+    def outcome_vector(self, res, names, weights=None) -> tuple[Callable, dict]:
+        """StagedSimulator.outcome_vector; on the mirror half, the whole eye's outcomes of
+        the lifted state (the data: the whole eye's cavity and sutures)."""
+        if self.mir is None:
+            return super().outcome_vector(res, names, weights)
+        names, sut, sol = tuple(names), res.sutures, res.stages[-1].solution
+        lift, half = self.mir.lift_traced, self.model1
+
+        def build():
+            f = outcome_function(names, self.parts.eye.mesh.nodes, self._nodes, sut)
+            return lambda q, theta, carry, data: f(lift(q), theta_whole(theta, half), carry,
+                                                   data)
+        f = self._kept_fn(("outcomes", names, term_kind(sut)), build)
+        return f, outcome_data_of(self._cavity, sut, self.mir.lift(sol.q),
+                                  theta_whole(sol.theta, half), weights)
 
     @staticmethod
     def _with(theta, values) -> dict:
@@ -358,7 +409,7 @@ class SurgerySimulator(StagedSimulator):
 
     def _preop(self, sol1: Solution, materials: tuple) -> Preop:
         _, _, theta2 = close_cavity(self.model, sol1.q, sol1.theta, "cavity", "iop")
-        node = snug_node(self.parts, sol1.q)
+        node = snug_node(self.parts, self._lifted(sol1.q))
         pre_map = self.maps(self.model.term("sutures"))[0]
         carry = hand_on(pre_map, sol1.q, self._preop_theta(sol1.theta), self._preop_data(node))
         return Preop(sol1, theta2, node, carry, materials)
@@ -369,8 +420,7 @@ class SurgerySimulator(StagedSimulator):
 
     def _preop_data(self, node) -> dict:
         """The data of the pre-operative stage's carry (its C)."""
-        cav = self.model.term("cavity")
-        return {"cavity": (cav.data, cav.dofs), "node": node}
+        return {"cavity": (self._cavity.data, self._cavity.dofs), "node": node}
 
     def _stage1(self, design) -> Preop:
         """The pre-operative eye for the design's material constants (re-solved from the
@@ -402,6 +452,9 @@ class SurgerySimulator(StagedSimulator):
         return self._with(th, stage_params(self.maps(sut)[1], design, pre.carry, bites))
 
     def _model(self, sut):
+        """The stage-2 model with the design's suture term (on the mirror half, its half)."""
+        if self.mir is not None:
+            sut = half_term(sut, self.mir, len(self.mir.partner))
         return self.model.with_terms([sut if t.name == "sutures" else t for t in self.model.terms])
 
     def _check(self, design):
@@ -417,6 +470,12 @@ class SurgerySimulator(StagedSimulator):
                "spread evenly around it)"}
         if self.parts.buckle.encircling:
             fixed.append("buckle_meridian_deg")
+        elif self.mir is not None:
+            fixed.append("buckle_meridian_deg")
+            why["buckle_meridian_deg"] = ("the case is solved on its mirror half (symmetry = "
+                                          "'mirror'), and a buckle turned off the plane y = 0 "
+                                          "breaks the symmetry; plan the meridian with "
+                                          "symmetry = 'none'")
         if not self.params.get("volume_regulation", False):
             fixed += list(TIMELINE_VARIABLES)
             why.update({k: "it belongs to the surgery's timeline; set volume_regulation = "
@@ -497,9 +556,7 @@ class SurgerySimulator(StagedSimulator):
                          q0=sol2.q, theta=untied, options=self.options)
         sol3 = _kept(sol3)
         its = sum(r.iterations for r in sol2.history + sol3.history)
-        cav = self.model.term("cavity")
-        stages = (StageRecord(maps[0], pre.sol1, None, {"cavity": (cav.data, cav.dofs),
-                                                         "node": pre.node}, pre.carry),
+        stages = (StageRecord(maps[0], pre.sol1, None, self._preop_data(pre.node), pre.carry),
                   StageRecord(maps[1], sol2, bites, sut_data, carry2),
                   StageRecord(maps[2], sol3, bites))
         res = Result(design, {}, stages, sut, bites, its, pre)
@@ -508,9 +565,10 @@ class SurgerySimulator(StagedSimulator):
     # --- gradients (outcomes and the backward sweep: StagedSimulator) -----------------
     def _gradients(self, res: Result, f, data) -> list[dict[str, float]]:
         """Every design variable's gradient (DESIGN_VARIABLES; an encircling buckle's
-        meridian: 0)."""
+        meridian: 0; on the mirror half, the meridian's: 0, the outcomes being even in the
+        turn off the plane)."""
         totals = super()._gradients(res, f, data)
-        if self.parts.buckle.encircling:  # its sutures are spread evenly around: no meridian
+        if self.parts.buckle.encircling or self.mir is not None:  # no meridian
             for total in totals:
                 total["buckle_meridian_deg"] = 0.0
         return [{k: total.get(k, 0.0) for k in DESIGN_VARIABLES} for total in totals]
@@ -583,6 +641,8 @@ class TimelineSimulator(SurgerySimulator):
     The outcomes (:attr:`outcome_names`): OUTCOMES at the run's last step (the last
     follow-up time, as summary.json's), then eyefem.eye.timeline.outcome_names.
     """
+
+    halves = False  # the timeline's regulated cavity and relaxing wall: the whole eye
 
     def __init__(self, params: dict, materials=None, options: NewtonOptions = NewtonOptions()):
         if params.get("buckle_body", "rigid") != "rigid":
@@ -1005,12 +1065,13 @@ class RingSimulator(StagedSimulator):
 
 
 def whole_eye(params: dict) -> dict:
-    """The case's parameters for a design simulator: a mirror-half case (``symmetry =
-    'mirror'``) is simulated whole, since the design gradients are taken on the whole eye
-    (the half gives the whole's outcomes to 2e-9, docs/case_files.md "The mirror half")."""
+    """The case's parameters for a design simulator that solves the whole eye (the
+    timeline's and the deformable ring's): a mirror-half case (``symmetry = 'mirror'``) is
+    simulated whole (the half gives the whole's outcomes to 2e-9, docs/case_files.md "The
+    mirror half")."""
     if params.get("symmetry", "none") == "none":
         return dict(params)
-    log.info("symmetry = '%s': the design gradients and the planner solve the whole eye",
+    log.info("symmetry = '%s': this design simulator solves the whole eye",
              params["symmetry"])
     return {**params, "symmetry": "none"}
 
