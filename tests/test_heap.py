@@ -59,17 +59,22 @@ def test_the_environment_chooses_the_heap(monkeypatch, caplog):
     calls = []
     monkeypatch.setattr(heap, "return_freed_memory", lambda: calls.append(1) or True)
     monkeypatch.delenv("EYEFEM_HEAP", raising=False)
-    assert heap.configure_heap() is False and calls == []  # glibc's own by default
+    assert heap.configure_heap() is True and calls == [1]  # the lean heap by default
     monkeypatch.setenv("EYEFEM_HEAP", "glibc")
-    assert heap.configure_heap() is False and calls == []
+    assert heap.configure_heap() is False and calls == [1]
     monkeypatch.setenv("EYEFEM_HEAP", "lean")
-    assert heap.configure_heap() is True and calls == [1]
+    assert heap.configure_heap() is True and calls == [1, 1]
     monkeypatch.setenv("EYEFEM_HEAP", "small")
     with caplog.at_level("WARNING", logger="eyefem.solve.heap"):
         assert heap.configure_heap() is False
-    assert calls == [1]
+    assert calls == [1, 1]
     assert "EYEFEM_HEAP='small' is not one of glibc, lean" in caplog.text
     monkeypatch.setattr(heap, "return_freed_memory", lambda: False)  # e.g. not glibc
+    monkeypatch.delenv("EYEFEM_HEAP")
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="eyefem.solve.heap"):
+        assert heap.configure_heap() is False  # the default where it cannot apply: quiet
+    assert caplog.text == ""
     monkeypatch.setenv("EYEFEM_HEAP", "lean")
     with caplog.at_level("WARNING", logger="eyefem.solve.heap"):
         assert heap.configure_heap() is False

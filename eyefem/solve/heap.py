@@ -1,4 +1,4 @@
-"""The process's heap: optionally give freed memory back to the system (``EYEFEM_HEAP=lean``).
+"""The process's heap: give freed memory back to the system (``EYEFEM_HEAP``, default ``lean``).
 
 Every Newton iteration allocates and frees the same large host arrays (the element
 blocks, the tangent's values, the factorisation's work space; tens of MB each). glibc's
@@ -9,9 +9,9 @@ more mapped on their own and unmapped when freed; the heap's top trimmed above 3
 stop the creep, at the price of the page faults of blocks mapped afresh. Measured
 (docs/performance.md, "Memory"): FEBio's mesh of ``benchmarks/bench_core.py
 --sizes 20:5`` peaks at 0.98 GB instead of 1.15 GB (+5 % time); the eye saves a fixed
-0.2-0.25 GB (default case 1 2.62 against 2.86 GB, the fine level 3.76 against 3.95 GB) for
-about 6 % of the run time. So glibc's own thresholds stay the default, and
-``EYEFEM_HEAP=lean`` in the environment asks for the fixed ones.
+0.15-0.25 GB (default case 1 2.62 against 2.86 GB; the README main command, case 1's half
+on ``fine``, 1.48 against 1.63 GB) for 3-6 % of the run time. So the fixed thresholds are
+the default, and ``EYEFEM_HEAP=glibc`` in the environment keeps glibc's own.
 
 Entry points call :func:`configure_heap` once, before the work (a sweep's workers inherit
 the environment). Thresholds the user set through glibc's own variables
@@ -38,16 +38,17 @@ TRIM_THRESHOLD_BYTES = 32 << 20
 USER_VARIABLES = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
 """glibc's variables: a threshold set through one of them is the user's choice."""
 HEAP_VARIABLE = "EYEFEM_HEAP"
-"""The environment variable of :func:`configure_heap`: ``lean`` or ``glibc`` (the default)."""
+"""The environment variable of :func:`configure_heap`: ``lean`` (the default) or ``glibc``."""
 HEAP_CHOICES = ("glibc", "lean")
 
 
 def configure_heap() -> bool:
-    """Apply ``EYEFEM_HEAP`` (unset or ``glibc``: nothing; ``lean``:
-    :func:`return_freed_memory`); True when the fixed thresholds were set. An unknown
-    value, or ``lean`` where the thresholds cannot be set, is reported in the log and
-    changes nothing."""
-    choice = os.environ.get(HEAP_VARIABLE, "glibc").strip().lower() or "glibc"
+    """Apply ``EYEFEM_HEAP`` (unset or ``lean``: :func:`return_freed_memory`; ``glibc``:
+    nothing); True when the fixed thresholds were set. An unknown value, or ``lean`` set
+    where the thresholds cannot be set, is reported in the log and changes nothing (unset
+    there: nothing, silently)."""
+    asked = os.environ.get(HEAP_VARIABLE, "").strip().lower()
+    choice = asked or "lean"
     if choice not in HEAP_CHOICES:
         log.warning("%s=%r is not one of %s: glibc's own heap thresholds are kept "
                     "(set %s=lean for the leaner heap, docs/performance.md)", HEAP_VARIABLE,
@@ -56,6 +57,8 @@ def configure_heap() -> bool:
     if choice == "glibc":
         return False
     if not return_freed_memory():
+        if not asked:  # the default where it cannot apply: glibc's own, as asked for
+            return False
         log.warning("%s=lean: the heap's thresholds were not set (the C library is not "
                     "glibc, or %s is set in the environment, which takes precedence)",
                     HEAP_VARIABLE, " or ".join(USER_VARIABLES))
