@@ -462,7 +462,7 @@ def test_the_half_design_simulator_gives_the_whole_eyes_outcomes_and_gradients()
     outcomes to 1e-7 and every design gradient (one backward sweep over the half's stages,
     its carries and outcomes on the lifted whole state) to 1e-5, or 1e-7 of the outcome's
     largest one (the liquid's bulk modulus: 8e-8 mmHg/MPa, the two within 1.3e-11); the
-    Newton iterations equal (recorded: 44 and 16, 0.8e-7 and 1e-7 apart at most)."""
+    Newton iterations equal."""
     from eyefem.api import load_case
     from eyefem.eye.simulators import SurgerySimulator
 

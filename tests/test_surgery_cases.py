@@ -71,7 +71,7 @@ RECORDED = {
     },
 }
 """case -> outcome -> value (coarse mesh), recorded with the case files' tire edges lifting
-over 1 mm (`buckle_edge`; 8 tightening steps, case 1's 4), the lens held by 0.343 N/mm in all
+over 1 mm (`buckle_edge`; 8 tightening steps, case 1's 2), the lens held by 0.343 N/mm in all
 (`lens_support`), the ridged tires' flanks 1.5 mm wide (`ridge_flank`), the suture bites
 spread over patches of 1.5 mm radius, the limbus a 1.5 mm ring, the indentation's bands
 weighted by area, a segmental buckle's bands and snug fit on its side of the globe and the
