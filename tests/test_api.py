@@ -4,10 +4,10 @@ jax.jacrev, the host simulator, docs/api.md's quick-start, and the errors for ba
 Everything runs coarse case 1 through simulate's own cache of one simulator (module
 scope in effect): the first call solves the pressurised eye and the three stages; every
 later design is a warm-started continuation step, and jit / jacrev / the docs reuse the
-remembered converged design and its Jacobian. Measured on the shared 2-core machine
-(load ~12): first call 221 s, the Jacobian (3 adjoint solves x 4 outcomes) 187 s, each
-finite-difference design 6 s, the rest a few seconds; about 9 minutes in all there, a few
-on an idle machine.
+remembered converged design and its Jacobian. Case 1 is solved on its mirror half (the
+design simulator of a symmetric case, tests/test_mirror.py compares it with the whole
+eye's); the first call takes about half a minute on 2 idle cores, the rest a few seconds
+each.
 """
 
 import dataclasses
