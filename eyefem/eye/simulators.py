@@ -47,6 +47,13 @@ pressure, the IOP and the shape at the follow-up times) and their gradients in t
 deformable band or tire, its T_2 / T_3 eyefem.eye.bodies.DeformableRing.design_params)
 share the outcomes of a converged design and their gradients (:class:`StagedSimulator`).
 
+A rigid-buckle case with ``symmetry = 'mirror'`` (eyefem.eye.mirror) is simulated on its
+mirror half: the buckle and sutures fitted on the whole eye, the stages solved on the
+half, T_k's params halved where the half's are (the cavity's volumes), C_k and the
+outcomes evaluated on the lifted whole state, so the same backward sweep gives the whole
+eye's gradients; a segmental buckle's meridian is then fixed (turned off the plane, the
+buckle breaks the symmetry).
+
 Warm start: a new design is solved from the previous design's converged states, by
 continuation of the params in one step (cut automatically if needed); the equilibria
 do not depend on the path (hyperelastic, frictionless). Stage 1 is solved again only
