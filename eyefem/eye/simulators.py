@@ -202,18 +202,6 @@ class StagedSimulator:
         self.last = res
         return res
 
-    def _release_last(self) -> None:
-        """Before a new design is solved: ``self.last`` without its stages' factorisations
-        (kept for its gradients; its states stay for the warm start), so that they are
-        freed unless the caller still holds that result (whose gradients then use them; a
-        solution without one is factorised again, eyefem.solve.records.Solution.factorised).
-        The pre-operative eye's own stays with it: while a design is solved, only its own
-        and the pre-operative eye's factorisations are alive."""
-        if self.last is not None:
-            self.last = dataclasses.replace(self.last, stages=tuple(
-                dataclasses.replace(r, solution=dataclasses.replace(r.solution, solver=None))
-                for r in self.last.stages))
-
     def gradients(self, res, outcomes=None) -> dict[str, dict[str, float]]:
         """d outcome / d design variable for the named outcomes (default: every one of
         :attr:`outcome_names`): one backward sweep over the stages
@@ -280,7 +268,7 @@ class SurgerySimulator(StagedSimulator):
         self._mat_row = {m: mesh.materials.index(m) for m in SEED_MATERIALS if m in mesh.materials}
         self._nodes = outcome_nodes(self.parts)
         self._compiled: dict = {}  # outcome and carry functions, one per kind (outcome_vector)
-        sol1 = _kept(solve(self.model1, [self.stage1], options=options))
+        sol1 = _lean(solve(self.model1, [self.stage1], options=options))
         self.stage1_iterations = sum(r.iterations for r in sol1.history)
         # the buckle and sutures are fitted once, at this eye's snug scale; other designs
         # move them by params
@@ -441,14 +429,14 @@ class SurgerySimulator(StagedSimulator):
         ramp = {k: target[k] for k in ("solid", "zonule")}
         s1 = self.stage1
         try:
-            sol1 = _kept(solve(self.model1, [Stage(s1.name, 1, s1.prescribed, params=ramp,
+            sol1 = _lean(solve(self.model1, [Stage(s1.name, 1, s1.prescribed, params=ramp,
                                                    active=s1.active)],
                                q0=prev.q, theta=prev.theta, options=self.options))
         except ConvergenceError as exc:
             log.warning("pre-operative warm start failed (%s); pressurising again",
                         str(exc).splitlines()[0])
             start = self._with(self.model1.theta0(), ramp)
-            sol1 = _kept(solve(self.model1, [s1], theta=start, options=self.options))
+            sol1 = _lean(solve(self.model1, [s1], theta=start, options=self.options))
         self.preop = self._preop(sol1, want)
         return self.preop
 
@@ -505,7 +493,6 @@ class SurgerySimulator(StagedSimulator):
 
         Warm started from the previous design's converged states when there is one; if
         that continuation fails, the design is solved again along the full load path."""
-        self._release_last()
         if warm and self.last is not None:
             try:
                 return self._run(design, warm=True)
@@ -544,7 +531,7 @@ class SurgerySimulator(StagedSimulator):
             start = {**prev.sol2.theta, "sutures": th2["sutures"]}
             sol2 = solve(model, [Stage("tighten", 1, held, params=ramped, active=self.stage2.active)],
                          q0=prev.sol2.q, theta=start, options=self.options)
-        sol2 = _kept(sol2)
+        sol2 = _lean(sol2)
         sut_data = (sut.data, sut.dofs)
         carry2 = hand_on(maps[1], sol2.q, sol2.theta, sut_data)
         th3 = self._with(sol2.theta, stage_params(maps[2], design, {**pre.carry, **carry2},
@@ -561,7 +548,7 @@ class SurgerySimulator(StagedSimulator):
                                        params={"sutures": th3["sutures"]},
                                        active=self.stage3.active)],
                          q0=sol2.q, theta=untied, options=self.options)
-        sol3 = _kept(sol3)
+        sol3 = _lean(sol3)
         its = sum(r.iterations for r in sol2.history + sol3.history)
         stages = (StageRecord(maps[0], pre.sol1, None, self._preop_data(pre.node), pre.carry),
                   StageRecord(maps[1], sol2, bites, sut_data, carry2),
@@ -734,7 +721,6 @@ class TimelineSimulator(SurgerySimulator):
     def run(self, design: dict | None = None, *, warm: bool = True) -> TimelineResult:
         """Solve the timeline for a design (missing variables: the case's values), from the
         pre-operative eye (``warm`` is ignored: the timeline is path-dependent)."""
-        self._release_last()
         return self._run(design, warm=False)
 
     # --- the forward run -----------------------------------------------------------
@@ -952,14 +938,13 @@ def _carries(records) -> dict:
     return jax.tree_util.tree_map(jnp.asarray, out)
 
 
-def _kept(sol: Solution) -> Solution:
-    """``sol`` with its last factorisation kept out of the Pardiso instance its sparsity
-    pattern shares (SaddlePointSolver.keep): the stages of a surgery share one pattern,
-    and the design gradients solve on each stage's factorisation after the later stages
-    have factorised; kept, none is factorised again for the gradients."""
-    if sol.solver is not None:
-        sol.solver.keep()
-    return sol
+def _lean(sol: Solution) -> Solution:
+    """``sol`` without its last factorisation (freed once nothing else holds it): a
+    design's gradients factorise each stage's tangent again at its converged state
+    (eyefem.solve.records.Solution.factorised, one factorisation a stage, in the backward
+    sweep), so that a simulator and the results a caller holds keep states, not
+    factorisations (on ``fine``, kept: 0.6 GB more a simulation, docs/performance.md)."""
+    return dataclasses.replace(sol, solver=None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1007,7 +992,7 @@ class RingSimulator(StagedSimulator):
         self._compiled: dict = {}
         cav = self.model1.term("cavity")
         self._cavity = (cav.data, cav.dofs)
-        self.sol1 = _kept(solve(self.model1, [self.stage1], options=options))
+        self.sol1 = _lean(solve(self.model1, [self.stage1], options=options))
         self.carry1 = hand_on(self._maps()[0], self.sol1.q, self.sol1.theta,
                               {"cavity": self._cavity})
         self.last: RingResult | None = None
@@ -1047,7 +1032,6 @@ class RingSimulator(StagedSimulator):
     def run(self, design: dict | None = None, **_) -> RingResult:
         """Solve stages 2 and 3 for a design (missing variables: the case's values)."""
         self._check(design or {})
-        self._release_last()
         design = {**self.design0(), **(design or {})}
         maps = self._maps()
 
@@ -1056,12 +1040,12 @@ class RingSimulator(StagedSimulator):
             return dataclasses.replace(s, params={**s.params, **params})
 
         t2 = stage_params(maps[1], design, self.carry1)
-        sol2 = _kept(solve(self.model1, [stage(self.stage2, t2)], q0=self.sol1.q,
+        sol2 = _lean(solve(self.model1, [stage(self.stage2, t2)], q0=self.sol1.q,
                            theta=self.sol1.theta, options=self.options))
         sut = sol2.model.term("sutures")
         carry2 = hand_on(maps[1], sol2.q, sol2.theta, (sut.data, sut.dofs))
         t3 = stage_params(maps[2], design, {**self.carry1, **carry2})
-        sol3 = _kept(solve(sol2.model, [stage(self.stage3, t3)], q0=sol2.q, theta=sol2.theta,
+        sol3 = _lean(solve(sol2.model, [stage(self.stage3, t3)], q0=sol2.q, theta=sol2.theta,
                            options=self.options))
         stages = (StageRecord(maps[0], self.sol1, None, {"cavity": self._cavity}, self.carry1),
                   StageRecord(maps[1], sol2, None, (sut.data, sut.dofs), carry2),
