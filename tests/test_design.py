@@ -178,6 +178,33 @@ def test_a_result_holds_no_factorisation_and_its_gradients_survive_later_designs
                                   rel=1e-12, abs=0.0)
 
 
+def test_a_warm_start_past_its_limits_falls_back_to_the_full_load_path(base, monkeypatch,
+                                                                       caplog):
+    """A warm start runs within WARM_START_LIMITS (the case's limits capped); one that cannot
+    converge within them (here: one Newton iteration, no halving) is abandoned for the
+    load path from the pre-operative eye, whose result is the cold run's."""
+    import logging
+
+    import eyefem.eye.simulators as simulators
+
+    sim, res, _ = base
+    warm = sim._warm_options()
+    assert (warm.max_iter, warm.max_cuts, warm.stall_cut) == (20, 2, True)
+    assert warm.rtol == sim.options.rtol
+    design = {**res.design, "tightening": res.design["tightening"] - 0.5}
+    monkeypatch.setattr(simulators, "WARM_START_LIMITS",
+                        {"max_iter": 1, "max_cuts": 0, "stall_cut": True})
+    sim.last = res
+    with caplog.at_level(logging.WARNING, logger="eyefem.eye.simulators"):
+        fallen = sim.run(design)
+    assert any("warm start failed" in r.getMessage() for r in caplog.records)
+    cold = sim.run(design, warm=False)
+    sim.last = res
+    assert fallen.newton_iterations == cold.newton_iterations
+    for k, v in cold.outcomes.items():
+        assert fallen.outcomes[k] == pytest.approx(v, rel=1e-12, abs=1e-12), k
+
+
 def test_band_pull_term_is_the_work_of_the_tension():
     """DofForce: energy -f gain q, gradient -f gain, zero tangent (hand-coded values)."""
     import jax.numpy as jnp

@@ -98,6 +98,14 @@ from eyefem.solve.transient import Recorder
 
 log = logging.getLogger(__name__)
 
+WARM_START_LIMITS = {"max_iter": 20, "max_cuts": 2, "stall_cut": True}
+"""Newton's limits for a warm start (a design continued from the previous design's state
+in one load step): at most 20 iterations a step, a stalled step cut at once, 2 halvings;
+a continuation that needs more costs more than the load path from the pre-operative eye,
+which :meth:`SurgerySimulator.run` then solves. Case 1 on `fine`, its tightening lowered by
+0.2 mm: with the case's own limits (40 iterations, stalls not cut, 8 halvings) over 10
+minutes of iterations; with these, 28 iterations (the first step stalled after 12, cut)."""
+
 
 def term_kind(term) -> tuple:
     """The key of the compiled functions of a term's state, one per kind whatever the
@@ -492,7 +500,8 @@ class SurgerySimulator(StagedSimulator):
         """Solve the stages for a design (missing variables: the case's values).
 
         Warm started from the previous design's converged states when there is one; if
-        that continuation fails, the design is solved again along the full load path."""
+        that continuation fails within WARM_START_LIMITS, the design is solved again along
+        the full load path."""
         if warm and self.last is not None:
             try:
                 return self._run(design, warm=True)
@@ -519,6 +528,14 @@ class SurgerySimulator(StagedSimulator):
         start["cavity"] = {**start["cavity"], "bulk": th2["cavity"]["bulk"]}
         return design, pre, sut, model, bites, maps, th2, ramped, start
 
+    def _warm_options(self) -> NewtonOptions:
+        """The Newton options of a warm start: the case's within WARM_START_LIMITS."""
+        lim = WARM_START_LIMITS
+        o = self.options
+        return dataclasses.replace(o, max_iter=min(o.max_iter, lim["max_iter"]),
+                                   max_cuts=min(o.max_cuts, lim["max_cuts"]),
+                                   stall_cut=lim["stall_cut"])
+
     def _run(self, design, *, warm):
         design, pre, sut, model, bites, maps, th2, ramped, start = self._prepared(design)
         held = self.stage2.prescribed
@@ -530,7 +547,7 @@ class SurgerySimulator(StagedSimulator):
         else:
             start = {**prev.sol2.theta, "sutures": th2["sutures"]}
             sol2 = solve(model, [Stage("tighten", 1, held, params=ramped, active=self.stage2.active)],
-                         q0=prev.sol2.q, theta=start, options=self.options)
+                         q0=prev.sol2.q, theta=start, options=self._warm_options())
         sol2 = _lean(sol2)
         sut_data = (sut.data, sut.dofs)
         carry2 = hand_on(maps[1], sol2.q, sol2.theta, sut_data)
@@ -541,7 +558,7 @@ class SurgerySimulator(StagedSimulator):
             sol3 = solve(model, [Stage("suture", 1, self.stage3.prescribed,
                                        params={k: th3[k] for k in self._ramped + ("sutures",)},
                                        active=self.stage3.active)],
-                         q0=prev.sol3.q, theta=prev.sol3.theta, options=self.options)
+                         q0=prev.sol3.q, theta=prev.sol3.theta, options=self._warm_options())
         else:
             untied = {**th3, "sutures": {**th3["sutures"], "tightening": 0 * th3["sutures"]["tightening"]}}
             sol3 = solve(model, [Stage("suture", self.stage3.n_steps, self.stage3.prescribed,
