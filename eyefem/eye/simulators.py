@@ -102,9 +102,8 @@ WARM_START_LIMITS = {"max_iter": 20, "max_cuts": 2, "stall_cut": True}
 """Newton's limits for a warm start (a design continued from the previous design's state
 in one load step): at most 20 iterations a step, a stalled step cut at once, 2 halvings;
 a continuation that needs more costs more than the load path from the pre-operative eye,
-which :meth:`SurgerySimulator.run` then solves. Case 1 on `fine`, its tightening lowered by
-0.2 mm: with the case's own limits (40 iterations, stalls not cut, 8 halvings) over 10
-minutes of iterations; with these, 28 iterations (the first step stalled after 12, cut)."""
+which :meth:`SurgerySimulator.run` then solves (a stalled continuation on `fine` can
+otherwise iterate for many minutes under the case's own limits)."""
 
 
 def term_kind(term) -> tuple:
