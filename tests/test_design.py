@@ -205,6 +205,28 @@ def test_a_warm_start_past_its_limits_falls_back_to_the_full_load_path(base, mon
         assert fallen.outcomes[k] == pytest.approx(v, rel=1e-12, abs=1e-12), k
 
 
+def test_the_run_reports_the_suture_force_the_simulator_differentiates(base, tmp_path):
+    """One rule for the largest suture force (eyefem.eye.outcomes.suture_force): 0 until the
+    sutures are tied, then the most loaded bar's force, in ``eyefem run``'s rows and in the
+    design simulator's outcome alike; checked where the two once differed, a design with
+    suture_tightening = 0 (the tied, slack sutures' smoothed force, about 1e-4 N). The two
+    routes solve along different load paths to rtol 1e-10, so their states differ by
+    roundoff: 1e-6 relative."""
+    from eyefem.eye.surgery import surgery
+    from eyefem.run.runner import run_setup
+
+    sim, res, _ = base
+    sim.last = res
+    got = sim.run({**res.design, "suture_tightening": 0.0}).outcomes["max_suture_force_N"]
+    sim.last = res
+    run = run_setup(surgery({**sim.params, "suture_tightening": 0.0}, None), tmp_path, TIGHT,
+                    vtu=False, plots=False)
+    assert 1e-6 < got < 1e-3
+    assert run.summary["max_suture_force_N"] == pytest.approx(got, rel=1e-6)
+    untied = [r["max_suture_force_N"] for r in run.rows if r["stage"] != "suture"]
+    assert untied and all(f == 0.0 for f in untied)
+
+
 def test_band_pull_term_is_the_work_of_the_tension():
     """DofForce: energy -f gain q, gradient -f gain, zero tangent (hand-coded values)."""
     import jax.numpy as jnp

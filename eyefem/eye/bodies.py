@@ -131,12 +131,19 @@ def preop_carry(parts: SurgeryParts, nodes, snug: bool) -> Callable:
     return preop
 
 
+def tied(sutures: dict, L0) -> dict:
+    """The suture term's params ``sutures`` tied at lengths L0 (n,), mm: their rest lengths
+    L0 and "tied" = 1 (numpy or JAX; the rule of the suture stage's hook
+    :func:`tie_sutures` and of the design simulators' T_3)."""
+    return {**sutures, "L0": L0, "tied": np.ones(np.shape(L0))}
+
+
 def tie_sutures(model, q, theta):
     """Stage hook: the sutures tied at their current lengths (their rest lengths L0, by
     :func:`tied_lengths`)."""
     t = model.term("sutures")
     L = np.asarray(tied_lengths(t)(np.asarray(q), theta, (t.data, t.dofs))["L0"])
-    return model, q, {**theta, "sutures": {**theta["sutures"], "L0": L}}
+    return model, q, {**theta, "sutures": tied(theta["sutures"], L)}
 
 
 class BuckleBody(abc.ABC):

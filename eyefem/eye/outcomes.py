@@ -173,11 +173,13 @@ def most_loaded_bar(sutures, q, params) -> int:
 
 
 def suture_force(sutures, q, params, data, dofs, largest):
-    """The axial force (N) of suture bar ``largest`` (JAX): the most loaded bar's, with
-    ``largest`` = argmax of ``sutures.forces`` at the state (the bar is chosen at the
-    state by :func:`most_loaded_bar`, its force differentiated); ``sutures``: the term
-    (its methods only), params, data and dofs its own."""
-    return sutures.axial_forces(q[dofs], params, data)[largest]
+    """The axial force (N) of suture bar ``largest`` (JAX) once it is tied, 0 before (its
+    force times its param "tied": untied, its rest length is the reference one and its
+    force means nothing): the most loaded bar's, with ``largest`` = argmax of
+    ``sutures.forces`` at the state (the bar is chosen at the state by
+    :func:`most_loaded_bar`, its force differentiated); ``sutures``: the term (its methods
+    only), params, data and dofs its own."""
+    return sutures.axial_forces(q[dofs], params, data)[largest] * params["tied"][largest]
 
 
 def eye_optics(X, q, nodes: OutcomeNodes) -> dict:
@@ -316,12 +318,8 @@ def azimuthal_shares(mesh, u, n_max: int = 4, band_deg: float = 15.0) -> np.ndar
 def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
     """The outcomes every buckle reports at state q (n_dof,): IOP (mmHg), cavity volume
     (mm^3), axial length and its change from the unloaded eye (mm), indentation (mm),
-    largest suture bar force (N; :func:`suture_force` of :func:`most_loaded_bar`, but 0
-    while every suture's tightening param is 0: before the suture stage the sutures are
-    untied, their rest lengths the reference ones, and their bars' force means nothing;
-    :func:`outcome_function`'s, evaluated at the tied last stage, has no such rule, so
-    the two differ at a design with suture_tightening = 0, where it is the tied,
-    untightened sutures' smoothed force), corneal power and astigmatism (D), anterior
+    largest suture bar force (N; :func:`suture_force` of :func:`most_loaded_bar`: 0 until
+    the sutures are tied, as :func:`outcome_function`'s), corneal power and astigmatism (D), anterior
     chamber depth (mm), the peak scleral von Mises stress over a patch (kPa; ``patches``: the
     :func:`stress_patches` of the mesh, built here when not given), and those two as
     fractions of the sclera's strength and of a suture's breaking load
@@ -333,9 +331,8 @@ def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
     iop = (float(cavity_iop_mmhg(jnp.asarray(q), theta["cavity"], cav.data, cav.dofs)) if closed
            else float(theta["iop"]["p"]) / MMHG)
     sut = model.term("sutures")
-    force = (float(suture_force(sut, jnp.asarray(q), theta["sutures"], sut.data, sut.dofs,
-                                most_loaded_bar(sut, q, theta["sutures"])))
-             if np.any(theta["sutures"]["tightening"]) else 0.0)
+    force = float(suture_force(sut, jnp.asarray(q), theta["sutures"], sut.data, sut.dofs,
+                               most_loaded_bar(sut, q, theta["sutures"])))
     now = {k: float(v) for k, v in eye_optics(X, q, nodes).items()}
     unloaded = eye_optics(X, np.zeros_like(q), nodes)["axial_length_mm"]
     stress = peak_scleral_stress(model, q, theta,
@@ -365,12 +362,8 @@ def outcome_function(names, X, nodes: OutcomeNodes, sutures):
     Args:
       names: outcome names: iop_mmhg, indentation_mm, max_suture_force_N, the OPTICS and
         the CHANGES (from carry["optics"], the pre-operative eye's :func:`eye_optics`).
-        max_suture_force_N is the most loaded bar's force at every state (the design
-        simulators evaluate f at their last stage, the sutures tied); :func:`outcomes`
-        reports 0 instead while no suture is tightened (untied sutures), so at a design
-        with suture_tightening = 0 the two differ: a single rule would make f jump to 0
-        there, and its derivative in suture_tightening (coarse case 1: 9.5e-5 N, 0.10 N
-        per mm).
+        max_suture_force_N is :func:`suture_force` (0 until the sutures are tied), as
+        :func:`outcomes` reports it.
       X: (n_nodes, 3) reference node positions, mm; nodes: the mesh's OutcomeNodes.
       sutures: a suture term of the kind whose data f receives (its methods only).
     data: {"cavity": (data, dofs) of the FluidCavity, "sutures": (data, dofs),

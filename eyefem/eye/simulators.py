@@ -70,7 +70,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.eye.bodies import DeformableRing, preop_carry, tied_lengths
+from eyefem.eye.bodies import DeformableRing, preop_carry, tied, tied_lengths
 from eyefem.eye.mirror import half_term, mirror_of, mirror_setup, theta_half, theta_whole
 from eyefem.eye.outcomes import (cavity_pressure, changes, eye_optics, indentation,
                                  outcome_data, outcome_data_of, outcome_function, outcome_nodes)
@@ -344,9 +344,9 @@ class SurgerySimulator(StagedSimulator):
         lengths L0 and shortened (eyefem.eye.rigid_buckle.rigid_design_params)."""
         out = self.design_map(design, carry, bites)
         _, suture = rigid_design_params(self.parts, design)
-        out["sutures"] = {**out["sutures"], "L0": self._full("sutures", "L0", carry["L0"]),
-                          "tightening": self._full("sutures", "tightening",
-                                                   suture["sutures"]["tightening"])}
+        out["sutures"] = tied({**out["sutures"], "tightening": self._full(
+            "sutures", "tightening", suture["sutures"]["tightening"])},
+            self._full("sutures", "L0", carry["L0"]))
         return out
 
     def maps(self, sut) -> tuple[StageMap, StageMap, StageMap]:
@@ -862,14 +862,14 @@ class TimelineSimulator(SurgerySimulator):
         L0, "shape": also the optics and the indentation), one per kind and suture term
         (its carry compiled once)."""
         def build():
-            X, nodes, tied = self.parts.eye.mesh.nodes, self._nodes, tied_lengths(sut)
+            X, nodes, tie_rule = self.parts.eye.mesh.nodes, self._nodes, tied_lengths(sut)
 
             def carry(q, theta, data):
                 P = cavity_pressure(q, theta["cavity"], *data["cavity"])  # the IOP, MPa
                 h = advanced_history(P, theta["cavity"])
                 out = {"history": {k: h[k] for k in HISTORY_KEYS}, "iop": P / MMHG}
                 if kind == "tie":
-                    out.update(tied(q, theta, data["sutures"]))
+                    out.update(tie_rule(q, theta, data["sutures"]))
                 if kind == "shape":
                     out["optics"] = eye_optics(X, q, nodes)
                     out["indentation"] = indentation(X, q, nodes)
@@ -1028,7 +1028,7 @@ class RingSimulator(StagedSimulator):
         def suture(design, carry, data):  # T_3
             _, t3 = self.body.design_params(parts, design)
             return {**tighten(design, carry, data),
-                    "sutures": {**t3["sutures"], "L0": carry["L0"]}}
+                    "sutures": tied(t3["sutures"], carry["L0"])}
 
         # the suture term's methods only (term_kind): the one the band is refitted with
         # in stage 2 is of the same kind

@@ -364,7 +364,9 @@ class AnchoredBars(Term):
     buckle's motion, params "d", "s", "dr" (n_bodies,); dir, dir2, dir3 (n, 3) per anchor)
     and then turned by rot[body] (rad) about the z axis. Energy EA / (2 L0) (l - (L0 - tightening))^2 with the
     tied length L0 (n,) and the tightening (n,) (mm) params: the suture is tied snug at
-    the state where it is made, then shortened.
+    the state where it is made, then shortened. Param "tied" (n,): 1 once tied, else 0
+    (default); the energy does not read it, the reported suture force is the force times
+    it.
 
     Args:
       name; nodes_a; xi_a (n, 2); anchor_xyz (n, 3); body (n,) body index of each anchor;
@@ -422,6 +424,7 @@ class AnchoredBars(Term):
             dofs = np.concatenate([dofs, np.full((n, 1), self.extra_dof)], axis=1)
         object.__setattr__(self, "dofs", dofs)
         object.__setattr__(self, "params", {"EA": EA, "tightening": np.zeros(n), "L0": L0,
+                                            "tied": np.zeros(n),
                                             "xi": np.asarray(self.xi_a, float).reshape(n, 2),
                                             "d": np.zeros(nb), "s": np.zeros(nb),
                                             "dr": np.zeros(nb), "rot": np.zeros(nb)})
@@ -494,7 +497,8 @@ class TiedBars(Bars):
     Args: as :class:`Bars` (name; nodes_a, nodes_b (n, 4); xi_a, xi_b (n, 2); node_xyz
       (n_nodes, 3), mm; EA, N); smoothing: eps, mm.
     Params: {"EA" (n,) N, "xi" (n, 2, 2), "tightening" (n,) mm, "L0" (n,) tied lengths, mm
-    (default: the reference lengths)}.
+    (default: the reference lengths), "tied" (n,) 1 once the bar is tied, else 0 (default):
+    the energy does not read it, the reported suture force is the force times it}.
     """
 
     smoothing: float = 2e-4
@@ -503,7 +507,8 @@ class TiedBars(Bars):
         super().__post_init__()
         p = self.params
         object.__setattr__(self, "params", {"EA": p["EA"], "xi": p["xi"], "L0": self.data["L0"].copy(),
-                                            "tightening": np.zeros(len(p["EA"]))})
+                                            "tightening": np.zeros(len(p["EA"])),
+                                            "tied": np.zeros(len(p["EA"]))})
 
     def static_key(self):
         return (self.smoothing,) + self._patch_key()

@@ -25,7 +25,8 @@ from eyefem.io.manifest import code_version
 from eyefem.io.output import atomic_path, write_text
 
 FILENAME = "checkpoint.json"
-FORMAT = 2
+FORMAT = 3
+"""The layout of the saved state (3: the suture terms' param "tied"); another is refused."""
 
 
 class CheckpointError(RuntimeError):
