@@ -208,8 +208,9 @@ class _Host:
         full = {**self.sim.design0(), **design}
         key = tuple(sorted((k, float(v)) for k, v in full.items()))
         with self.lock:
-            if key not in self.memo:
-                self.memo[key] = {"result": self.sim.run(design)}
+            if key not in self.memo:  # warm started from the design used last
+                last = next(reversed(self.memo.values()))["result"] if self.memo else None
+                self.memo[key] = {"result": self.sim.run(design, start=last)}
                 while len(self.memo) > REMEMBERED_DESIGNS:
                     self.memo.popitem(last=False)
             self.memo.move_to_end(key)

@@ -89,6 +89,8 @@ class PlanResult:
     active: tuple[str, ...] = ()
     violated: tuple[str, ...] = ()
     outcomes_used: tuple[str, ...] = ()
+    last: object = None
+    """The last simulation's result (states, no factorisation): ``start`` of a later plan."""
 
 
 class _Stop(Exception):
@@ -112,7 +114,7 @@ def bounds_for(sim, names, overrides=None) -> dict:
 
 
 def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations=20,
-         tol=1e-2, on_iteration=None, gradient_outcomes=()) -> PlanResult:
+         tol=1e-2, on_iteration=None, gradient_outcomes=(), start=None) -> PlanResult:
     """SLSQP on the design variables ``names`` of a SurgerySimulator.
 
     Args:
@@ -128,6 +130,8 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
       on_iteration: callback(row) after every simulation (progress, files).
       gradient_outcomes: outcomes whose gradients every simulation takes besides those
         the objective and constraints weigh there.
+      start: a result of ``sim`` (e.g. an earlier plan's ``last``) that the first
+        simulation is warm started from; each later one starts from the one before.
     """
     from scipy.optimize import minimize
 
@@ -151,6 +155,7 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
                          f"bounds {bnd}")
     f_total = obj.total(objective_terms) if objective_terms else (lambda o: 0.0 * o["iop_mmhg"])
     history, cache, best, used_ever = [], {}, {}, set()
+    last = {"result": start}  # the result the next simulation is warm started from
 
     def weights(fn, out):
         g = jax.grad(lambda o: fn(o))({k: jax.numpy.asarray(v) for k, v in out.items()})
@@ -164,7 +169,8 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
             raise _Stop("stopped after the iteration limit")
         design = {**d0, **{n: float(lo[i] + z[i] * (hi[i] - lo[i])) for i, n in enumerate(names)}}
         tic = time.perf_counter()
-        res = sim.run(design)
+        res = sim.run(design, start=last.get("result"))
+        last["result"] = res
         out = res.outcomes
 
         # d fn / d z of the objective and every constraint from one block adjoint of the
@@ -217,7 +223,7 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
     violated = tuple(k for k, v in values.items() if v < -FEASIBLE)
     converged = best["merit"][0] == 0 and (best["objective"] < tol or message.startswith("stationary"))
     return PlanResult(history, {k: v for k, v in best.items() if k != "merit"}, converged,
-                      message, active, violated, tuple(sorted(used_ever)))
+                      message, active, violated, tuple(sorted(used_ever)), last["result"])
 
 
 @dataclasses.dataclass
@@ -266,8 +272,8 @@ class _Corrected(_StartedAt):
         super().__init__(sim, start)
         self._delta, self._slope = delta, slope
 
-    def run(self, design):
-        res = self._sim.run(design)
+    def run(self, design, start=None):
+        res = self._sim.run(design, start=getattr(start, "raw", start))
         out = dict(res.outcomes)
         for k, d in self._delta.items():
             out[k] = out[k] + d + sum(g * (design[n] - self._start[n])
@@ -311,7 +317,7 @@ def plan_levels(make_sim, levels, objective_terms, names, *, constraints=(), bou
     Args:
       make_sim: (level, start) -> a SurgerySimulator of the case on eye mesh ``level`` whose
         design starts at ``start`` (name -> value; {} for the case's own); called once
-        per level (each keeps its warm starts).
+        per level (each level's simulations warm started from its last one).
       levels: (search level, trusted level), different.
       finish_iterations: the most simulations on the trusted level (its first is at the
         search's best design).
@@ -339,22 +345,26 @@ def plan_levels(make_sim, levels, objective_terms, names, *, constraints=(), bou
                  on_iteration=tagged(search_level), **kw)
     wanted = first.outcomes_used
     x, cheap = {n: first.best["design"][n] for n in names}, first.best
+    warm_s = first.last  # each level's simulations warm started from its last one
     if set(wanted) - set(cheap["gradients"]):  # weighed elsewhere, not at the best design
-        res = sim_s.run(first.best["design"])  # warm started: a few Newton iterations
-        cheap = {"outcomes": res.outcomes, "gradients": sim_s.gradients(res, list(wanted))}
-    sim_t, runs, corrections = make_sim(level, x), [], []
+        warm_s = sim_s.run(first.best["design"], start=warm_s)  # a few Newton iterations
+        cheap = {"outcomes": warm_s.outcomes,
+                 "gradients": sim_s.gradients(warm_s, list(wanted))}
+    sim_t, runs, corrections, warm_t = make_sim(level, x), [], [], None
     while True:
         one = plan(_StartedAt(sim_t, x), objective_terms, names, iterations=1,
-                   on_iteration=tagged(level), gradient_outcomes=wanted, **kw)
+                   on_iteration=tagged(level), gradient_outcomes=wanted, start=warm_t, **kw)
         runs.append(one)
+        warm_t = one.last
         if one.converged or len(runs) >= finish_iterations:
             break
         delta, slope = _correction(one.best, cheap, names)
         model = _Corrected(sim_s, x, delta, slope)
         fixed = plan(model, objective_terms, names, iterations=iterations,
                      on_iteration=tagged(f"{search_level}+correction"),
-                     gradient_outcomes=wanted, **kw)
+                     gradient_outcomes=wanted, start=warm_s, **kw)
         corrections.append(fixed)
+        warm_s = getattr(fixed.last, "raw", fixed.last)
         x_new = {n: fixed.best["design"][n] for n in names}
         if all(abs(x_new[n] - x[n]) <= 1e-9 * max(1.0, abs(x[n])) for n in names):
             break  # the corrected search stays where the trusted level was evaluated

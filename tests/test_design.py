@@ -39,9 +39,7 @@ def base():
 def _central(sim, res, var, h):
     vals = []
     for e in (h, -h):
-        sim.last = res
-        vals.append(sim.run({**res.design, var: res.design[var] + e}).outcomes)
-    sim.last = res
+        vals.append(sim.run({**res.design, var: res.design[var] + e}, start=res).outcomes)
     return {k: (vals[0][k] - vals[1][k]) / (2 * h) for k in OUTCOMES}
 
 
@@ -151,9 +149,7 @@ def test_a_new_design_reuses_the_compiled_outcome_jacobians(base):
     sim.weighted_gradient(res, {"iop_mmhg": 1.0})
     before = compiled()
     assert len(before) >= 4 and all(n >= 1 for _, n in before.values())
-    sim.last = res
-    other = sim.run({**res.design, "tightening": res.design["tightening"] + 0.05})
-    sim.last = res
+    other = sim.run({**res.design, "tightening": res.design["tightening"] + 0.05}, start=res)
     assert other.outcomes["iop_mmhg"] != res.outcomes["iop_mmhg"]
     sim.gradients(other)
     sim.weighted_gradient(other, {"iop_mmhg": 1.0})
@@ -167,9 +163,7 @@ def test_a_result_holds_no_factorisation_and_its_gradients_survive_later_designs
     has been solved (refactorising the solver's shared Pardiso instances) the held result's
     gradients are the ones the fast tests check against central differences."""
     sim, res, grads = base
-    sim.last = res
-    other = sim.run({**res.design, "tightening": res.design["tightening"] + 1e-3})
-    sim.last = res
+    other = sim.run({**res.design, "tightening": res.design["tightening"] + 1e-3}, start=res)
     assert all(r.solution.solver is None for r in other.stages + res.stages)
     assert sim.preop.sol1.solver is None
     again = sim.gradients(res, ["iop_mmhg"])["iop_mmhg"]
@@ -194,12 +188,10 @@ def test_a_warm_start_past_its_limits_falls_back_to_the_full_load_path(base, mon
     design = {**res.design, "tightening": res.design["tightening"] - 0.5}
     monkeypatch.setattr(simulators, "WARM_START_LIMITS",
                         {"max_iter": 1, "max_cuts": 0, "stall_cut": True})
-    sim.last = res
     with caplog.at_level(logging.WARNING, logger="eyefem.eye.simulators"):
-        fallen = sim.run(design)
+        fallen = sim.run(design, start=res)
     assert any("warm start failed" in r.getMessage() for r in caplog.records)
-    cold = sim.run(design, warm=False)
-    sim.last = res
+    cold = sim.run(design)
     assert fallen.newton_iterations == cold.newton_iterations
     for k, v in cold.outcomes.items():
         assert fallen.outcomes[k] == pytest.approx(v, rel=1e-12, abs=1e-12), k
@@ -216,9 +208,8 @@ def test_the_run_reports_the_suture_force_the_simulator_differentiates(base, tmp
     from eyefem.run.runner import run_setup
 
     sim, res, _ = base
-    sim.last = res
-    got = sim.run({**res.design, "suture_tightening": 0.0}).outcomes["max_suture_force_N"]
-    sim.last = res
+    got = sim.run({**res.design, "suture_tightening": 0.0},
+                  start=res).outcomes["max_suture_force_N"]
     run = run_setup(surgery({**sim.params, "suture_tightening": 0.0}, None), tmp_path, TIGHT,
                     vtu=False, plots=False)
     assert 1e-6 < got < 1e-3

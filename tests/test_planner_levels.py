@@ -26,15 +26,19 @@ class StandIn:
 
     def __init__(self, level, start):
         self.level, self.t0, self.runs = level, start.get("tightening", 2.0), []
+        self.results, self.starts = [], []
 
     def design0(self):
         return {"tightening": self.t0}
 
-    def run(self, design):
+    def run(self, design, start=None):
         t = design["tightening"]
         self.runs.append(t)
-        return SimpleNamespace(outcomes={"indentation_mm": SLOPE[self.level] * t,
-                                         "iop_mmhg": 15.0 + 2.0 * t}, newton_iterations=1)
+        self.starts.append(start)
+        self.results.append(SimpleNamespace(
+            outcomes={"indentation_mm": SLOPE[self.level] * t, "iop_mmhg": 15.0 + 2.0 * t},
+            newton_iterations=1))
+        return self.results[-1]
 
     def gradients(self, res, used):
         d = {"indentation_mm": SLOPE[self.level], "iop_mmhg": 2.0}
@@ -72,6 +76,11 @@ def test_the_search_hands_its_design_to_the_trusted_level():
     assert [row["mesh"] for row in rows] == (["cheap"] * n_s + ["trusted"]
                                             + ["cheap+correction"] * n_c + ["trusted"])
     assert sims["trusted"].runs == [t_search, r.trusted.best["design"]["tightening"]]
+    # each level's simulations are warm started from that level's one before (explicitly:
+    # run(design, start=result)), the first of each from nothing
+    for sim in sims.values():
+        assert sim.starts[0] is None
+        assert all(a is b for a, b in zip(sim.starts[1:], sim.results[:-1]))
 
 
 def test_the_correction_matches_the_trusted_level_where_it_was_taken():

@@ -99,8 +99,8 @@ from eyefem.solve.transient import Recorder
 log = logging.getLogger(__name__)
 
 WARM_START_LIMITS = {"max_iter": 20, "max_cuts": 2, "stall_cut": True}
-"""Newton's limits for a warm start (a design continued from the previous design's state
-in one load step): at most 20 iterations a step, a stalled step cut at once, 2 halvings;
+"""Newton's limits for a warm start (a design continued from another design's converged
+state in one load step: ``run(design, start=result)``): at most 20 iterations a step, a stalled step cut at once, 2 halvings;
 a continuation that needs more costs more than the load path from the pre-operative eye,
 which :meth:`SurgerySimulator.run` then solves (a stalled continuation on `fine` can
 otherwise iterate for many minutes under the case's own limits)."""
@@ -172,8 +172,10 @@ class StagedSimulator:
     per kind, the outcomes of a converged design's last stage and their gradients by one
     backward sweep over its stages (eyefem.solve.staged.staged_gradients). A subclass sets
     ``params``, ``parts``, ``_nodes`` (eyefem.eye.outcomes.OutcomeNodes), ``_compiled``
-    ({}) and ``last``, and runs designs into results with ``design``, ``stages`` (the last
-    one's solution: the converged design) and ``sutures`` (its suture term)."""
+    ({}), and runs designs into results with ``design``, ``stages`` (the last one's
+    solution: the converged design) and ``sutures`` (its suture term). A run depends on its
+    design and on the result it is told to start from (``run(design, start=...)``), never
+    on which designs the simulator solved before."""
 
     outcome_names = tuple(OUTCOMES)
     """The outcomes run() reports and gradients() differentiates, in order."""
@@ -201,13 +203,11 @@ class StagedSimulator:
 
     def _evaluated(self, res, q, theta, carry):
         """``res`` with its outcomes (:attr:`outcome_names`) at its last state (q, theta)
-        and the carries its stages handed on; kept as ``self.last``."""
+        and the carries its stages handed on."""
         f, data = self.outcome_vector(res, self.outcome_names)
         values = f(jnp.asarray(q), theta, carry, data)
-        res = dataclasses.replace(res, outcomes=dict(zip(self.outcome_names,
-                                                         map(float, values))))
-        self.last = res
-        return res
+        return dataclasses.replace(res, outcomes=dict(zip(self.outcome_names,
+                                                          map(float, values))))
 
     def gradients(self, res, outcomes=None) -> dict[str, dict[str, float]]:
         """d outcome / d design variable for the named outcomes (default: every one of
@@ -289,7 +289,6 @@ class SurgerySimulator(StagedSimulator):
         self._shapes = {t: {k: np.shape(v) for k, v in ps.items()} for t, ps in theta0.items()}
         self._coeffs = np.asarray(theta0["solid"]["coeffs"])
         self._c10 = {m: float(self._coeffs[i, 1, 0]) for m, i in self._mat_row.items()}
-        self.last: Result | None = None
         self.pulled = any(t.name == "band_pull" for t in self.model.terms)
         self._ramped = ("solid", "zonule", "buckle", "cavity") + (("band_pull",) if self.pulled else ())
         self.preop = self._preop(sol1, self._stage1_key(self.design0()))
@@ -495,19 +494,22 @@ class SurgerySimulator(StagedSimulator):
                                  "must be > 0")
 
     # --- forward ------------------------------------------------------------------
-    def run(self, design: dict | None = None, *, warm: bool = True) -> Result:
+    def run(self, design: dict | None = None, *, start: Result | None = None) -> Result:
         """Solve the stages for a design (missing variables: the case's values).
 
-        Warm started from the previous design's converged states when there is one; if
-        that continuation fails within WARM_START_LIMITS, the design is solved again along
-        the full load path."""
-        if warm and self.last is not None:
+        With ``start`` (a converged result of this simulator, e.g. the nearby design an
+        optimiser solved last) its stage-2 and stage-3 states are continued to the design
+        in one step each; if that continuation fails within WARM_START_LIMITS, or without
+        ``start``, the design is solved along the full load path from the pre-operative
+        eye. The equilibria are path independent: both give the same outcomes to the
+        Newton tolerance."""
+        if start is not None:
             try:
-                return self._run(design, warm=True)
+                return self._run(design, start=start)
             except ConvergenceError as exc:
                 log.warning("warm start failed (%s); solving the design from the "
                             "pre-operative state", str(exc).splitlines()[0])
-        return self._run(design, warm=False)
+        return self._run(design)
 
     def _prepared(self, design):
         """What a run of ``design`` starts from: (the design with the case's values filled in
@@ -535,10 +537,10 @@ class SurgerySimulator(StagedSimulator):
                                    max_cuts=min(o.max_cuts, lim["max_cuts"]),
                                    stall_cut=lim["stall_cut"])
 
-    def _run(self, design, *, warm):
+    def _run(self, design, *, start: Result | None = None):
+        prev = start
         design, pre, sut, model, bites, maps, th2, ramped, start = self._prepared(design)
         held = self.stage2.prescribed
-        prev = self.last if warm else None
         if prev is None:
             sol2 = solve(model, [Stage("tighten", self.stage2.n_steps, held, params=ramped,
                                        active=self.stage2.active)],
@@ -734,13 +736,13 @@ class TimelineSimulator(SurgerySimulator):
             return (StageMap(pre.name, pre.params, carry),) + tuple(base[1:])
         return self._kept_fn(("timeline maps", term_kind(sut)), build)
 
-    def run(self, design: dict | None = None, *, warm: bool = True) -> TimelineResult:
+    def run(self, design: dict | None = None, *, start=None) -> TimelineResult:
         """Solve the timeline for a design (missing variables: the case's values), from the
-        pre-operative eye (``warm`` is ignored: the timeline is path-dependent)."""
-        return self._run(design, warm=False)
+        pre-operative eye whatever ``start`` (the timeline is path dependent: no warm start)."""
+        return self._run(design)
 
     # --- the forward run -----------------------------------------------------------
-    def _run(self, design, *, warm=False):
+    def _run(self, design, *, start=None):
         design, pre, sut, model, bites, maps, th2, ramped, start = self._prepared(design)
         # the ramped params' start values (constants of the pre-operative eye): the buckle's
         # motion, the drained volume, a band's pull; the other params of T_2 start at T_2's
@@ -1011,7 +1013,6 @@ class RingSimulator(StagedSimulator):
         self.sol1 = _lean(solve(self.model1, [self.stage1], options=options))
         self.carry1 = hand_on(self._maps()[0], self.sol1.q, self.sol1.theta,
                               {"cavity": self._cavity})
-        self.last: RingResult | None = None
 
     def design0(self) -> dict:
         return {k: float(self.params[k]) for k in self.variables}
@@ -1045,8 +1046,9 @@ class RingSimulator(StagedSimulator):
                                  f"{self.parts.buckle.kind}: its design variables are "
                                  f"{list(self.variables)}")
 
-    def run(self, design: dict | None = None, **_) -> RingResult:
-        """Solve stages 2 and 3 for a design (missing variables: the case's values)."""
+    def run(self, design: dict | None = None, *, start=None) -> RingResult:
+        """Solve stages 2 and 3 for a design (missing variables: the case's values), from
+        the pre-operative eye whatever ``start`` (the ring has no warm start)."""
         self._check(design or {})
         design = {**self.design0(), **(design or {})}
         maps = self._maps()
