@@ -172,6 +172,19 @@ def test_a_result_holds_no_factorisation_and_its_gradients_survive_later_designs
                                   rel=1e-12, abs=0.0)
 
 
+def test_a_start_that_is_not_this_simulators_result_is_refused(base):
+    import dataclasses
+
+    sim, res, _ = base
+    with pytest.raises(ValueError, match="not a result of this simulator"):
+        sim.run(res.design, start=res.outcomes)
+    other = dataclasses.replace(res.stages[1].solution, q=res.stages[1].solution.q[:-3])
+    bad = dataclasses.replace(res, stages=(res.stages[0], dataclasses.replace(
+        res.stages[1], solution=other), res.stages[2]))
+    with pytest.raises(ValueError, match=f"{sim.model1.n_dof} unknowns"):
+        sim.run(res.design, start=bad)
+
+
 def test_a_warm_start_past_its_limits_falls_back_to_the_full_load_path(base, monkeypatch,
                                                                        caplog):
     """A warm start runs within WARM_START_LIMITS (the case's limits capped); one that cannot

@@ -504,6 +504,12 @@ class SurgerySimulator(StagedSimulator):
         eye. The equilibria are path independent: both give the same outcomes to the
         Newton tolerance."""
         if start is not None:
+            n = getattr(getattr(getattr(start, "sol2", None), "q", None), "shape", None)
+            if not isinstance(start, Result) or n != (self.model1.n_dof,):
+                raise ValueError(f"start = {type(start).__name__} with states of shape {n}: "
+                                 "not a result of this simulator (its states have "
+                                 f"{self.model1.n_dof} unknowns); pass what its run() "
+                                 "returned, or no start")
             try:
                 return self._run(design, start=start)
             except ConvergenceError as exc:
