@@ -54,10 +54,10 @@ outcomes evaluated on the lifted whole state, so the same backward sweep gives t
 eye's gradients; a segmental buckle's meridian is then fixed (turned off the plane, the
 buckle breaks the symmetry).
 
-Warm start: a new design is solved from the previous design's converged states, by
-continuation of the params in one step (cut automatically if needed); the equilibria
-do not depend on the path (hyperelastic, frictionless). Stage 1 is solved again only
-when a material constant changes.
+Warm start: ``run(design, start=result)`` solves a design from another design's converged
+states, by continuation of the params in one step (cut automatically if needed); the
+equilibria do not depend on the path (hyperelastic, frictionless). Stage 1 is solved
+again only when a material constant changes.
 """
 
 from __future__ import annotations
@@ -100,8 +100,8 @@ log = logging.getLogger(__name__)
 
 WARM_START_LIMITS = {"max_iter": 20, "max_cuts": 2, "stall_cut": True}
 """Newton's limits for a warm start (a design continued from another design's converged
-state in one load step: ``run(design, start=result)``): at most 20 iterations a step, a stalled step cut at once, 2 halvings;
-a continuation that needs more costs more than the load path from the pre-operative eye,
+state in one load step: ``run(design, start=result)``): at most 20 iterations a step, a
+stalled step cut at once, 2 halvings; a continuation that needs more costs more than the load path from the pre-operative eye,
 which :meth:`SurgerySimulator.run` then solves (a stalled continuation on `fine` can
 otherwise iterate for many minutes under the case's own limits)."""
 
@@ -544,17 +544,17 @@ class SurgerySimulator(StagedSimulator):
                                    stall_cut=lim["stall_cut"])
 
     def _run(self, design, *, start: Result | None = None):
-        prev = start
-        design, pre, sut, model, bites, maps, th2, ramped, start = self._prepared(design)
+        prev = start  # the result to continue from, or None: the full load path
+        design, pre, sut, model, bites, maps, th2, ramped, theta2 = self._prepared(design)
         held = self.stage2.prescribed
         if prev is None:
             sol2 = solve(model, [Stage("tighten", self.stage2.n_steps, held, params=ramped,
                                        active=self.stage2.active)],
-                         q0=pre.sol1.q, theta=start, options=self.options)
+                         q0=pre.sol1.q, theta=theta2, options=self.options)
         else:
-            start = {**prev.sol2.theta, "sutures": th2["sutures"]}
+            theta2 = {**prev.sol2.theta, "sutures": th2["sutures"]}
             sol2 = solve(model, [Stage("tighten", 1, held, params=ramped, active=self.stage2.active)],
-                         q0=prev.sol2.q, theta=start, options=self._warm_options())
+                         q0=prev.sol2.q, theta=theta2, options=self._warm_options())
         sol2 = _lean(sol2)
         sut_data = (sut.data, sut.dofs)
         carry2 = hand_on(maps[1], sol2.q, sol2.theta, sut_data)
@@ -748,8 +748,8 @@ class TimelineSimulator(SurgerySimulator):
         return self._run(design)
 
     # --- the forward run -----------------------------------------------------------
-    def _run(self, design, *, start=None):
-        design, pre, sut, model, bites, maps, th2, ramped, start = self._prepared(design)
+    def _run(self, design):
+        design, pre, sut, model, bites, maps, th2, ramped, theta2 = self._prepared(design)
         # the ramped params' start values (constants of the pre-operative eye): the buckle's
         # motion, the drained volume, a band's pull; the other params of T_2 start at T_2's
         first = {t: {k: np.asarray(pre.theta2[t][k]) for k in th2[t]
@@ -762,7 +762,7 @@ class TimelineSimulator(SurgerySimulator):
              Stage("suture", self.stage3.n_steps, self.stage3.prescribed,
                    active=self.stage3.active)], p, events=True)[1:]
         rec = Recorder(stages, beta=self.options.beta)
-        q, theta, carry2, tie = pre.sol1.q, start, {}, None
+        q, theta, carry2, tie = pre.sol1.q, theta2, {}, None
         sut_data = (sut.data, sut.dofs)
         for st in stages:
             if st.name == "suture":  # tie the sutures at the state the paracentesis left
