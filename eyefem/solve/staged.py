@@ -16,8 +16,9 @@ same functions. The backward sweep, for k objectives at once:
     stage k:  g_k = d/dtheta_k [cbar_k . C_k(q_k, theta_k)]     (adjoint on stage k)
     each k:   (dbar, cbar_{<k}) += vjp of T_k at g_k restricted to T_k's params
 
-one block adjoint solve per stage on its last Newton factorisation
-(eyefem.solve.adjoint.values_and_grads) and a ``jax.vjp`` through each T_k and C_k.
+one block adjoint solve per stage on its tangent at the converged state (the solution's
+own factorisation, or a new one: eyefem.solve.records.Solution.factorised;
+eyefem.solve.adjoint.values_and_grads) and a ``jax.vjp`` through each T_k and C_k.
 The params a stage does not take from T_k are constants of the procedure.
 """
 
