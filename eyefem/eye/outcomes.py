@@ -319,8 +319,8 @@ def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
     """The outcomes every buckle reports at state q (n_dof,): IOP (mmHg), cavity volume
     (mm^3), axial length and its change from the unloaded eye (mm), indentation (mm),
     largest suture bar force (N; :func:`suture_force` of :func:`most_loaded_bar`: 0 until
-    the sutures are tied, as :func:`outcome_function`'s), corneal power and astigmatism (D), anterior
-    chamber depth (mm), the peak scleral von Mises stress over a patch (kPa; ``patches``: the
+    the sutures are tied, as :func:`outcome_function`'s), corneal power and astigmatism
+    (D), anterior chamber depth (mm), the peak scleral von Mises stress over a patch (kPa; ``patches``: the
     :func:`stress_patches` of the mesh, built here when not given), and those two as
     fractions of the sclera's strength and of a suture's breaking load
     (:func:`plausibility`). A buckle body adds its own (BuckleBody.outcomes)."""

@@ -101,9 +101,10 @@ log = logging.getLogger(__name__)
 WARM_START_LIMITS = {"max_iter": 20, "max_cuts": 2, "stall_cut": True}
 """Newton's limits for a warm start (a design continued from another design's converged
 state in one load step: ``run(design, start=result)``): at most 20 iterations a step, a
-stalled step cut at once, 2 halvings; a continuation that needs more costs more than the load path from the pre-operative eye,
-which :meth:`SurgerySimulator.run` then solves (a stalled continuation on `fine` can
-otherwise iterate for many minutes under the case's own limits)."""
+stalled step cut at once, 2 halvings; a continuation that needs more costs more than the
+load path from the pre-operative eye, which :meth:`SurgerySimulator.run` then solves (a
+stalled continuation on `fine` can otherwise iterate for many minutes under the case's own
+limits)."""
 
 
 def term_kind(term) -> tuple:
@@ -504,8 +505,8 @@ class SurgerySimulator(StagedSimulator):
         eye. The equilibria are path independent: both give the same outcomes to the
         Newton tolerance."""
         if start is not None:
-            n = getattr(getattr(getattr(start, "sol2", None), "q", None), "shape", None)
-            if not isinstance(start, Result) or n != (self.model1.n_dof,):
+            n = np.shape(start.sol2.q) if isinstance(start, Result) else None
+            if n != (self.model1.n_dof,):
                 raise ValueError(f"start = {type(start).__name__} with states of shape {n}: "
                                  "not a result of this simulator (its states have "
                                  f"{self.model1.n_dof} unknowns); pass what its run() "
