@@ -228,3 +228,25 @@ def test_bad_patches_are_reported():
     P = end_patches(X, F, f4, xi, True, R)
     with pytest.raises(ValueError, match="does not start with the faces of its ends"):
         TiedBars("s", f4[:, ::-1], [[0] * 4], xi, [[0, 0]], X, patch_a=P)
+
+
+def test_padding_carries_no_weight(monkeypatch):
+    """A patch's node and face counts are padded up to a multiple of PATCH_PADDING (so
+    that bites a few faces larger or smaller, as another suture width gives, keep the
+    arrays' shapes and the kernels compiled for them): the padding carries no weight (the
+    weights of the real nodes equal those of the unpadded patch to 1e-15, the padded
+    columns' are 0)."""
+    from eyefem.fem import bars
+
+    X, F, f4, xi = bite(16)
+    pad = bars.PATCH_PADDING
+    padded = end_patches(X, F, f4, xi, True, R)
+    monkeypatch.setattr(bars, "PATCH_PADDING", 1)
+    tight = end_patches(X, F, f4, xi, True, R)
+    m, f = tight.nodes.shape[1], tight.faces.shape[1]
+    assert padded.nodes.shape[1] == -(-m // pad) * pad > m - pad
+    assert padded.faces.shape[1] == -(-f // pad) * pad
+    assert (padded.nodes.shape[1], padded.faces.shape[1]) != (m, f)  # the test pads something
+    w_pad, w_tight = weights(X, padded, xi)[0], weights(X, tight, xi)[0]
+    np.testing.assert_allclose(w_pad[:m], w_tight, rtol=0, atol=1e-15)
+    assert np.all(w_pad[m:] == 0.0)

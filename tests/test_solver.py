@@ -538,6 +538,34 @@ def test_pardiso_patterns_are_held_within_the_memory_budget(monkeypatch):
 
 
 @pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
+def test_pardiso_evicts_the_least_recently_used_pattern(monkeypatch):
+    """At most PARDISO_PATTERNS patterns keep an instance, and the one evicted for a new
+    pattern is the one factorised longest ago, not the one analysed first: a Newton solve
+    that alternates two patterns (a look-ahead's tangent and the whole one) while a planner
+    adds others keeps both analysed."""
+    from eyefem.solve import linsolve
+
+    rng = np.random.default_rng(7)
+
+    def spd(n):
+        A = sp.random(n, n, density=0.05, random_state=rng)
+        return (A @ A.T + n * sp.identity(n)).tocsr()
+
+    monkeypatch.setattr(linsolve, "_PARDISO_BY_PATTERN", {})
+    monkeypatch.setattr(linsolve, "PARDISO_PATTERNS", 2)
+    A0, A1, A2 = spd(50), spd(51), spd(52)
+    f0 = linsolve.factorize(A0, "pardiso")
+    linsolve.factorize(A1, "pardiso")
+    linsolve.factorize(A0, "pardiso")  # the first pattern used again: now the most recent
+    f2 = linsolve.factorize(A2, "pardiso")  # a third: evicts A1's, which was used longest ago
+    kept = list(linsolve._PARDISO_BY_PATTERN)
+    assert kept == [f0.key, f2.key]
+    assert not f0.entry["freed"]
+    b = rng.standard_normal(50)
+    assert np.allclose(A0 @ f0.solve(b), b, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
 def test_a_kept_pardiso_factorisation_is_not_overwritten_by_its_pattern():
     """The stages of a surgery share one sparsity pattern; a factorisation kept for an
     adjoint (``keep``) moves into its own instance: a later factorisation of the same

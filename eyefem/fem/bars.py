@@ -48,6 +48,12 @@ _GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(6)
 _GAUSS_XI = np.stack(np.meshgrid(_GAUSS_X, _GAUSS_X, indexing="ij"), -1).reshape(-1, 2)
 _GAUSS_WT = np.outer(_GAUSS_W, _GAUSS_W).ravel()
 
+PATCH_PADDING = 8
+"""A patch's node and face counts are padded up to a multiple of this (:func:`end_patches`):
+bites that cover a few more or fewer faces for another design (a suture width, a meridian)
+keep the arrays' shapes, and with them the compiled kernels of the suture terms, which a
+planner would otherwise compile again, and keep, for each shape."""
+
 
 @dataclasses.dataclass(frozen=True)
 class EndPatches:
@@ -64,7 +70,9 @@ class EndPatches:
     end that is not spread is the point x = sum_a N_a(xi) x_a of its face.
 
     Attributes:
-      nodes: (n, m) node ids; columns 0-3 are the face holding the end's point.
+      nodes: (n, m) node ids; columns 0-3 are the face holding the end's point, the
+        padding columns repeat column 0 (no face refers to them; m and f are padded
+        to a multiple of PATCH_PADDING).
       faces: (n, f, 4) the patch's faces as column indices into ``nodes``.
       face_mask: (n, f) 1 for a face of the patch, 0 for padding (and for a point end).
       spread: (n,) True for an end spread over its patch.
@@ -143,8 +151,8 @@ def end_patches(node_xyz, surface_faces, nodes4, xi, spread, radius, margin=None
         col = {v: j for j, v in enumerate(ids)}
         node_lists.append(ids)
         face_lists.append(np.vectorize(col.__getitem__)(near).reshape(-1, 4))
-    m = max(len(v) for v in node_lists)
-    f = max(1, max(len(v) for v in face_lists))
+    m = -(-max(len(v) for v in node_lists) // PATCH_PADDING) * PATCH_PADDING
+    f = -(-max(1, max(len(v) for v in face_lists)) // PATCH_PADDING) * PATCH_PADDING
     nodes = np.array([v + [v[0]] * (m - len(v)) for v in node_lists], np.int64)
     faces = np.zeros((len(nodes4), f, 4), np.int64)
     faces[:] = np.arange(4)

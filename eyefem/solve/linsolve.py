@@ -88,8 +88,9 @@ class _SuperLU:
 _PARDISO_BY_PATTERN: dict = {}
 
 PARDISO_PATTERNS = 8
-"""At most this many sparsity patterns keep a Pardiso instance (beyond it the oldest is
-freed; :meth:`_Pardiso._analyse`)."""
+"""At most this many sparsity patterns keep a Pardiso instance: a new pattern frees the
+one factorised longest ago (:meth:`_Pardiso._analyse`), so the patterns a solve alternates
+stay analysed while a planner's designs (bites on other faces) add new ones."""
 
 PARDISO_MEMORY_FRACTION = 0.25
 """The patterns' Pardiso instances together keep at most this share of the machine's
@@ -235,7 +236,7 @@ class _Pardiso:
         PARDISO_PATTERNS or beyond PARDISO_MEMORY_FRACTION of the machine's memory
         (patterns change with contact and suture layouts). An evicted pattern is
         analysed again when it is used."""
-        if len(_PARDISO_BY_PATTERN) > PARDISO_PATTERNS:
+        while len(_PARDISO_BY_PATTERN) >= PARDISO_PATTERNS:
             _free_pattern(next(iter(_PARDISO_BY_PATTERN)))
         self._call(self.entry["solver"], 11)
         iparm = self.entry["solver"].iparm  # KB: permanent symbolic + numeric factors
@@ -280,6 +281,8 @@ class _Pardiso:
     def _factorize(self):
         if RELEASE_OTHER_FACTORS and not self.entry.get("kept"):
             _release_factors(self.entry)
+        if _PARDISO_BY_PATTERN.get(self.key) is self.entry:  # the most recently used last
+            _PARDISO_BY_PATTERN[self.key] = _PARDISO_BY_PATTERN.pop(self.key)
         if self.entry["freed"]:
             self._analyse()
         self.entry["owner"] = None
