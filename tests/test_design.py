@@ -172,6 +172,22 @@ def test_a_result_holds_no_factorisation_and_its_gradients_survive_later_designs
                                   rel=1e-12, abs=0.0)
 
 
+def test_a_run_does_not_depend_on_the_designs_solved_before(base):
+    """The simulator keeps no state between runs: a design of other material constants
+    (its own pre-operative eye) leaves the case's pre-operative eye in place, and the
+    case's design solved after it gives the same outcomes, to the last digit, as before."""
+    sim, res, _ = base
+    pre = sim.preop
+    design = {**res.design, "tightening": res.design["tightening"] + 0.1}
+    first = sim.run(design)
+    stiffer = sim.run({**design, "c10_sclera": 1.05 * design["c10_sclera"]})
+    assert stiffer.preop is not pre and stiffer.outcomes["iop_mmhg"] > first.outcomes["iop_mmhg"]
+    assert sim.preop is pre
+    again = sim.run(design)
+    assert again.preop is pre
+    assert again.outcomes == first.outcomes
+
+
 def test_a_start_that_is_not_this_simulators_result_is_refused(base):
     import dataclasses
 

@@ -91,6 +91,7 @@ from eyefem.fem.regulation import HISTORY_KEYS, advanced_history
 from eyefem.fem.units import MMHG
 from eyefem.fem.viscoelastic import ViscoelasticQ1P0, history_at
 from eyefem.solve.assembly import Assembler
+from eyefem.solve.model import Model
 from eyefem.solve.solver import ConvergenceError, NewtonOptions, Solution, Stage, solve
 from eyefem.solve.staged import (StageMap, StageRecord, hand_on, params_mismatch, stage_params,
                                  staged_gradients)
@@ -143,6 +144,33 @@ class Preop:
     def axial(self) -> float:
         """Pre-operative axial length, mm."""
         return self.optics["axial_length_mm"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Prepared:
+    """What a run of one design starts from (:meth:`SurgerySimulator._prepared`).
+
+    Attributes:
+      design: the design, the case's values filled in and checked (name -> float).
+      preop: the pre-operative eye of its material constants.
+      sutures: its suture term (bites on the faces its width and meridian give).
+      model: the stage-2 model with that suture term (on the mirror half, its half).
+      bites: the bites' rays (BiteRays), of which T_2 places the bites.
+      maps: the stages as data (pressurise, tighten, suture: StageMap).
+      theta2: stage 2's params, T_2 on the closed pre-operative eye.
+      ramped: the params stage 2 ramps to (term -> params).
+      start: stage 2's params at its start (the ramped ones at their pre-operative values).
+    """
+
+    design: dict
+    preop: Preop
+    sutures: object
+    model: Model
+    bites: BiteRays
+    maps: tuple
+    theta2: dict
+    ramped: dict
+    start: dict
 
 
 @dataclasses.dataclass(frozen=True)
@@ -292,6 +320,8 @@ class SurgerySimulator(StagedSimulator):
         self._c10 = {m: float(self._coeffs[i, 1, 0]) for m, i in self._mat_row.items()}
         self.pulled = any(t.name == "band_pull" for t in self.model.terms)
         self._ramped = ("solid", "zonule", "buckle", "cavity") + (("band_pull",) if self.pulled else ())
+        # the case's pre-operative eye, never replaced: a design of other material constants
+        # continues from it, or from its start result's (_stage1)
         self.preop = self._preop(sol1, self._stage1_key(self.design0()))
 
     # --- the procedure as data: design -> params, what each stage hands on ----------
@@ -424,13 +454,16 @@ class SurgerySimulator(StagedSimulator):
         """The data of the pre-operative stage's carry (its C)."""
         return {"cavity": (self._cavity.data, self._cavity.dofs), "node": node}
 
-    def _stage1(self, design) -> Preop:
-        """The pre-operative eye for the design's material constants (re-solved from the
-        last one, by continuation, when they changed)."""
+    def _stage1(self, design, start: Result | None = None) -> Preop:
+        """The pre-operative eye for the design's material constants: the case's
+        (:attr:`preop`) or the start result's where their constants are the design's, else
+        continued to the design's constants in one step from the start result's (or the
+        case's). Nothing is kept: a run depends on its design and its start alone."""
         want = self._stage1_key(design)
-        if want == self.preop.materials:
-            return self.preop
-        prev = self.preop.sol1
+        for pre in ((start.preop,) if start is not None else ()) + (self.preop,):
+            if want == pre.materials:
+                return pre
+        prev = (self.preop if start is None else start.preop).sol1
         target = self._with(prev.theta, stage_params(self.maps(self.model.term("sutures"))[0],
                                                      design, {}))
         ramp = {k: target[k] for k in ("solid", "zonule")}
@@ -444,8 +477,7 @@ class SurgerySimulator(StagedSimulator):
                         str(exc).splitlines()[0])
             start = self._with(self.model1.theta0(), ramp)
             sol1 = _lean(solve(self.model1, [s1], theta=start, options=self.options))
-        self.preop = self._preop(sol1, want)
-        return self.preop
+        return self._preop(sol1, want)
 
     def _theta2(self, design, sut, pre: Preop, bites: BiteRays):
         """Stage 2's params: T_2 (design_map) on the closed pre-operative eye."""
@@ -518,13 +550,12 @@ class SurgerySimulator(StagedSimulator):
                             "pre-operative state", str(exc).splitlines()[0])
         return self._run(design)
 
-    def _prepared(self, design):
-        """What a run of ``design`` starts from: (the design with the case's values filled in
-        and checked, the pre-operative eye, the suture term, the model, the bites, the stage
-        maps, stage 2's theta, its ramped params, its start theta from the pre-operative eye)."""
+    def _prepared(self, design, start: Result | None = None) -> Prepared:
+        """What a run of ``design`` (continued from ``start``, if given) starts from
+        (:class:`Prepared`)."""
         design = {**self.design0(), **(design or {})}
         self._check(design)
-        pre = self._stage1(design)
+        pre = self._stage1(design, start)
         sut = suture_term(self.parts, self.scale0, design["suture_width"],
                           design["buckle_meridian_deg"])
         model = self._model(sut)
@@ -534,7 +565,7 @@ class SurgerySimulator(StagedSimulator):
         ramped = {k: th2[k] for k in self._ramped}
         start = {**th2, **{k: pre.theta2[k] for k in self._ramped if k not in ("solid", "zonule")}}
         start["cavity"] = {**start["cavity"], "bulk": th2["cavity"]["bulk"]}
-        return design, pre, sut, model, bites, maps, th2, ramped, start
+        return Prepared(design, pre, sut, model, bites, maps, th2, ramped, start)
 
     def _warm_options(self) -> NewtonOptions:
         """The Newton options of a warm start: the case's within WARM_START_LIMITS."""
@@ -546,14 +577,16 @@ class SurgerySimulator(StagedSimulator):
 
     def _run(self, design, *, start: Result | None = None):
         prev = start  # the result to continue from, or None: the full load path
-        design, pre, sut, model, bites, maps, th2, ramped, theta2 = self._prepared(design)
-        held = self.stage2.prescribed
+        prep = self._prepared(design, start)
+        design, pre, sut, model, bites, maps = (prep.design, prep.preop, prep.sutures,
+                                                prep.model, prep.bites, prep.maps)
+        held, ramped = self.stage2.prescribed, prep.ramped
         if prev is None:
             sol2 = solve(model, [Stage("tighten", self.stage2.n_steps, held, params=ramped,
                                        active=self.stage2.active)],
-                         q0=pre.sol1.q, theta=theta2, options=self.options)
+                         q0=pre.sol1.q, theta=prep.start, options=self.options)
         else:
-            theta2 = {**prev.sol2.theta, "sutures": th2["sutures"]}
+            theta2 = {**prev.sol2.theta, "sutures": prep.theta2["sutures"]}
             sol2 = solve(model, [Stage("tighten", 1, held, params=ramped, active=self.stage2.active)],
                          q0=prev.sol2.q, theta=theta2, options=self._warm_options())
         sol2 = _lean(sol2)
@@ -750,7 +783,10 @@ class TimelineSimulator(SurgerySimulator):
 
     # --- the forward run -----------------------------------------------------------
     def _run(self, design):
-        design, pre, sut, model, bites, maps, th2, ramped, theta2 = self._prepared(design)
+        prep = self._prepared(design)
+        design, pre, sut, model, bites, maps = (prep.design, prep.preop, prep.sutures,
+                                                prep.model, prep.bites, prep.maps)
+        th2, ramped = prep.theta2, prep.ramped
         # the ramped params' start values (constants of the pre-operative eye): the buckle's
         # motion, the drained volume, a band's pull; the other params of T_2 start at T_2's
         first = {t: {k: np.asarray(pre.theta2[t][k]) for k in th2[t]
@@ -763,7 +799,7 @@ class TimelineSimulator(SurgerySimulator):
              Stage("suture", self.stage3.n_steps, self.stage3.prescribed,
                    active=self.stage3.active)], p, events=True)[1:]
         rec = Recorder(stages, beta=self.options.beta)
-        q, theta, carry2, tie = pre.sol1.q, theta2, {}, None
+        q, theta, carry2, tie = pre.sol1.q, prep.start, {}, None
         sut_data = (sut.data, sut.dofs)
         for st in stages:
             if st.name == "suture":  # tie the sutures at the state the paracentesis left
