@@ -41,6 +41,23 @@ from eyefem.verify.handcoded import (
 )
 
 
+_COMPILED: dict = {}
+
+
+def _compiled(term, kind: str):
+    """A term's local kernel ``kind`` ("grad_hess"; for the element energy "grad",
+    "hessian"), compiled once per term class and static configuration and shared by the
+    checks of every seed: the kernels read arrays only from their arguments (as
+    eyefem.solve.model.Model._kernel relies on), so the first term serves the later ones."""
+    key = (type(term), term.static_key(), kind)
+    if key not in _COMPILED:
+        def energy(y, params, data):
+            return term.local_energy(y[None], params, data)[0]
+        _COMPILED[key] = jax.jit({"grad_hess": term.local_grad_hess, "grad": jax.grad(energy),
+                                  "hessian": jax.hessian(energy)}[kind])
+    return _COMPILED[key]
+
+
 def _element_state(rng, X, term, params):
     """A random deformed state of one solid element with reference nodes X (8, 3): F, u
     (8, 3), lambda, the local dofs x (25,), the kernel's gradient g (1, 25) and Hessian H
@@ -49,7 +66,7 @@ def _element_state(rng, X, term, params):
     u = X @ F.T - X + 0.03 * rng.standard_normal((8, 3))
     lam = float(rng.uniform(-1, 1))
     x = np.concatenate([u.ravel(), [lam]])
-    kern = jax.jit(term.local_grad_hess)
+    kern = _compiled(term, "grad_hess")
 
     def r_fun(y):
         return np.asarray(kern(jnp.asarray(y)[None], params, term.data)[0][0])
@@ -94,12 +111,8 @@ def _incompatible_modes_check(rng):
     c = MooneyRivlin.from_terms("m", {"c10": 0.5, "c01": 0.2, "c20": 0.1}).coeffs
     term = SolidQ1P0IM("solid", Mesh(X, np.arange(8)[None], [0]), c[None], 24)
     F, _, lam, x, g, H, r_fun = _element_state(rng, X, term, term.params)
-
-    def energy(y):
-        return term.local_energy(y[None], term.params, term.data)[0]
-
-    r = np.asarray(jax.jit(jax.grad(energy))(jnp.asarray(x)))
-    K = np.array(jax.jit(jax.hessian(energy))(jnp.asarray(x)))
+    r = np.asarray(_compiled(term, "grad")(jnp.asarray(x), term.params, term.data))
+    K = np.array(_compiled(term, "hessian")(jnp.asarray(x), term.params, term.data))
     return CheckData(np.asarray(g[0]), r, np.asarray(H[0]), K, r_fun, x,
                      f"det F = {np.linalg.det(F):.3f}, lambda = {lam:.3f} MPa, a 2 x 1.2 x 0.5 "
                      "mm brick")
