@@ -179,11 +179,11 @@ def test_a_run_does_not_depend_on_the_designs_solved_before(base):
     sim, res, _ = base
     pre = sim.preop
     design = {**res.design, "tightening": res.design["tightening"] + 0.1}
-    first = sim.run(design)
-    stiffer = sim.run({**design, "c10_sclera": 1.05 * design["c10_sclera"]})
+    first = sim.run(design, start=res)
+    stiffer = sim.run({**design, "c10_sclera": 1.05 * design["c10_sclera"]}, start=first)
     assert stiffer.preop is not pre and stiffer.outcomes["iop_mmhg"] > first.outcomes["iop_mmhg"]
     assert sim.preop is pre
-    again = sim.run(design)
+    again = sim.run(design, start=res)
     assert again.preop is pre
     assert again.outcomes == first.outcomes
 
