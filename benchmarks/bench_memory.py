@@ -2,8 +2,8 @@
 
 Builds a surgery case on a mesh level, solves its first stage (pressurisation) and the
 first ``--steps`` load steps of the tightening stage (the solver as ``eyefem run`` runs
-it: predictors, line search, contact look-ahead, Woodbury cavity terms), writes one VTU
-frame, and prints:
+it, with the case file's ``[solver]`` options: predictors, line search, contact look-ahead,
+Woodbury cavity terms), writes one VTU frame, and prints:
 
 - the process's peak resident memory in each phase (Linux's high-water mark, reset at
   each phase through /proc/self/clear_refs, so a phase's peak is its own; elsewhere a
@@ -134,8 +134,8 @@ class PardisoWatch:
         new = linsolve._new_pardiso
         watch = self
 
-        def _new(pypardiso):
-            solver = new(pypardiso)
+        def _new(pypardiso, *args):
+            solver = new(pypardiso, *args)
             solver.iparm[17] = -1  # iparm(18) < 0: report nnz(L) (changes nothing else)
             return solver
         linsolve._new_pardiso = _new
@@ -254,7 +254,7 @@ def main(argv=None):
     from eyefem.run.runner import write_step
     from eyefem.solve import assembly, linsolve
     from eyefem.solve.heap import configure_heap
-    from eyefem.solve.solver import NewtonOptions, solve
+    from eyefem.solve.solver import solve
 
     configure_heap()
     if args.keep_factors:
@@ -289,7 +289,7 @@ def main(argv=None):
     phases.start(f"{stages[0].name} (compiles the kernels)")
     tic = time.perf_counter()
     try:
-        solve(setup.model, stages, options=NewtonOptions(), on_step=on_step,
+        solve(setup.model, stages, options=case.solver, on_step=on_step,
               on_stage_end=on_stage_end)
     except Stop:
         pass
