@@ -15,8 +15,10 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from eyefem.problems.verification import (DISK_FIELDS, disk_solver_settings,  # noqa: E402
+                                          inflated_disk)
 from eyefem.run.runner import run_setup  # noqa: E402
-from eyefem.problems.verification import DISK_FIELDS, inflated_disk  # noqa: E402
+from eyefem.solve.solver import NewtonOptions  # noqa: E402
 
 RUNS = [
     # (label, thickness mm, n_radial, n_circ, n_thick)
@@ -36,7 +38,8 @@ def main():
     for label, h, nr, nc, nt in RUNS:
         p = dict(base, thickness=h, n_radial=nr, n_circ=nc, n_thick=nt)
         with tempfile.TemporaryDirectory() as d:
-            s = run_setup(inflated_disk(p, {}), d, vtu=False, plots=False).summary
+            s = run_setup(inflated_disk(p, {}), d, NewtonOptions(**disk_solver_settings(p)),
+                          vtu=False, plots=False).summary
         print(f"| {label} | {h} | {s['n_elem']} | {s['final_pole_stretch']:.3f} | "
               f"{100 * s['max_rel_error_pressure']:.2f}% | {100 * s['max_rel_error_stress']:.2f}% |",
               flush=True)

@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import re
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from eyefem.catalog import problems
+from eyefem.catalog import problems, schemas, solver_defaults
 from eyefem.cli.main import main as cli_main
 from eyefem.fem import generators
 from eyefem.fem.materials import MooneyRivlin, neo_hookean
@@ -25,6 +26,7 @@ from eyefem.solve.linsolve import (
 from eyefem.solve.model import node_dofs, solid_model
 
 PROBLEMS = problems()
+ROOT = Path(__file__).resolve().parents[1]
 from eyefem.fem.surface import PressureLoad, enclosed_volume
 from eyefem.fem.terms import Term
 from eyefem.run.runner import run_setup
@@ -391,14 +393,35 @@ def test_seed1_equibiaxial_sheet_case(tmp_path):
 
 
 def test_inflated_disk_coarse(tmp_path):
-    """Seed problem 2 on a coarse mesh: pole pressure and stress within 5% of membrane theory."""
-    setup = PROBLEMS["inflated_disk"][1](
-        _params("inflated_disk", n_radial=12, n_circ=12, steps=8), {})
-    res = run_setup(setup, tmp_path, vtu=False, plots=False)
+    """Seed problem 2 on a coarse mesh, with the problem's solver settings: pole pressure
+    and stress within 5% of membrane theory."""
+    build = PROBLEMS["inflated_disk"][1]
+    p = _params("inflated_disk", n_radial=12, n_circ=12, steps=8)
+    res = run_setup(build(p, {}), tmp_path, NewtonOptions(**build.solver_settings(p)),
+                    vtu=False, plots=False)
     s = res.summary
     assert s["final_pole_stretch"] > 1.1
     assert s["max_rel_error_pressure"] < 0.05
     assert s["max_rel_error_stress"] < 0.05
+
+
+def test_the_seed_disk_case_runs_its_steps_uncut(tmp_path):
+    """cases/verification/seed2_inflated_disk.toml as a case file loads it (the problem's
+    [solver] defaults: DISK_SOLVER), on half the seed's mesh (26 x 26, 900 hexahedra): its
+    16 load steps converge uncut, within 1% of membrane theory. With the general defaults
+    the flat disk's first step is cut until it stops (beta = 1e4: the saddle point solves
+    to 3e-6; the line search's trials of the linear bending response, hundreds of mm,
+    fail)."""
+    case = load_case(ROOT / "cases" / "verification" / "seed2_inflated_disk.toml",
+                     schemas(), solver_defaults())
+    assert case.solver.beta == 100.0 and not case.solver.line_search
+    p = {**case.parameters, "n_radial": 26, "n_circ": 26}
+    res = run_setup(PROBLEMS["inflated_disk"][1](p, case.materials), tmp_path, case.solver,
+                    vtu=False, plots=False)
+    assert len(res.rows) == p["steps"] == 16  # one row per converged step: none was cut
+    assert res.summary["unbalanced_steps"]["count"] == 0
+    assert res.summary["max_rel_error_pressure"] < 0.01
+    assert res.summary["max_rel_error_stress"] < 0.01
 
 
 # --- bad input -------------------------------------------------------------------------------
