@@ -511,6 +511,22 @@ def test_cli_keeps_compiled_kernels_in_the_cache_directory_it_is_given(tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["jax", "off", "on"]
 
 
+def test_the_cache_keeps_an_executable_compiled_in_milliseconds(tmp_path):
+    """eyefem.solve.device.keep_compiled keeps the small executables too (JAX's default
+    threshold, and the 0.1 s the entry points used, keep none of them: a run compiled its
+    eager operations anew each time). A jit of x + 1 compiles in milliseconds."""
+    import subprocess
+    import sys
+
+    script = ("import jax; from eyefem.solve.device import keep_compiled; "
+              f"keep_compiled({str(tmp_path / 'jax')!r}); "
+              "jax.jit(lambda x: x + 1.0)(jax.numpy.ones(3)).block_until_ready()")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert len(list((tmp_path / "jax").iterdir())) >= 1
+
+
 def test_pardiso_factorisation_kept_for_an_adjoint_survives_pattern_eviction():
     """A planner makes more sparsity patterns than Pardiso instances are kept; an old
     factorisation (held for an adjoint solve) must still solve after its pattern's

@@ -45,14 +45,16 @@ def _setup(verbose: int, device: str = "cpu"):
 
 
 def _compilation_cache(jax):
-    """Keep XLA's compiled kernels on disk, so that a later run of a model of the same
-    sizes skips compilation (about 6 s of a default-mesh case). A directory the user gave
-    JAX (JAX_COMPILATION_CACHE_DIR) is kept."""
+    """Keep XLA's compiled kernels on disk (eyefem.solve.device.keep_compiled), so that a
+    later run of a model of the same sizes skips compilation (about 26 s of the README main
+    command's 29). A directory the user gave JAX (JAX_COMPILATION_CACHE_DIR) is kept, with
+    JAX's own threshold."""
+    from eyefem.solve.device import keep_compiled
+
     cache = os.environ.get("EYEFEM_JAX_CACHE", str(Path.home() / ".cache" / "eyefem" / "jax"))
     if cache.lower() in ("", "0", "off", "none") or jax.config.jax_compilation_cache_dir:
         return
-    jax.config.update("jax_compilation_cache_dir", cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+    keep_compiled(cache)
 
 
 def _load_run_case(args, claim: bool = False):

@@ -159,13 +159,13 @@ def run_case(case_text: str, run_dir: str, *, run_hash: str, index: int,
 
     import jax
 
+    from eyefem.solve.device import keep_compiled
     from eyefem.solve.heap import configure_heap
 
     jax.config.update("jax_enable_x64", True)
     configure_heap()
     if jax_cache and not jax.config.jax_compilation_cache_dir:
-        jax.config.update("jax_compilation_cache_dir", jax_cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+        keep_compiled(jax_cache)
     from eyefem.catalog import problems, schemas, solver_defaults
     from eyefem.io import manifest
     from eyefem.io.casefile import load_case
