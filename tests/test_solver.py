@@ -512,9 +512,9 @@ def test_cli_keeps_compiled_kernels_in_the_cache_directory_it_is_given(tmp_path)
 
 
 def test_the_cache_keeps_an_executable_compiled_in_milliseconds(tmp_path):
-    """eyefem.solve.device.keep_compiled keeps the small executables too (JAX's default
-    threshold, and the 0.1 s the entry points used, keep none of them: a run compiled its
-    eager operations anew each time). A jit of x + 1 compiles in milliseconds."""
+    """eyefem.solve.device.keep_compiled keeps the small executables too (a threshold of
+    0.1 s, or JAX's default, keeps none of them). A jit of x + 1 compiles in
+    milliseconds."""
     import subprocess
     import sys
 
