@@ -48,7 +48,7 @@ reproduce half the whole's energy of every term at random symmetric states; othe
 ValueError says which and why. The outcomes are those of the whole eye: each step's
 half state is lifted to the whole and measured on the whole model (IOP, volumes, forces,
 the plane's nodes). So are the written results (the Setup's ``whole``: VTU frames on the
-whole mesh with the lifted state's fields, reactions from both halves) and the stability
+whole mesh with the lifted state's fields, reactions lifted from the half's residual) and the stability
 checks (``eyefem stability``, ``eyefem run --stability``: the whole model's tangent at the
 lifted state, its modes free to break the symmetry).
 """
@@ -157,6 +157,18 @@ class Mirror:
         the whole eye's state is differentiated through it (the design simulators' stage
         carries and outcomes on the half)."""
         return jnp.asarray(self.dof_sign) * q_h[jnp.asarray(self.dof_map)]
+
+    def lift_residual(self, g_h) -> np.ndarray:
+        """The whole eye's residual dPi/dq (n_dof,) at the symmetric state lifted from a half
+        state, from the half's residual g_h (n_dof_half,) there. The half's energy is half
+        the whole's, so g_h = P^T g / 2: a half dof with two whole preimages (a node off the
+        plane, an element) carries the whole's force at each, one with a single preimage (a
+        node on the plane) half of it; the y force on the plane is 0 by the reflection
+        (the half's is the hold's reaction)."""
+        weight = 2.0 / np.bincount(self.dof_map, minlength=self.n_dof_half)
+        g = np.asarray(g_h, np.float64) * weight
+        g[self.plane_y_dofs] = 0.0
+        return self.lift(g)
 
     def restrict(self, q) -> np.ndarray:
         """The half state (n_dof_half,) of a whole state q (n_dof,) (its y >= 0 side)."""
@@ -780,7 +792,8 @@ def mirror_setup(setup: Setup, check: bool = True, mir: Mirror | None = None) ->
              mir.mesh.n_elem, whole.mesh.n_elem, mir.mesh.n_nodes, whole.mesh.n_nodes,
              int(mir.on_plane.sum()), mir.n_dof_half, whole.n_dof)
     q0 = None if setup.q0 is None else mir.restrict(setup.q0)
-    whole_setup = Whole(whole, list(setup.stages), setup.q0, lift, solved="mirror half y > 0")
+    whole_setup = Whole(whole, list(setup.stages), setup.q0, lift, solved="mirror half y > 0",
+                        residual=mir.lift_residual)
     return dataclasses.replace(setup, model=half, stages=stages, probe=probe,
                                parts=_NotDifferentiable(), q0=q0, whole=whole_setup)
 

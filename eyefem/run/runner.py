@@ -44,13 +44,15 @@ class RunResult:
     record: Any = None
 
 
-def cell_and_point_fields(model: Model, q, theta, active=None, prescribed=None):
+def cell_and_point_fields(model: Model, q, theta, active=None, prescribed=None,
+                          residual=None):
     """VTU fields of the state q (n_dof,) for the design theta.
 
     Point fields (n_nodes, ...): 'displacement' (3) mm; every term's ``point_fields``
     (cavity and contact pressures, gaps...); with ``prescribed`` (dof indices)
     'reaction_force_N' (3): the residual of the active terms on the prescribed
-    displacement dofs (the force the supports exert on the body), 0 elsewhere.
+    displacement dofs (the force the supports exert on the body), 0 elsewhere; ``residual``
+    (n_dof,): that residual when the caller has it (the mirror half's, lifted).
     Cell fields (n_elem, ...): 'material' (id into ``mesh.materials``) and the solid
     terms' ``fields`` (stresses, strains; NaN outside a term's elements).
     Fields of terms not in ``active`` (a stage's active names; None: all) are NaN, so
@@ -72,7 +74,9 @@ def cell_and_point_fields(model: Model, q, theta, active=None, prescribed=None):
         dofs = np.asarray(prescribed, np.int64)
         dofs = dofs[dofs < 3 * n]
         reaction = np.zeros(3 * n)
-        reaction[dofs] = model.gradient(q, theta, active)[dofs]
+        if residual is None:
+            residual = model.gradient(q, theta, active)
+        reaction[dofs] = np.asarray(residual)[dofs]
         point["reaction_force_N"] = reaction.reshape(n, 3)
     return point, cell
 
@@ -113,13 +117,16 @@ class SeriesGroup:
             w.add(*args, **kwargs)
 
 
-def add_frame(writer: SeriesWriter, model: Model, q, theta, stages, index: int, t: float):
+def add_frame(writer: SeriesWriter, model: Model, q, theta, stages, index: int, t: float,
+              residual=None):
     """Write the state q of stage ``stages[index]`` at load factor t in [0, 1] as one
     frame at time index + t: the mesh with :func:`cell_and_point_fields`, the terms'
     parts (:func:`term_parts`) and field data 'time', 'stage' (index), 'load_factor',
-    'stage:<name>' -> index of every stage and 'material:<name>' -> material id."""
+    'stage:<name>' -> index of every stage and 'material:<name>' -> material id.
+    ``residual``: the model's residual at q when the caller has it (for the reactions)."""
     stage, t = stages[index], round(float(t), 12)  # t of the last step: 1 - 1e-16 -> 1
-    point, cell = cell_and_point_fields(model, q, theta, stage.active, stage.prescribed[0])
+    point, cell = cell_and_point_fields(model, q, theta, stage.active, stage.prescribed[0],
+                                        residual)
     field = {"time": index + t, "stage": index, "load_factor": t,
              **{f"stage:{s.name}": i for i, s in reversed(list(enumerate(stages)))},
              **{f"material:{m}": i for i, m in enumerate(model.mesh.materials)}}
@@ -132,19 +139,36 @@ def write_step(writer: SeriesWriter, setup: Setup, stage_name: str, t: float, mo
     """Append a converged step (stage ``stage_name``, load factor t) to the series; a
     fresh series first gets the undeformed state (``setup.q0`` or zero, default design,
     the first stage's active terms) at time 0. A setup with a ``whole`` (the mirror half)
-    writes the whole model at the lifted state (its mesh, fields and reactions)."""
-    first, q0, stages = setup.model, setup.q0, setup.stages
-    if setup.whole is not None:
-        model, q, theta = setup.whole.lift(model, q, theta)
-        first, q0, stages = setup.whole.model, setup.whole.q0, setup.whole.stages
+    writes the whole model at the lifted state (its mesh, fields and reactions: from the
+    solved model's residual when the Whole lifts it, so the whole's kernels are not
+    compiled)."""
+    whole = setup.whole
+    names = [s.name for s in setup.stages]
+
+    def residual(model_s, q_s, theta_s, name):
+        """The whole's residual from the solved model's (None: the whole computes it)."""
+        if whole is None or whole.residual is None:
+            return None
+        active = setup.stages[names.index(name)].active
+        return whole.residual(model_s.gradient(q_s, theta_s, active))
+
     if not writer.entries:
-        q0 = np.zeros(first.n_dof) if q0 is None else np.asarray(q0)
-        add_frame(writer, first, q0, first.theta0(), stages, 0, 0.0)
+        q0 = np.zeros(setup.model.n_dof) if setup.q0 is None else np.asarray(setup.q0)
+        g0 = residual(setup.model, q0, setup.model.theta0(), names[0])
+        first, stages0 = setup.model, setup.stages
+        if whole is not None:
+            first, stages0 = whole.model, whole.stages
+            q0 = np.zeros(first.n_dof) if whole.q0 is None else np.asarray(whole.q0)
+        add_frame(writer, first, q0, first.theta0(), stages0, 0, 0.0, g0)
+    g = residual(model, q, theta, stage_name)
+    stages = setup.stages
+    if whole is not None:
+        model, q, theta = whole.lift(model, q, theta)
+        stages = whole.stages
     last = writer.entries[-1][0]
-    names = [s.name for s in stages]
     index = next((i for i, s in enumerate(names) if s == stage_name and i + t > last),
                  names.index(stage_name))
-    add_frame(writer, model, q, theta, stages, index, t)
+    add_frame(writer, model, q, theta, stages, index, t, g)
 
 
 def checkpoint_key(setup: Setup, key: str = "") -> str:

@@ -30,6 +30,9 @@ class Whole:
         and the whole's design of a solved design.
       solved: what the solved model is, for summary.json and run.json (e.g. "mirror half
         y > 0").
+      residual: ``f(g) -> g_whole``: the whole's residual (n_dof,) at a lifted state from
+        the solved model's residual there (the reactions, without the whole's kernels), or
+        None (the whole model's gradient at the lifted state).
     """
 
     model: Model
@@ -37,6 +40,7 @@ class Whole:
     q0: np.ndarray | None
     lift: Callable[[Model, np.ndarray, Any], tuple[Model, np.ndarray, Any]]
     solved: str = "reduced"
+    residual: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
