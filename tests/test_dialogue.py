@@ -98,6 +98,52 @@ def test_an_encircling_buckle_is_not_asked_a_meridian(tmp_path):
     assert seed_field.default == "seed"
 
 
+def _answered_by_name(tmp_path, answers: dict):
+    """(prompts asked, case written) of a surgery dialogue that answers a field's prompt
+    from ``answers`` (field name -> text) and Enter to the rest."""
+    fields, build = PROBLEMS["surgery"]
+    prompts = []
+
+    def ask(prompt):
+        name = prompt.split(":")[0]
+        prompts.append(name)
+        return answers.get(name, "")
+
+    path = new_case("surgery", fields, tmp_path / "s.toml", ask=ask, say=lambda m: None,
+                    check=build.check, questions=build.questions,
+                    solver_settings=build.solver_settings)
+    return prompts, load_case(path, SCHEMAS)
+
+
+def test_a_new_case_on_the_calibrated_tissues_runs_on_the_timeline(tmp_path):
+    """The calibrated eye's closed cavity loses no liquid (a new case's surgery ended at
+    622 mmHg on the coarse mesh): a new case with those tissues and no drained volume is
+    asked for the timeline and gets it by default (volume_regulation = true, written in the
+    case), its stages run on to the follow-up; with the seed's tissues, or a drained
+    volume, the question is not asked and the cavity stays closed."""
+    from eyefem.eye.surgery import surgery
+
+    prompts, case = _answered_by_name(tmp_path, {"mesh": "coarse", "buckle": "tire_flat"})
+    assert "volume_regulation" in prompts
+    assert case.parameters["materials_preset"] == "physiological"
+    assert case.parameters["volume_regulation"] is True
+    stages = surgery(case.parameters, case.materials).stages
+    assert [st.name for st in stages][-1] == "follow-up"
+    for i, answers in enumerate(({"materials_preset": "seed"}, {"drain_volume": "170"})):
+        folder = tmp_path / str(i)
+        folder.mkdir()
+        prompts, case = _answered_by_name(folder, {"mesh": "coarse", **answers})
+        assert "volume_regulation" not in prompts, answers
+        assert case.parameters["volume_regulation"] is False, answers
+        assert "volume_regulation" not in (folder / "s.toml").read_text(), answers
+    # an answer of no keeps the closed cavity, and says so in the case
+    folder = tmp_path / "no"
+    folder.mkdir()
+    prompts, case = _answered_by_name(folder, {"volume_regulation": "no"})
+    assert case.parameters["volume_regulation"] is False
+    assert "volume_regulation = false" in (folder / "s.toml").read_text()
+
+
 def test_a_new_case_gets_the_case_files_converging_model(tmp_path):
     # docs/convergence.md: the case files' model (1 mm tire edges, the ridge's 1.5 mm
     # flanks, 0.343 N/mm of lens springs in all, a rigid sponge's ends rounded over 1 mm)

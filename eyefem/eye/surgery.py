@@ -777,14 +777,29 @@ NEW_CASE_DEFAULTS = {"materials_preset": "physiological"}
 field's own default, for case files that leave it out, stays the seed's, so that the
 seed's cases 1-6 reproduce)."""
 
+REGULATED_NEW_CASE = {"volume_regulation": True}
+"""``new-case``'s default, asked, for the calibrated tissues without a drained volume: the
+surgery's timeline (docs/surgery_timeline.md). The calibrated eye's closed cavity, which
+loses no liquid, ends a new case's surgery on the coarse mesh at 622 mmHg (its steps cut
+on the way); on the timeline the same case peaks at 77 mmHg on the table, ends the surgery
+at 28 mmHg and is at 17 mmHg after 48 hours."""
+
+
+def regulated_by_default(values: dict) -> bool:
+    """Whether ``new-case`` proposes the timeline (REGULATED_NEW_CASE) for these answers:
+    the calibrated tissues and no volume drained."""
+    return (values.get("materials_preset") == "physiological"
+            and float(values.get("drain_volume", 0.0)) == 0.0)
+
 
 def questions(values: dict) -> tuple[frozenset, dict]:
     """What ``eyefem new-case surgery`` asks, given the answers so far (``values``, with
     every field's default filled in): (names of the fields that do not apply to the chosen
     buckle, or are advanced: not asked, kept at their defaults; the chosen buckle's own
-    defaults, name -> value: NEW_CASE_DEFAULTS, a sponge's SEGMENTAL_DEFAULTS and the
-    CONVERGING_MODEL's fields that apply to it (:func:`model_fields`), written into the
-    case so that it states its model)."""
+    defaults, name -> value: NEW_CASE_DEFAULTS, a sponge's SEGMENTAL_DEFAULTS, the
+    CONVERGING_MODEL's fields that apply to it (:func:`model_fields`) and, for the
+    calibrated tissues without a drained volume, the timeline (REGULATED_NEW_CASE, asked),
+    written into the case so that it states its model)."""
     segmental = values["buckle"].startswith("sponge")
     skip = set(ADVANCED_FIELDS)
     skip |= ({"band_tension", "deformable_tightening"} if segmental
@@ -793,8 +808,12 @@ def questions(values: dict) -> tuple[frozenset, dict]:
         skip.add("deformable_tightening")
     model = ({k: CONVERGING_MODEL[k] for k in model_fields({**values, **CONVERGING_MODEL})}
              if values.get("model", "converged") == "converged" else {})
+    regulated = {}
+    if regulated_by_default(values):
+        regulated = dict(REGULATED_NEW_CASE)
+        skip -= set(REGULATED_NEW_CASE)
     return frozenset(skip), {**NEW_CASE_DEFAULTS, **(SEGMENTAL_DEFAULTS if segmental else {}),
-                             **model}
+                             **model, **regulated}
 
 
 CURVED_CONTACT_SOLVER = {"contact_curvature": 1e-3}
