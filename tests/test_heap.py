@@ -79,3 +79,24 @@ def test_the_environment_chooses_the_heap(monkeypatch, caplog):
     with caplog.at_level("WARNING", logger="eyefem.solve.heap"):
         assert heap.configure_heap() is False
     assert "EYEFEM_HEAP=lean: the heap's thresholds were not set" in caplog.text
+
+
+@pytest.mark.skipif(not GLIBC, reason="malloc_trim is glibc's")
+def test_the_heap_is_trimmed_after_a_compilation(monkeypatch):
+    """configure_heap's lean heap trims the arenas after an XLA compilation of at least
+    TRIM_AFTER_COMPILE_S (0 here, so that a jit of x * 3 counts), not after a cached
+    call."""
+    import jax
+
+    assert heap.trim_after_compiles() is True
+    trims = []
+    monkeypatch.setattr(heap, "_trim_heap", lambda: trims.append(1))
+    monkeypatch.setattr(heap, "TRIM_AFTER_COMPILE_S", 0.0)
+    f = jax.jit(lambda x: x * 3.0 + 0.25)
+    f(1.0)
+    assert len(trims) == 1
+    f(2.0)  # compiled already: no compilation, no trim
+    assert len(trims) == 1
+    monkeypatch.setattr(heap, "TRIM_AFTER_COMPILE_S", 1e9)
+    jax.jit(lambda x: x * 5.0 - 0.5)(1.0)  # a compilation below the threshold
+    assert len(trims) == 1
