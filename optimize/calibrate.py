@@ -158,8 +158,10 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     from scipy.optimize import least_squares
 
+    from eyefem.solve.device import keep_compiled_by_default
     from eyefem.solve.heap import configure_heap
 
+    keep_compiled_by_default()
     configure_heap()
 
     from eyefem.eye.presets import SEED_MATERIALS, WALL_RATIOS

@@ -621,9 +621,11 @@ def main(argv=None) -> int:
     from eyefem.eye.simulators import SurgerySimulator
     from eyefem.io.casefile import CaseError, load_case
     from eyefem.io.output import write_case, write_csv, write_text
+    from eyefem.solve.device import keep_compiled_by_default
     from eyefem.solve.heap import configure_heap
     from eyefem.solve.solver import ConvergenceError
 
+    keep_compiled_by_default()
     configure_heap()
     ap = argparse.ArgumentParser(prog="python -m optimize.plan", description=__doc__.split("\n")[0])
     ap.add_argument("case", help="surgery case file (TOML)")

@@ -527,6 +527,45 @@ def test_the_cache_keeps_an_executable_compiled_in_milliseconds(tmp_path):
     assert len(list((tmp_path / "jax").iterdir())) >= 1
 
 
+@pytest.mark.parametrize("entry", ["optimize.plan", "optimize.calibrate"])
+def test_the_planner_and_the_calibration_keep_compiled_kernels(entry, monkeypatch, tmp_path):
+    """``python -m optimize.plan`` and ``python -m optimize.calibrate`` keep XLA's
+    kernels in EYEFEM_JAX_CACHE as ``eyefem`` does (a repeated plan compiles nothing):
+    each entry point calls eyefem.solve.device.keep_compiled_by_default before its work
+    (stopped here at its first argument error)."""
+    import importlib
+
+    from eyefem.solve import device
+
+    calls = []
+    monkeypatch.setattr(device, "keep_compiled_by_default", lambda: calls.append(1))
+    module = importlib.import_module(entry)
+    with pytest.raises(SystemExit):
+        module.main(["--no-such-option"])
+    assert calls == [1]
+
+
+def test_keep_compiled_by_default_follows_eyefem_jax_cache(tmp_path):
+    """keep_compiled_by_default: the folder of EYEFEM_JAX_CACHE gets the kernels; ``off``
+    keeps nothing (and says None)."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import jax; from eyefem.solve.device import keep_compiled_by_default; "
+              "print(keep_compiled_by_default()); "
+              "jax.jit(lambda x: x + 2.0)(jax.numpy.ones(3)).block_until_ready()")
+    for cache in (tmp_path / "jax", "off"):
+        env = {**os.environ, "EYEFEM_JAX_CACHE": str(cache)}
+        env.pop("JAX_COMPILATION_CACHE_DIR", None)
+        proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                              timeout=120, env=env)
+        assert proc.returncode == 0, proc.stderr
+        assert proc.stdout.strip() == ("None" if cache == "off" else str(cache))
+    assert len(list((tmp_path / "jax").iterdir())) >= 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["jax"]
+
+
 def test_pardiso_factorisation_kept_for_an_adjoint_survives_pattern_eviction():
     """A planner makes more sparsity patterns than Pardiso instances are kept; an old
     factorisation (held for an adjoint solve) must still solve after its pattern's

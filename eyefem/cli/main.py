@@ -23,11 +23,11 @@ from pathlib import Path
 def _setup(verbose: int, device: str = "cpu"):
     import jax
 
-    from eyefem.solve.device import select_device
+    from eyefem.solve.device import keep_compiled_by_default, select_device
     from eyefem.solve.heap import configure_heap
 
     jax.config.update("jax_enable_x64", True)
-    _compilation_cache(jax)
+    keep_compiled_by_default()
     level = logging.WARNING if verbose < 0 else logging.DEBUG if verbose > 1 else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(message)s",
                         datefmt="%H:%M:%S", stream=sys.stderr)
@@ -42,19 +42,6 @@ def _setup(verbose: int, device: str = "cpu"):
             "element kernels on %s; the factorisation: %s", where,
             "cuDSS on the GPU" if backend == "cudss" else f"{backend} on the host (cuDSS: "
             "pip install cupy-cuda13x nvidia-cudss-cu13)")
-
-
-def _compilation_cache(jax):
-    """Keep XLA's compiled kernels on disk (eyefem.solve.device.keep_compiled), so that a
-    later run of a model of the same sizes skips compilation (about 26 s of the README main
-    command's 29). A directory the user gave JAX (JAX_COMPILATION_CACHE_DIR) is kept, with
-    JAX's own threshold."""
-    from eyefem.solve.device import keep_compiled
-
-    cache = os.environ.get("EYEFEM_JAX_CACHE", str(Path.home() / ".cache" / "eyefem" / "jax"))
-    if cache.lower() in ("", "0", "off", "none") or jax.config.jax_compilation_cache_dir:
-        return
-    keep_compiled(cache)
 
 
 def _load_run_case(args, claim: bool = False):

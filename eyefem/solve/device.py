@@ -47,6 +47,32 @@ def select_device(name: str) -> str:
     return f"{dev.platform} ({getattr(dev, 'device_kind', dev.platform)})"
 
 
+CACHE_VARIABLE = "EYEFEM_JAX_CACHE"
+"""The environment variable naming the folder of :func:`keep_compiled_by_default` (``off``:
+none)."""
+
+
+def keep_compiled_by_default() -> str | None:
+    """Keep XLA's compiled kernels on disk (:func:`keep_compiled`) in ``EYEFEM_JAX_CACHE``
+    (default ``~/.cache/eyefem/jax``; ``off``, ``0``, ``none`` or empty: nothing), so that a
+    later run of a model of the same sizes skips compilation (about 26 s of the README main
+    command's 29). A folder the user gave JAX (JAX_COMPILATION_CACHE_DIR) is kept, with
+    JAX's own threshold. Entry points (``eyefem``, ``python -m optimize.plan``, the
+    calibration) call it before the first compilation; returns the folder in use, or None."""
+    import os
+    from pathlib import Path
+
+    import jax
+
+    cache = os.environ.get(CACHE_VARIABLE, str(Path.home() / ".cache" / "eyefem" / "jax"))
+    if jax.config.jax_compilation_cache_dir:
+        return jax.config.jax_compilation_cache_dir
+    if cache.lower() in ("", "0", "off", "none"):
+        return None
+    keep_compiled(cache)
+    return cache
+
+
 def keep_compiled(cache_dir: str) -> None:
     """Keep every executable XLA compiles in the persistent cache ``cache_dir``, the small
     ones too (JAX's default keeps only those that took over a second): a later run of a
