@@ -131,6 +131,48 @@ def test_objectives_of_data_are_compiled_once_and_released_with_the_function(loa
     assert held() is None
 
 
+def test_the_staged_wrappers_release_their_function(loaded_cube):
+    """eyefem.solve.staged keeps one wrapper per carry or objective function (contracted,
+    holding_carry, the carry pullback; their compiled Jacobians reused) and computes with
+    it; the wrappers hold the function weakly, so once it is dropped nothing keeps it, nor
+    what it closes over (a simulator's model and mesh)."""
+    import gc
+    import weakref
+
+    from eyefem.solve import staged
+    from eyefem.solve.adjoint import values_and_grads
+
+    model, x1, run = loaded_cube
+    sol = run(model.theta0())
+
+    class Held:  # something a carry closes over
+        pass
+
+    def make():
+        held = Held()
+
+        def carry(q, theta, data):
+            held.touched = True
+            return {"mean": jnp.mean(q[x1]), "sq": jnp.sum(q[x1] ** 2)}
+
+        return carry, weakref.ref(held)
+
+    carry, held = make()
+    cbar = {"mean": jnp.ones((1,)), "sq": jnp.full((1,), 2.0)}
+    vals, grads = values_and_grads(staged.contracted(carry), sol,
+                                   data={"cbar": cbar, "data": None})
+    q = np.asarray(sol.q)
+    assert vals[0] == pytest.approx(np.mean(q[x1]) + 2 * np.sum(q[x1] ** 2), rel=1e-12)
+    assert abs(vals[0]) > 0 and not np.allclose(grads[0]["solid"]["coeffs"], 0)
+    assert staged.contracted(carry) is staged.contracted(carry)  # one wrapper per function
+    staged.holding_carry(carry), staged._carry_pullback(carry)
+    kept = len(staged._KEPT)
+    del carry
+    gc.collect()
+    assert held() is None
+    assert len(staged._KEPT) == kept - 1
+
+
 def test_params_vjp_many_is_the_residual_vjp(loaded_cube):
     """Model.params_vjp_many (compiled, k columns at once) against jax.vjp of the residual
     with respect to the design, column by column."""

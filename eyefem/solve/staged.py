@@ -118,11 +118,23 @@ _KEPT: "weakref.WeakKeyDictionary[Callable, dict]" = weakref.WeakKeyDictionary()
 
 def _kept(fn: Callable, kind: str, build: Callable) -> Callable:
     """The wrapper ``build(fn)`` of kind ``kind``, one per function object (so that its
-    compiled Jacobians are reused), forgotten with the function."""
+    compiled Jacobians are reused), forgotten with the function: the wrapper reaches
+    ``fn`` through a weak reference (:func:`_weakly`), so the entry does not keep ``fn``,
+    and what it closes over (a simulator's model and mesh), alive."""
     per = _KEPT.setdefault(fn, {})
     if kind not in per:
-        per[kind] = build(fn)
+        per[kind] = build(_weakly(fn))
     return per[kind]
+
+
+def _weakly(fn: Callable) -> Callable:
+    """``fn`` called through a weak reference (valid while ``fn`` lives: its _KEPT entry
+    goes with it)."""
+    ref = weakref.ref(fn)
+
+    def call(*args, **kwargs):
+        return ref()(*args, **kwargs)
+    return call
 
 
 def contracted(carry_fn: Callable) -> Callable:
