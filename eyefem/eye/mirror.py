@@ -48,9 +48,10 @@ reproduce half the whole's energy of every term at random symmetric states; othe
 ValueError says which and why. The outcomes are those of the whole eye: each step's
 half state is lifted to the whole and measured on the whole model (IOP, volumes, forces,
 the plane's nodes). So are the written results (the Setup's ``whole``: VTU frames on the
-whole mesh with the lifted state's fields, reactions lifted from the half's residual) and the stability
-checks (``eyefem stability``, ``eyefem run --stability``: the whole model's tangent at the
-lifted state, its modes free to break the symmetry).
+whole mesh with the lifted state's fields, the reactions lifted from the half's residual,
+:meth:`Mirror.lift_residual`) and the stability checks (``eyefem stability``, ``eyefem run
+--stability``: the whole model's tangent at the lifted state, its modes free to break the
+symmetry).
 """
 
 from __future__ import annotations
@@ -724,8 +725,8 @@ def mirror_setup(setup: Setup, check: bool = True, mir: Mirror | None = None) ->
     its stages with the plane nodes held in y and their hooks run on the lifted whole
     state, its probe measuring the whole eye, its ``whole`` (eyefem.solve.problem.Whole)
     lifting a half state to the whole eye's for the written results (VTU frames on the
-    whole mesh, reactions of both halves) and the stability checks. ValueError (say why) when the case is not
-    symmetric about y = 0. A mesh with elements across the plane (odd levels: 'half',
+    whole mesh, reactions lifted from the half's residual) and the stability checks.
+    ValueError (say why) when the case is not symmetric about y = 0. A mesh with elements across the plane (odd levels: 'half',
     'graded_half', ...) cannot be cut between elements: the whole Setup, with a warning.
     ``mir``: the mesh's mirror map when the caller has it (:func:`mirror_of`)."""
     p = getattr(setup.parts, "p", {}) or {}
