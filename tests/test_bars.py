@@ -114,3 +114,37 @@ def test_tied_bar_closed_form_smoothing_and_rotation_invariance():
     u_rot = (X + u) @ Qr.T - X
     assert float(bar.energy(u_rot.ravel(), p, bar.data, bar.dofs)) == pytest.approx(
         float(bar.energy(u.ravel(), p, bar.data, bar.dofs)), rel=1e-12)
+
+
+def test_host_side_forces_run_one_compiled_program(setup, monkeypatch):
+    """Forces at a state on the host are one compiled program, shared by every term of the
+    class and static key (eyefem.fem.terms.host_kernel), with the traced forces' values:
+    eager JAX compiled one XLA program per operation (about 20 for a bar's forces), which
+    a machine's first run of a case paid for at every output."""
+    import jax
+    import jax.monitoring
+
+    from eyefem.fem import terms
+    from eyefem.solve.heap import COMPILE_EVENT
+
+    bars, model, X, rng = setup
+    q = 0.05 * rng.standard_normal(30)
+    p = {**bars.params, "shortening": np.array([0.01, 0.02])}
+    twin = Bars("twin", [[1, 2, 3, 4], [8, 8, 8, 8]], [[9, 9, 9, 9], [0, 0, 0, 0]],
+                [[0.1, 0.2], [0.0, 0.0]], np.zeros((2, 2)), X, EA=[1.0, 4.0])
+    recorded, listening = [], [True]  # a listener cannot be removed: it stops recording
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, duration, **kw: recorded.append(event)
+        if event == COMPILE_EVENT and listening[0] else None)
+    monkeypatch.setattr(terms, "_HOST_KERNELS", {})
+    jax.clear_caches()
+    f = bars.forces(q, p)
+    first = len(recorded)
+    f_twin = twin.forces(q, twin.params)
+    assert first <= 1 and len(recorded) == first  # the twin reuses the compiled program
+    ref = bars.axial_forces(jnp.asarray(q)[bars.dofs], p, bars.data)
+    np.testing.assert_allclose(f, ref, rtol=1e-14, atol=0.0)
+    np.testing.assert_allclose(
+        f_twin, twin.axial_forces(jnp.asarray(q)[twin.dofs], twin.params, twin.data),
+        rtol=1e-14, atol=0.0)
+    listening[0] = False

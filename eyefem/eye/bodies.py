@@ -30,6 +30,7 @@ import dataclasses
 import logging
 from typing import Callable
 
+import jax
 import numpy as np
 
 from eyefem.eye.band import (
@@ -142,7 +143,9 @@ def tie_sutures(model, q, theta):
     """Stage hook: the sutures tied at their current lengths (their rest lengths L0, by
     :func:`tied_lengths`)."""
     t = model.term("sutures")
-    L = np.asarray(tied_lengths(t)(np.asarray(q), theta, (t.data, t.dofs))["L0"])
+    # compiled: one small XLA program, where eager JAX compiles one per operation
+    L = np.asarray(jax.jit(tied_lengths(t))(np.asarray(q), {"sutures": theta["sutures"]},
+                                        (t.data, t.dofs))["L0"])
     return model, q, {**theta, "sutures": tied(theta["sutures"], L)}
 
 

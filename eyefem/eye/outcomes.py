@@ -14,7 +14,9 @@ eyefem.eye.design) come from the same functions.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import sparse
@@ -34,6 +36,8 @@ BAND_QUADRATURE = 6
 band's edge is sampled at 1/6 of an element, not at the nodes."""
 
 
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["ids", "weights"],
+                   meta_fields=["area_mm2"])
 @dataclasses.dataclass(frozen=True)
 class BandWeights:
     """Area weights of nodes over a band of a surface: ids (k,), weights (k,) summing to 1,
@@ -78,6 +82,8 @@ def band_area_weights(parts: SurgeryParts, beside: bool,
     return BandWeights(ids[keep], wn[keep] / wn.sum(), float(wn.sum()))
 
 
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["ids", "weights"],
+                   meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class SurfacePoint:
     """A point of a mesh surface as a fixed combination of node positions: ids (k,) and
@@ -104,6 +110,9 @@ def axis_point(mesh, anterior: bool) -> SurfacePoint:
     return SurfacePoint(faces[hit[0]].copy(), np.asarray(bilinear(hit[1]), float))
 
 
+@functools.partial(jax.tree_util.register_dataclass,
+                   data_fields=["under", "beside", "apex", "pole", "cornea"],
+                   meta_fields=["cornea_zone_mm", "lens_pole", "n_nodes"])
 @dataclasses.dataclass(frozen=True)
 class OutcomeNodes:
     """The node ids the geometric outcomes read (fixed for one eye mesh).
@@ -179,7 +188,13 @@ def suture_force(sutures, q, params, data, dofs, largest):
     ``sutures.forces`` at the state (the bar is chosen at the state by
     :func:`most_loaded_bar`, its force differentiated); ``sutures``: the term (its methods
     only), params, data and dofs its own."""
-    return sutures.axial_forces(q[dofs], params, data)[largest] * params["tied"][largest]
+    return tied_force(sutures.axial_forces(q[dofs], params, data), params, largest)
+
+
+def tied_force(forces, params, largest):
+    """The force (N) of bar ``largest`` of a suture term's axial ``forces`` (n,) once it is
+    tied, 0 before (its params' "tied"; numpy or JAX): :func:`suture_force`'s rule."""
+    return forces[largest] * params["tied"][largest]
 
 
 def eye_optics(X, q, nodes: OutcomeNodes) -> dict:
@@ -315,6 +330,13 @@ def azimuthal_shares(mesh, u, n_max: int = 4, band_deg: float = 15.0) -> np.ndar
     return np.append(shares, max(0.0, 1.0 - shares.sum()))
 
 
+_compiled_iop_mmhg = jax.jit(cavity_iop_mmhg)
+_compiled_optics = jax.jit(eye_optics)
+_compiled_indentation = jax.jit(indentation)
+"""The JAX outcomes compiled for :func:`outcomes` at a state on the host (one small XLA
+program each; eager JAX compiles one per operation on a machine's first run)."""
+
+
 def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
     """The outcomes every buckle reports at state q (n_dof,): IOP (mmHg), cavity volume
     (mm^3), axial length and its change from the unloaded eye (mm), indentation (mm),
@@ -328,19 +350,19 @@ def outcomes(parts: SurgeryParts, model, q, theta, patches=None) -> dict:
     cav = model.term("cavity")
     _, V = cav.pressures(q, theta["cavity"])
     closed = theta["iop"]["p"] == 0.0  # close_cavity releases the surface load
-    iop = (float(cavity_iop_mmhg(jnp.asarray(q), theta["cavity"], cav.data, cav.dofs)) if closed
+    iop = (float(_compiled_iop_mmhg(q, theta["cavity"], cav.data, cav.dofs)) if closed
            else float(theta["iop"]["p"]) / MMHG)
     sut = model.term("sutures")
-    force = float(suture_force(sut, jnp.asarray(q), theta["sutures"], sut.data, sut.dofs,
-                               most_loaded_bar(sut, q, theta["sutures"])))
-    now = {k: float(v) for k, v in eye_optics(X, q, nodes).items()}
-    unloaded = eye_optics(X, np.zeros_like(q), nodes)["axial_length_mm"]
+    force = float(tied_force(sut.forces(q, theta["sutures"]), theta["sutures"],
+                             most_loaded_bar(sut, q, theta["sutures"])))
+    now = {k: float(v) for k, v in _compiled_optics(X, q, nodes).items()}
+    unloaded = _compiled_optics(X, np.zeros_like(q), nodes)["axial_length_mm"]
     stress = peak_scleral_stress(model, q, theta,
                                  stress_patches(model.mesh) if patches is None else patches)
     return {"iop_mmhg": iop, "volume_mm3": float(V[0]),
             "axial_length_mm": now["axial_length_mm"],
             "axial_length_change_unloaded_mm": now["axial_length_mm"] - float(unloaded),
-            "indentation_mm": float(indentation(X, q, nodes)),
+            "indentation_mm": float(_compiled_indentation(X, q, nodes)),
             "max_suture_force_N": force, **{k: v for k, v in now.items()
                                             if k != "axial_length_mm"},
             "scleral_stress_kPa": stress, **plausibility(stress, force)}

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.fem.terms import Term
+from eyefem.fem.terms import Term, host_kernel
 
 _C = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
 
@@ -222,8 +222,8 @@ def reference_end_positions(node_xyz, nodes4, xi, patch: EndPatches | None = Non
     in their faces, or the centroids of their patches."""
     nodes = np.asarray(nodes4, np.int64).reshape(-1, 4) if patch is None else patch.nodes
     X = np.asarray(node_xyz, float)[nodes]
-    return np.asarray(end_positions(X, 0 * X, np.asarray(xi, float).reshape(-1, 2),
-                                    None if patch is None else patch.data()))
+    return np.asarray(_end_positions(X, 0 * X, np.asarray(xi, float).reshape(-1, 2),
+                                     None if patch is None else patch.data()))
 
 
 def end_positions(X, u, xi, pdata=None):
@@ -232,6 +232,10 @@ def end_positions(X, u, xi, pdata=None):
     if pdata is None:
         return embedded_positions(X, u, xi)
     return jnp.einsum("nm,nmi->ni", patch_weights(X, xi, pdata), X + u)
+
+
+_end_positions = jax.jit(end_positions)
+""":func:`end_positions` compiled, for host-side reference positions."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -329,26 +333,34 @@ class Bars(Term):
             stretch = jnp.maximum(stretch, 0.0)
         return 0.5 * params["EA"] / L0 * stretch**2
 
-    def forces(self, q, params):
-        """Axial force per bar (n,), N (positive in tension)."""
-        ql = jnp.asarray(q)[self.dofs]
-        l = self.lengths(ql, params, self.data)
-        L0 = self.data["L0"]
-        s = l - L0 * (1.0 - params["shortening"])
+    def axial_forces(self, q_loc, params, data):
+        """Axial force per bar (n,), N: dE/dl (JAX-traceable)."""
+        L0 = data["L0"]
+        s = self.lengths(q_loc, params, data) - L0 * (1.0 - params["shortening"])
         if self.tension_only:
             s = jnp.maximum(s, 0.0)
-        return np.asarray(params["EA"] / L0 * s)
+        return params["EA"] / L0 * s
+
+    def forces(self, q, params):
+        """Axial force per bar (n,), N (positive in tension; numpy)."""
+        return host_forces(self, q, params)
 
     def report(self, q, params):
         f = self.forces(q, params)
         return {"max_force_N": float(f.max()) if len(f) else 0.0}
 
 
+def host_forces(term, q, params) -> np.ndarray:
+    """A bar term's ``axial_forces`` (n,), N, at state q (n_dof,) on the host (compiled)."""
+    return np.asarray(host_kernel(term, "axial_forces")(np.asarray(q)[term.dofs], params,
+                                                        term.data))
+
+
 def bar_lines(term, q, params):
     """(points (2n, 3) mm, "line", cells (n, 2), {"force_N": (n,), "length_mm": (n,)}) of a
     bar term with ``endpoints`` and ``forces``."""
-    xa, xb = (np.asarray(a) for a in term.endpoints(jnp.asarray(q)[term.dofs], params,
-                                                     term.data))
+    xa, xb = (np.asarray(a) for a in host_kernel(term, "endpoints")(
+        np.asarray(q)[term.dofs], params, term.data))
     n = len(xa)
     points = np.stack([xa, xb], axis=1).reshape(2 * n, 3)
     return (points, "line", np.arange(2 * n).reshape(n, 2),
@@ -360,6 +372,12 @@ def rotate_z(x, angle):
     """Points x (n, 3) turned by ``angle`` (rad; scalar or (n,)) about the z axis."""
     c, s = jnp.cos(angle), jnp.sin(angle)
     return jnp.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1], x[:, 2]], axis=1)
+
+
+def rotate_z_np(x, angle: float) -> np.ndarray:
+    """:func:`rotate_z` on the host: points x (n, 3) numpy, one angle (rad)."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1], x[:, 2]], axis=1)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -443,7 +461,7 @@ class AnchoredBars(Term):
             "dir3": dir3, **({} if self.patch is None else {"pa": self.patch.data()})})
 
     def static_key(self):
-        return (self.tension_only, self.extra_dof >= 0, self.patch is not None)
+        return (self.tension_only, self.smoothing, self.extra_dof >= 0, self.patch is not None)
 
     def endpoints(self, q_loc, params, data):
         """Current positions (n, 3), mm, of the bites xa and the moved anchors xb."""
@@ -485,8 +503,8 @@ class AnchoredBars(Term):
         return k * self._stretch(q_loc, params, data) * jax.nn.sigmoid(s / self.smoothing)
 
     def forces(self, q, params):
-        """Axial force per bar (n,), N (positive in tension)."""
-        return np.asarray(self.axial_forces(jnp.asarray(q)[self.dofs], params, self.data))
+        """Axial force per bar (n,), N (positive in tension; numpy)."""
+        return host_forces(self, q, params)
 
     def report(self, q, params):
         f = self.forces(q, params)
@@ -535,7 +553,3 @@ class TiedBars(Bars):
         e = self.smoothing
         p = e * jnp.logaddexp(s / e, 0.0)
         return params["EA"] / params["L0"] * p * jax.nn.sigmoid(s / e)
-
-    def forces(self, q, params):
-        """Axial force per bar (n,), N (positive in tension)."""
-        return np.asarray(self.axial_forces(jnp.asarray(q)[self.dofs], params, self.data))

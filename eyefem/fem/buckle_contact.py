@@ -75,11 +75,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.fem.bars import rotate_z
+from eyefem.fem.bars import rotate_z, rotate_z_np
 from eyefem.fem.contact import node_areas, penalty_gauss_newton
 from eyefem.fem.mesh import Mesh, quad_shape
 from eyefem.fem.rigid import grid_triangles
-from eyefem.fem.terms import Term
+from eyefem.fem.terms import Term, host_kernel
 
 BUCKLE_PENALTY_FACTOR = 10.0
 """Default buckle penalty alpha = factor * E * h per node (N/mm)."""
@@ -138,6 +138,10 @@ def ring_profile(a, width, ridge, ridge_width, flank=RIDGE_FLANK, edge=EDGE_WIDT
     t = jnp.clip((aa - (ridge_width / 2 - flank)) / flank, 0.0, 1.0)
     bump = jnp.where(ridge_width > 0, 1.0 - t**3 * (10.0 - 15.0 * t + 6.0 * t**2), 0.0)
     return -ridge * bump + edge_lift(aa, width, edge)
+
+
+_ring_profile = jax.jit(ring_profile)
+""":func:`ring_profile` compiled, for the host-side surface of the buckle."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -327,14 +331,14 @@ class BuckleContact(Term):
         return g, dg, G, self.gaps(q_loc + dq_loc, params, data)
 
     def _gap_np(self, q, params):
-        return np.asarray(self.gaps(np.asarray(q)[self.dofs], params, self.data))
+        return np.asarray(host_kernel(self, "gaps")(np.asarray(q)[self.dofs], params, self.data))
 
     def node_gaps(self, q, params) -> np.ndarray:
         """Gaps (n_nodes_in_set,) of the candidate nodes themselves, mm (numpy)."""
         q = np.asarray(q)
         x = self.mesh.nodes[self.nodes] + q[self.node_dofs]
         extra = np.full(len(x), q[self.extra_dof]) if self.extra_dof >= 0 else None
-        return np.asarray(self.gaps_at(x, extra, params, self.data))
+        return np.asarray(host_kernel(self, "gaps_at")(x, extra, params, self.data))
 
     def report(self, q, params):
         """'active': the contact points whose gap is below the smoothing width eps (each
@@ -353,7 +357,8 @@ class BuckleContact(Term):
         from scipy.special import expit
 
         z = -np.asarray(g) / self.smoothing
-        return self.data["alpha"] * np.asarray(smooth_penetration(g, self.smoothing)) * expit(z)
+        p = self.smoothing * np.logaddexp(z, 0.0)  # smooth_penetration on the host
+        return self.data["alpha"] * p * expit(z)
 
     def _motion(self, q, params):
         """(R + dr, d (with the free radial motion), s, rot) as floats."""
@@ -369,7 +374,7 @@ class BuckleContact(Term):
         it is the smooth fade-out of the penalty or the distance to a far side)."""
         x = self.mesh.nodes[self.nodes] + np.asarray(q)[self.node_dofs]
         R, d, s, rot = self._motion(q, params)
-        x = np.asarray(rotate_z(x, -rot))
+        x = rotate_z_np(x, -rot)
         n0, m0, t = (np.asarray(v, float) for v in (self.n0, self.m0, self.axis))
         if self.shape == "ring":
             tau = np.arctan2(np.hypot(x[:, 0], x[:, 1]), x[:, 2])
@@ -415,9 +420,9 @@ class BuckleContact(Term):
         u = np.linspace(0.0, 2 * np.pi, n_around + 1)
         if self.shape == "ring":
             a = np.linspace(-self.width / 2, self.width / 2, n_across + 1)
-            r = R + np.asarray(ring_profile(a, self.width, float(params["ridge"][0]),
-                                            self.ridge_width, self.ridge_flank,
-                                            self.edge_width)) - d
+            r = R + np.asarray(_ring_profile(a, self.width, float(params["ridge"][0]),
+                                             self.ridge_width, self.ridge_flank,
+                                             self.edge_width)) - d
             tau = self.theta_b + (a + s) / R
             U, T = np.meshgrid(u, tau, indexing="ij")
             rr = np.broadcast_to(r, U.shape)
@@ -440,7 +445,7 @@ class BuckleContact(Term):
                 U, A = np.meshgrid(u, np.linspace(-L / 2, L / 2, n_across + 1), indexing="ij")
                 P = (C + A[..., None] * t + rs * np.cos(U)[..., None] * e1
                      + rs * np.sin(U)[..., None] * e2)
-        P = np.asarray(rotate_z(P.reshape(-1, 3), rot))
+        P = rotate_z_np(P.reshape(-1, 3), rot)
         return P, grid_triangles(n_around, n_across, closed_u=True)
 
     def geometry(self, q, params):

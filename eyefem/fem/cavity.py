@@ -115,6 +115,18 @@ def cavity_state(q, params, data, dofs):
     return P, V, alpha, _face_volume_grad(q_loc, data)
 
 
+@jax.jit
+def _volumes_and_stiffness(q_loc, params, data):
+    """Volumes (n_cav,) mm^3 and -dP/dV (n_cav,) MPa/mm^3 of a term's cavities (compiled:
+    volumes only, no face gradients)."""
+    V = _volumes(q_loc, data)
+    return V, _law(V, params)[2]
+
+
+_face_cone_volume = jax.jit(face_cone_volume)
+""":func:`eyefem.fem.surface.face_cone_volume` compiled, for host-side checks."""
+
+
 def cavity_pressures(q, params, data, dofs):
     """Pressures (n_cav,) MPa and volumes (n_cav,) mm^3 as JAX values (differentiable).
 
@@ -182,7 +194,7 @@ def check_cavity_faces(mesh: Mesh, faces: np.ndarray, label: str, symmetry_plane
                 "add the missing faces (a cavity spanning several bodies lists all their "
                 "wetted face sets) or declare the symmetry planes")
     x0 = np.asarray(origin, np.float64)
-    vf = -np.asarray(face_cone_volume(jnp.asarray(mesh.nodes[faces]), jnp.asarray(x0)))
+    vf = -np.asarray(_face_cone_volume(mesh.nodes[faces], x0))
     v = float(vf.sum())
     if not v > 0:
         n_comp, lab = _face_components(faces)
@@ -386,8 +398,7 @@ class FluidCavity(Term):
 
     def low_rank_values(self, q, params) -> list:
         """Volumes (mm^3) of the cavities in :meth:`low_rank` (those with K != 0)."""
-        V = _volumes(jnp.asarray(q)[self.dofs], self.data)  # volumes only: no face gradients
-        alpha = _law(V, params)[2]
+        V, alpha = _volumes_and_stiffness(np.asarray(q)[self.dofs], params, self.data)
         return [float(v) for v, a in zip(np.asarray(V), np.asarray(alpha)) if a != 0.0]
 
     # --- host-side state and outputs ---------------------------------------------------------

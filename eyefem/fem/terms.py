@@ -156,6 +156,22 @@ class Term(abc.ABC):
         return self
 
 
+_HOST_KERNELS: dict = {}
+
+
+def host_kernel(term: Term, method: str):
+    """``term.<method>`` compiled (jax.jit), shared by every term of its class and static
+    key as the solver's kernels are (eyefem.solve.model.Model._kernel): the method reads
+    arrays only from its arguments. For host-side outputs at a state (forces, gaps,
+    positions): one small XLA program where eager JAX compiles one per operation on a
+    machine's first run."""
+    key = (type(term), method, term.static_key())
+    fn = _HOST_KERNELS.get(key)
+    if fn is None:
+        fn = _HOST_KERNELS[key] = jax.jit(getattr(term, method))
+    return fn
+
+
 @dataclasses.dataclass(frozen=True)
 class NodalForce(Term):
     """Dead nodal loads: energy -sum f . u over the loaded dofs.
