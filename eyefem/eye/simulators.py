@@ -93,8 +93,8 @@ from eyefem.fem.viscoelastic import ViscoelasticQ1P0, history_at
 from eyefem.solve.assembly import Assembler
 from eyefem.solve.model import Model
 from eyefem.solve.solver import ConvergenceError, NewtonOptions, Solution, Stage, solve
-from eyefem.solve.staged import (StageMap, StageRecord, hand_on, params_mismatch, stage_params,
-                                 staged_gradients)
+from eyefem.solve.staged import (StageMap, StageRecord, compiled, hand_on, params_mismatch,
+                                 stage_params, staged_gradients)
 from eyefem.solve.transient import Recorder
 
 log = logging.getLogger(__name__)
@@ -234,7 +234,7 @@ class StagedSimulator:
         """``res`` with its outcomes (:attr:`outcome_names`) at its last state (q, theta)
         and the carries its stages handed on."""
         f, data = self.outcome_vector(res, self.outcome_names)
-        values = f(jnp.asarray(q), theta, carry, data)
+        values = compiled(f)(jnp.asarray(q), theta, carry, data)
         return dataclasses.replace(res, outcomes=dict(zip(self.outcome_names,
                                                           map(float, values))))
 

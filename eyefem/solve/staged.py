@@ -109,7 +109,7 @@ def hand_on(stage: StageMap, q, theta, data=None) -> dict:
     without a carry."""
     if stage.carry is None:
         return {}
-    out = stage.carry(jnp.asarray(q), _as_jax(theta), data)
+    out = compiled(stage.carry)(jnp.asarray(q), _as_jax(theta), data)
     return jax.tree_util.tree_map(np.asarray, dict(out))
 
 
@@ -125,6 +125,13 @@ def _kept(fn: Callable, kind: str, build: Callable) -> Callable:
     if kind not in per:
         per[kind] = build(_weakly(fn))
     return per[kind]
+
+
+def compiled(fn: Callable) -> Callable:
+    """``fn`` compiled (jax.jit), one per function object (:func:`_kept`): a stage's carry
+    or an outcome function evaluated at a converged state runs one XLA program, where eager
+    JAX compiles and keeps one per operation."""
+    return _kept(fn, "compiled", jax.jit)
 
 
 def _weakly(fn: Callable) -> Callable:
