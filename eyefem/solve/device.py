@@ -76,10 +76,8 @@ def keep_compiled_by_default() -> str | None:
 def keep_compiled(cache_dir: str) -> None:
     """Keep every executable XLA compiles in the persistent cache ``cache_dir``, the small
     ones too (JAX's default keeps only those that took over a second): a later run of a
-    model of the same sizes then compiles nothing. Case 1 on ``fine`` (the README main
-    command, 285 executables, 2.2 MB on disk) with the cache filled: 1.47 GB; with a 0.1 s
-    threshold its 149 small executables are compiled at every run, 1.52 GB at the same
-    time (docs/performance.md). Call before the first compilation."""
+    model of the same sizes then compiles nothing (the figures: docs/performance.md). Call
+    before the first compilation."""
     import jax
 
     jax.config.update("jax_compilation_cache_dir", cache_dir)
