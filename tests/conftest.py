@@ -5,9 +5,13 @@ surgical cases 1-6, computed once per session into a temporary directory and sha
 tests/test_surgery_cases.py and the compare_cases notebook (tests/test_notebooks.py); and
 the run of a timeline case with its gradients (``timeline_gradients``), which the slow
 checks of tests/test_timeline_gradients.py and test_relaxation_gradients.py share.
+The test session keeps XLA's compiled programs in a persistent cache of its own (a
+temporary folder, removed at the end; :func:`pytest_configure`).
 """
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import jax
@@ -17,6 +21,35 @@ os.environ.setdefault("EYEFEM_JAX_CACHE", "off")
 jax.config.update("jax_enable_x64", True)
 
 ROOT = Path(__file__).resolve().parents[1]
+
+SESSION_CACHE = "EYEFEM_TEST_SESSION_JAX_CACHE"
+"""The environment variable that hands the session's compilation cache to pytest-xdist's
+workers (they start after the controller's :func:`pytest_configure` and inherit it)."""
+_OWNED_CACHE = pytest.StashKey[str]()
+
+
+def pytest_configure(config):
+    """Keep the compiled programs that took over 0.1 s in one persistent cache shared by
+    every test process of the session: many tests build their own jitted function or model
+    of a shape another test compiled already (a term's kernel, a coarse eye's), and then
+    load its executable instead of compiling it again. The folder is a temporary one,
+    made by the controller and removed by it at the end; nothing is written elsewhere, and
+    a test of the cache itself runs in a subprocess with its own folder."""
+    folder = os.environ.get(SESSION_CACHE)
+    if folder is None:
+        folder = tempfile.mkdtemp(prefix="eyefem-tests-jax-")
+        os.environ[SESSION_CACHE] = folder
+        config.stash[_OWNED_CACHE] = folder
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+
+
+def pytest_unconfigure(config):
+    folder = config.stash.get(_OWNED_CACHE, None)
+    if folder is not None:
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop(SESSION_CACHE, None)
+
 
 
 @pytest.fixture(scope="session")

@@ -145,20 +145,22 @@ def _element_term():
 def test_residual_and_tangent_against_finite_differences():
     term, u = _element_term()
     p, d = term.params, term.data
-    energy = lambda x: float(term.local_energy(jnp.asarray(x)[None], p, d)[0])  # noqa: E731
-    g, H = (np.asarray(a)[0] for a in term.local_grad_hess(jnp.asarray(u)[None], p, d))
+    e = jax.jit(lambda x: term.local_energy(x[None], p, d)[0])
+    kernel = jax.jit(term.local_grad_hess)  # compiled: eager JAX takes 10 s a call here
+    g, H = (np.asarray(a)[0] for a in kernel(jnp.asarray(u)[None], p, d))
     # exact derivatives of the energy (autodiff) and the kernel's closed-form contraction
-    e = lambda x: term.local_energy(x[None], p, d)[0]  # noqa: E731
-    assert np.allclose(g, jax.grad(e)(jnp.asarray(u)), rtol=0, atol=1e-12 * np.abs(g).max())
-    assert np.allclose(H, jax.hessian(e)(jnp.asarray(u)), rtol=0,
+    assert np.allclose(g, jax.jit(jax.grad(e))(jnp.asarray(u)), rtol=0,
+                       atol=1e-12 * np.abs(g).max())
+    assert np.allclose(H, jax.jit(jax.hessian(e))(jnp.asarray(u)), rtol=0,
                        atol=1e-11 * np.abs(H).max())
     assert np.allclose(H, H.T, atol=1e-12 * np.abs(H).max())
     # central differences of the energy and of the residual
     h = 1e-6
     basis = np.eye(24)
+    energy = lambda x: float(e(jnp.asarray(x)))  # noqa: E731
     g_fd = np.array([(energy(u + h * b) - energy(u - h * b)) / (2 * h) for b in basis])
     assert np.abs(g_fd - g).max() < 1e-7 * np.abs(g).max()
-    grad = lambda x: np.asarray(term.local_grad_hess(jnp.asarray(x)[None], p, d)[0][0])  # noqa
+    grad = lambda x: np.asarray(kernel(jnp.asarray(x)[None], p, d)[0][0])  # noqa: E731
     H_fd = np.stack([(grad(u + h * b) - grad(u - h * b)) / (2 * h) for b in basis], axis=1)
     assert np.abs(H_fd - H).max() < 1e-6 * np.abs(H).max()
 
@@ -172,19 +174,19 @@ def _rotation(axis, angle):
 def test_rigid_rotation_invariance():
     term, u = _element_term()
     p, d = term.params, term.data
+    energy = jax.jit(lambda v: term.local_energy(v[None], p, d)[0])
+    force = jax.jit(lambda v: term.local_grad_hess(v[None], p, d)[0][0])
     X = term.mesh.nodes
     R = _rotation([1.0, -2.0, 0.5], 0.9)
     x = X + u.reshape(8, 3)
     u_rot = ((x @ R.T) - X).ravel()
-    e0, e1 = (float(term.local_energy(jnp.asarray(v)[None], p, d)[0]) for v in (u, u_rot))
+    e0, e1 = (float(energy(jnp.asarray(v))) for v in (u, u_rot))
     assert e1 == pytest.approx(e0, rel=1e-12)
-    g0, g1 = (np.asarray(term.local_grad_hess(jnp.asarray(v)[None], p, d)[0][0]).reshape(8, 3)
-              for v in (u, u_rot))
+    g0, g1 = (np.asarray(force(jnp.asarray(v))).reshape(8, 3) for v in (u, u_rot))
     assert np.allclose(g1, g0 @ R.T, atol=1e-11 * np.abs(g0).max())  # forces rotate with it
     rigid = ((X @ R.T) - X).ravel()  # a rotation alone stores nothing, pushes nothing
-    assert abs(float(term.local_energy(jnp.asarray(rigid)[None], p, d)[0])) < 1e-13
-    assert np.abs(np.asarray(term.local_grad_hess(jnp.asarray(rigid)[None], p, d)[0])).max() \
-        < 1e-12
+    assert abs(float(energy(jnp.asarray(rigid)))) < 1e-13
+    assert np.abs(np.asarray(force(jnp.asarray(rigid)))).max() < 1e-12
 
 
 def _clamped_block(mat):

@@ -24,6 +24,7 @@ from eyefem.fem.solid_ans import SolidQ1P0ANS, assumed_strain
 from eyefem.fem.solid_im import (
     INNER_ITERATIONS, SolidQ1P0IM, _stress_tangent, condensed_modes, mode_operators,
     pushed_operators)
+from eyefem.fem.terms import host_kernel
 from eyefem.solve.model import node_dofs
 
 jax.config.update("jax_enable_x64", True)
@@ -94,14 +95,15 @@ def test_patch_test_a_homogeneous_deformation_leaves_the_modes_at_rest():
     q_loc = np.concatenate([u[mesh.hexes].reshape(-1, 24), np.full((mesh.n_elem, 1), 0.02)], 1)
     F_c = deformation_gradient(u[mesh.hexes], enriched.data["grad_n"])
     D = pushed_operators(F_c, mode_operators(enriched.data["grad_m"], enriched.data["frame_m"]))
-    alpha = condensed_modes(F_c, D, enriched.data["dv"], coeffs[[0] * mesh.n_elem])
+    alpha = jax.jit(condensed_modes)(F_c, D, enriched.data["dv"], coeffs[[0] * mesh.n_elem])
     assert np.abs(np.asarray(alpha)).max() < 1e-13
-    g0, H0 = plain.local_grad_hess(q_loc, plain.params, plain.data)
-    g1, H1 = enriched.local_grad_hess(q_loc, enriched.params, enriched.data)
+    # compiled (eager JAX takes about 20 s for the enriched element's inner solve)
+    g0, H0 = jax.jit(plain.local_grad_hess)(q_loc, plain.params, plain.data)
+    g1, H1 = jax.jit(enriched.local_grad_hess)(q_loc, enriched.params, enriched.data)
     np.testing.assert_allclose(g1, g0, atol=1e-12 * np.abs(g0).max())
     np.testing.assert_allclose(
-        enriched.local_energy(q_loc, enriched.params, enriched.data),
-        plain.local_energy(q_loc, plain.params, plain.data), rtol=1e-12)
+        jax.jit(enriched.local_energy)(q_loc, enriched.params, enriched.data),
+        jax.jit(plain.local_energy)(q_loc, plain.params, plain.data), rtol=1e-12)
     q = np.zeros(3 * mesh.n_nodes + mesh.n_elem)
     q[:3 * mesh.n_nodes], q[3 * mesh.n_nodes:] = u.ravel(), 0.02
     f0, f1 = plain.fields(q, plain.params), enriched.fields(q, enriched.params)
@@ -123,7 +125,7 @@ def test_no_spurious_zero_energy_modes():
     mesh = Mesh(HEX_CORNERS * [1.0, 0.7, 0.3], np.arange(8)[None], [0], materials=("m",))
     for cls in (SolidQ1P0, SolidQ1P0IM):
         term = cls("s", mesh, COEFFS, 24)
-        _, H = term.local_grad_hess(np.zeros((1, 25)), term.params, term.data)
+        _, H = host_kernel(term, "local_grad_hess")(np.zeros((1, 25)), term.params, term.data)
         K, b = np.asarray(H[0, :24, :24]), np.asarray(H[0, :24, 24])
         P = np.eye(24) - np.outer(b, b) / (b @ b)
         ev = np.linalg.eigvalsh(P @ K @ P)
@@ -144,7 +146,7 @@ def test_objective_and_rigid_motions_store_nothing(cls):
 
     def energy(xx):
         q = np.concatenate([(xx - mesh.nodes)[mesh.hexes].reshape(-1, 24), lam], 1)
-        return np.asarray(term.local_energy(q, term.params, term.data))
+        return np.asarray(host_kernel(term, "local_energy")(q, term.params, term.data))
 
     e = energy(x)
     np.testing.assert_allclose(energy(x @ Q.T), e, rtol=1e-11)
@@ -184,9 +186,9 @@ def test_elements_of_materials_not_enriched_are_plain_q1p0_elements():
     rng = np.random.default_rng(4)
     q_loc = np.concatenate([0.05 * rng.standard_normal((mesh.n_elem, 24)),
                             0.01 * rng.standard_normal((mesh.n_elem, 1))], 1)
-    g0, H0 = plain.local_grad_hess(q_loc, plain.params, plain.data)
-    g1, H1 = part.local_grad_hess(q_loc, part.params, part.data)
-    g2, H2 = whole.local_grad_hess(q_loc, whole.params, whole.data)
+    g0, H0 = host_kernel(plain, "local_grad_hess")(q_loc, plain.params, plain.data)
+    g1, H1 = host_kernel(part, "local_grad_hess")(q_loc, part.params, part.data)
+    g2, H2 = host_kernel(whole, "local_grad_hess")(q_loc, whole.params, whole.data)
     a, b = mesh.material_ids == 0, mesh.material_ids == 1
     np.testing.assert_allclose(H1[a], H0[a], rtol=1e-12, atol=1e-12 * np.abs(H0).max())
     np.testing.assert_allclose(g1[a], g0[a], rtol=1e-12, atol=1e-12 * np.abs(g0).max())
@@ -213,7 +215,7 @@ def _stretched_plate_lowest_eigenvalue(cls, stretch, biaxial):
     lam = -C10 * (b[2, 2] - np.trace(b) / 3)  # sigma_zz = 2 c10 dev(b)_zz + 2 lambda = 0
     u = mesh.nodes @ F.T - mesh.nodes
     q = np.concatenate([u[mesh.hexes].reshape(-1, 24), np.full((mesh.n_elem, 1), lam)], 1)
-    g, H = jax.jit(term.local_grad_hess)(q, term.params, term.data)
+    g, H = host_kernel(term, "local_grad_hess")(q, term.params, term.data)  # one per class
     K, r = np.zeros((n, n)), np.zeros(n)
     for d, h, gg in zip(term.dofs, np.asarray(H), np.asarray(g)):
         K[np.ix_(d, d)] += h
@@ -265,11 +267,12 @@ def test_assumed_strains_patch_test_on_parallelepipeds(ans_cls):
     F = np.array([[1.1, 0.05, 0.0], [0.02, 0.95, 0.03], [0.0, -0.04, 0.97]])
     u = mesh.nodes @ F.T - mesh.nodes
     q_loc = np.concatenate([u[mesh.hexes].reshape(-1, 24), np.full((mesh.n_elem, 1), 0.02)], 1)
-    g0, _ = plain.local_grad_hess(q_loc, plain.params, plain.data)
-    g1, _ = ans.local_grad_hess(q_loc, ans.params, ans.data)
+    g0, _ = host_kernel(plain, "local_grad_hess")(q_loc, plain.params, plain.data)
+    g1, _ = host_kernel(ans, "local_grad_hess")(q_loc, ans.params, ans.data)  # eager: 30 s
     np.testing.assert_allclose(g1, g0, atol=1e-12 * np.abs(g0).max())
-    np.testing.assert_allclose(ans.local_energy(q_loc, ans.params, ans.data),
-                               plain.local_energy(q_loc, plain.params, plain.data), rtol=1e-12)
+    np.testing.assert_allclose(host_kernel(ans, "local_energy")(q_loc, ans.params, ans.data),
+                               host_kernel(plain, "local_energy")(q_loc, plain.params,
+                                                                  plain.data), rtol=1e-12)
 
 
 @pytest.mark.parametrize("ans_cls", [SolidQ1P0ANS, ANS_E33], ids=["shears", "shears_thickness"])
@@ -293,8 +296,8 @@ def test_assumed_strains_only_where_asked():
     rng = np.random.default_rng(4)
     q_loc = np.concatenate([0.05 * rng.standard_normal((mesh.n_elem, 24)),
                             0.01 * rng.standard_normal((mesh.n_elem, 1))], 1)
-    e0 = np.asarray(plain.local_energy(q_loc, plain.params, plain.data))
-    e1 = np.asarray(part.local_energy(q_loc, part.params, part.data))
+    e0 = np.asarray(host_kernel(plain, "local_energy")(q_loc, plain.params, plain.data))
+    e1 = np.asarray(host_kernel(part, "local_energy")(q_loc, part.params, part.data))
     a = mesh.material_ids == 0
     np.testing.assert_allclose(e1[a], e0[a], rtol=1e-12)
     assert np.abs(e1[~a] - e0[~a]).max() > 1e-6 * np.abs(e0).max()
@@ -364,6 +367,24 @@ def test_the_thickness_strain_from_the_corners_mistakes_tilted_edges_for_stretch
     assert shears_only == pytest.approx(0.7926, abs=1e-3)
     untilted = _tilted_thin_element(0.0)
     np.testing.assert_allclose(untilted, 0.8, rtol=1e-12)  # no tilt: every reading agrees
+
+
+def test_the_two_thickness_strains_compile_apart():
+    """Compiled kernels are shared by class and static key (eyefem.solve.model.Model,
+    eyefem.fem.terms.host_kernel): the thickness strain from the corners is in the key, so
+    an element built after the other variant gets its own residual, not the first one's."""
+    base = generators.box(4.0, 4.0, 0.25, 8, 8, 2, material="m")  # the plate's shapes below
+    rng = np.random.default_rng(11)
+    mesh = base.replace(nodes=base.nodes + 0.01 * rng.standard_normal(base.nodes.shape))
+    shears, corners = (cls("s", mesh, COEFFS, 3 * mesh.n_nodes)
+                       for cls in (SolidQ1P0ANS, ANS_E33))
+    assert shears.static_key() != corners.static_key()
+    q = np.concatenate([0.02 * rng.standard_normal((mesh.n_elem, 24)),
+                        np.full((mesh.n_elem, 1), 0.1)], 1)
+    g_shears = host_kernel(shears, "local_grad_hess")(q, shears.params, shears.data)[0]
+    g_corners = host_kernel(corners, "local_grad_hess")(q, corners.params, corners.data)[0]
+    assert np.abs(np.asarray(g_corners) - np.asarray(g_shears)).max() > \
+        1e-3 * np.abs(np.asarray(g_shears)).max()
 
 
 def _surgery_parameters(**kw):

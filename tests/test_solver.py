@@ -62,9 +62,9 @@ def test_fast_element_hessian_equals_hessian_of_energy(cube):
     def e1(x, i):
         return solid.local_energy(ql.at[i].set(x), theta["solid"], solid.data)[i]
 
+    grad, hessian = jax.jit(jax.grad(e1)), jax.jit(jax.hessian(e1))  # eager JAX: 15 s
     for i in (0, 5):
-        gi = jax.grad(e1)(ql[i], i)
-        Hi = jax.hessian(e1)(ql[i], i)
+        gi, Hi = grad(ql[i], i), hessian(ql[i], i)
         np.testing.assert_allclose(g[i], gi, rtol=1e-11, atol=1e-12)
         np.testing.assert_allclose(H[i], Hi, rtol=1e-10, atol=1e-10 * np.abs(Hi).max())
     assert np.allclose(H, np.swapaxes(H, 1, 2), atol=1e-10 * np.abs(H).max())

@@ -11,6 +11,7 @@ from eyefem.fem.generators import box
 from eyefem.fem.materials import MooneyRivlin
 from eyefem.fem.mesh import hex_geometry, merge
 from eyefem.fem.solid import SolidQ1P0
+from eyefem.fem.terms import host_kernel
 
 jax.config.update("jax_enable_x64", True)
 
@@ -34,8 +35,8 @@ def _state(mesh, seed=0):
 def _blocks(mesh, q):
     term = SolidQ1P0("solid", mesh, COEFFS, multiplier_offset=3 * mesh.n_nodes)
     q_loc = q[term.dofs]
-    energy = term.local_energy(q_loc, term.params, term.data)
-    g, H = term.local_grad_hess(q_loc, term.params, term.data)
+    energy = host_kernel(term, "local_energy")(q_loc, term.params, term.data)
+    g, H = host_kernel(term, "local_grad_hess")(q_loc, term.params, term.data)
     return term, np.asarray(energy), np.asarray(g), np.asarray(H)
 
 

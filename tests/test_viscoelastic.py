@@ -94,18 +94,20 @@ def test_residual_and_tangent_against_finite_differences(dt):
     term, q, params = _state(dt=dt)
     data = term.data
 
-    def energy(x):
-        return float(term.local_energy(jnp.asarray(x)[None], params, data)[0])
+    element_energy = jax.jit(lambda y: term.local_energy(y[None], params, data)[0])
+    element_grad = jax.jit(jax.grad(element_energy))  # compiled: eager JAX is slow here
 
-    g, H = term.local_grad_hess(jnp.asarray(q)[None], params, data)
+    def energy(x):
+        return float(element_energy(jnp.asarray(x)))
+
+    g, H = jax.jit(term.local_grad_hess)(jnp.asarray(q)[None], params, data)
     g, H = np.asarray(g[0]), np.asarray(H[0])
     h = 1e-6
     fd = np.array([(energy(q + h * e) - energy(q - h * e)) / (2 * h) for e in np.eye(25)])
     assert np.max(np.abs(fd - g)) < 1e-7 * np.max(np.abs(g))
 
     def grad(x):
-        return np.asarray(jax.grad(lambda y: term.local_energy(y[None], params, data)[0])(
-            jnp.asarray(x)))
+        return np.asarray(element_grad(jnp.asarray(x)))
     fdH = np.stack([(grad(q + h * e) - grad(q - h * e)) / (2 * h) for e in np.eye(25)], 1)
     assert np.max(np.abs(fdH - H)) < 1e-7 * np.max(np.abs(H))
     assert np.max(np.abs(H - H.T)) < 1e-12 * np.max(np.abs(H))  # a potential: symmetric

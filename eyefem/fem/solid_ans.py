@@ -160,6 +160,11 @@ class SolidQ1P0ANS(SolidQ1P0):
 
     local_grad_hess = Term.local_grad_hess
 
+    def static_key(self) -> tuple:
+        """The thickness strain's rule changes the compiled code: the two variants share no
+        kernel (eyefem.solve.model.Model._kernel keys by class and this)."""
+        return (self.ans_thickness,)
+
     def grad_hess_condensed(self, q, params, data, dofs, beta):
         """:meth:`Term.grad_hess_condensed` (autodiff) over chunks of ANS_CHUNK elements in
         turn: at once, the forward-over-reverse intermediates of the default eye's 11,862

@@ -62,3 +62,18 @@ def random_deformation(rng, scale=0.5):
     Q *= np.sign(np.linalg.det(Q))
     U = np.diag(1.0 + scale * rng.uniform(0.2, 1.0, 3)) + 0.1 * rng.standard_normal((3, 3))
     return Q @ (0.5 * (U + U.T))
+
+
+def row_hessians(f: Callable, x) -> np.ndarray:
+    """The diagonal blocks (n, k, k) of the Hessian of a scalar JAX function ``f`` of x (n,
+    k) in which no two rows are coupled (a sum over contact pairs or points, each of one row
+    of local dofs): k Hessian-vector products, where the whole Hessian is (n, k, n, k).
+    Block i's column j is row i of the product with e_j put in every row."""
+    import jax
+    import jax.numpy as jnp
+
+    x = jnp.asarray(x)
+    grad = jax.grad(f)
+    column = jax.jit(lambda v: jax.jvp(grad, (x,), (v,))[1])
+    return np.stack([np.asarray(column(jnp.zeros_like(x).at[:, j].set(1.0)))
+                     for j in range(x.shape[1])], axis=2)
