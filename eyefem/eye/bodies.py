@@ -30,7 +30,6 @@ import dataclasses
 import logging
 from typing import Callable
 
-import jax
 import numpy as np
 
 from eyefem.eye.band import (
@@ -66,7 +65,7 @@ from eyefem.eye.sponge import (
 from eyefem.fem.cavity import cavity_pressures, close_cavity
 from eyefem.fem.loop_solid import ShortenedLoopSolid
 from eyefem.fem.mesh import Mesh
-from eyefem.fem.terms import DofForce, Term
+from eyefem.fem.terms import DofForce, Term, host_kernel
 from eyefem.solve.model import Model, node_dofs
 from eyefem.solve.solver import Stage
 
@@ -143,9 +142,9 @@ def tie_sutures(model, q, theta):
     """Stage hook: the sutures tied at their current lengths (their rest lengths L0, by
     :func:`tied_lengths`)."""
     t = model.term("sutures")
-    # compiled: one small XLA program, where eager JAX compiles one per operation
-    L = np.asarray(jax.jit(tied_lengths(t))(np.asarray(q), {"sutures": theta["sutures"]},
-                                        (t.data, t.dofs))["L0"])
+    # tied_lengths' rule, its term method compiled once per term class (host_kernel): one
+    # small XLA program, where eager JAX compiles one per operation
+    L = np.asarray(host_kernel(t, "lengths")(np.asarray(q)[t.dofs], theta["sutures"], t.data))
     return model, q, {**theta, "sutures": tied(theta["sutures"], L)}
 
 

@@ -856,8 +856,7 @@ class TimelineSimulator(SurgerySimulator):
                     "h0": None if i else {k: np.asarray(th_i["cavity"][k]) for k in HISTORY_KEYS}}
             smap = self._step_map(kinds[i], sut)
             cdata = self._carry_data(kinds[i], model_i)
-            values = self._kept_fn(("carry_jit", kinds[i], term_kind(sut)),
-                                   lambda fn=smap.carry: jax.jit(fn))(
+            values = compiled(smap.carry)(
                 jnp.asarray(q_i), jax.tree_util.tree_map(jnp.asarray, th_i), cdata)
             names = {k: k if k == "L0" else f"{k}/{i}" for k in values}
             carry = {names[k]: jax.tree_util.tree_map(np.asarray, v) for k, v in values.items()}

@@ -17,6 +17,7 @@ face the target point follows the state (:func:`following`), as re-pairing makes
 from __future__ import annotations
 
 import logging
+import weakref
 from typing import Any, Callable
 
 import jax
@@ -181,22 +182,42 @@ def value_and_grad(objective: Callable[[Any, Any], Any], solution, *, active=Non
     return float(vals[0]), grads[0]
 
 
+_KEPT: "weakref.WeakKeyDictionary[Callable, dict]" = weakref.WeakKeyDictionary()
+
+
+def kept(fn: Callable, kind: str, build: Callable) -> Callable:
+    """The wrapper ``build(fn)`` of kind ``kind`` (its compiled Jacobians, its compiled
+    self, its contraction with a stage's cotangent), one per function object, so that what
+    it compiles is reused, and forgotten with the function: the wrapper reaches ``fn``
+    through a weak reference (:func:`_weakly`), so the entry does not keep ``fn``, and what
+    it closes over (a simulator's model and mesh), alive."""
+    per = _KEPT.setdefault(fn, {})
+    if kind not in per:
+        per[kind] = build(_weakly(fn))
+    return per[kind]
+
+
+def _weakly(fn: Callable) -> Callable:
+    """``fn`` called through a weak reference (valid while ``fn`` lives: its _KEPT entry
+    goes with it)."""
+    ref = weakref.ref(fn)
+
+    def call(*args, **kwargs):
+        return ref()(*args, **kwargs)
+    return call
+
+
 def jacobians_of(objectives: Callable) -> Callable:
     """(q, theta, data) -> (values (k,), d/dq (k, n_dof), d/dtheta (theta-like, each leaf
     with a leading k)) of objectives(q, theta, data), compiled (jax.jit, once per argument
-    shapes) and kept on the function object itself, so that it lives as long as the
-    function does (a cache keyed by the function would keep every function, and what it
-    closes over, for the life of the process)."""
-    jac = getattr(objectives, "_eyefem_jacobians", None)
-    if jac is None:
+    shapes) and kept as long as the function lives (:func:`kept`)."""
+    def build(objectives):
         def jacobians(q, theta, data):
             vals, pullback = jax.vjp(lambda q, theta: objectives(q, theta, data), q, theta)
             gq, gth = jax.vmap(pullback)(jnp.eye(vals.shape[0], dtype=vals.dtype))
             return vals, gq, gth
-
-        jac = jax.jit(jacobians)
-        objectives._eyefem_jacobians = jac
-    return jac
+        return jax.jit(jacobians)
+    return kept(objectives, "jacobians", build)
 
 
 def values_and_grads(objectives: Callable[..., Any], solution, *, active=None, data=None):

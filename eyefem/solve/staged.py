@@ -25,14 +25,13 @@ The params a stage does not take from T_k are constants of the procedure.
 from __future__ import annotations
 
 import dataclasses
-import weakref
 from typing import Any, Callable, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from eyefem.solve.adjoint import values_and_grads
+from eyefem.solve.adjoint import kept, values_and_grads
 from eyefem.solve.records import Solution
 
 
@@ -113,35 +112,12 @@ def hand_on(stage: StageMap, q, theta, data=None) -> dict:
     return jax.tree_util.tree_map(np.asarray, dict(out))
 
 
-_KEPT: "weakref.WeakKeyDictionary[Callable, dict]" = weakref.WeakKeyDictionary()
-
-
-def _kept(fn: Callable, kind: str, build: Callable) -> Callable:
-    """The wrapper ``build(fn)`` of kind ``kind``, one per function object (so that its
-    compiled Jacobians are reused), forgotten with the function: the wrapper reaches
-    ``fn`` through a weak reference (:func:`_weakly`), so the entry does not keep ``fn``,
-    and what it closes over (a simulator's model and mesh), alive."""
-    per = _KEPT.setdefault(fn, {})
-    if kind not in per:
-        per[kind] = build(_weakly(fn))
-    return per[kind]
-
-
 def compiled(fn: Callable) -> Callable:
-    """``fn`` compiled (jax.jit), one per function object (:func:`_kept`): a stage's carry
-    or an outcome function evaluated at a converged state runs one XLA program, where eager
-    JAX compiles and keeps one per operation."""
-    return _kept(fn, "compiled", jax.jit)
-
-
-def _weakly(fn: Callable) -> Callable:
-    """``fn`` called through a weak reference (valid while ``fn`` lives: its _KEPT entry
-    goes with it)."""
-    ref = weakref.ref(fn)
-
-    def call(*args, **kwargs):
-        return ref()(*args, **kwargs)
-    return call
+    """``fn`` compiled (jax.jit), one per function object
+    (:func:`eyefem.solve.adjoint.kept`): a stage's carry or an outcome function evaluated
+    at a converged state runs one XLA program, where eager JAX compiles and keeps one per
+    operation."""
+    return kept(fn, "compiled", jax.jit)
 
 
 def contracted(carry_fn: Callable) -> Callable:
@@ -156,7 +132,7 @@ def contracted(carry_fn: Callable) -> Callable:
                 lambda b, v: jnp.reshape(b, (b.shape[0], -1)) @ jnp.ravel(v), data["cbar"], c)
             return sum(jax.tree_util.tree_leaves(terms))
         return objective
-    return _kept(carry_fn, "contracted", build)
+    return kept(carry_fn, "contracted", build)
 
 
 def holding_carry(objectives: Callable) -> Callable:
@@ -167,7 +143,7 @@ def holding_carry(objectives: Callable) -> Callable:
         def objective(q, theta, data):
             return J(q, theta, data["carry"], data["data"])
         return objective
-    return _kept(objectives, "holding_carry", build)
+    return kept(objectives, "holding_carry", build)
 
 
 def _carry_pullback(objectives: Callable) -> Callable:
@@ -178,7 +154,7 @@ def _carry_pullback(objectives: Callable) -> Callable:
             vals, vjp = jax.vjp(lambda c: J(q, theta, c, data), carry)
             return jax.vmap(vjp)(jnp.eye(vals.shape[0], dtype=vals.dtype))[0]
         return jax.jit(pull)
-    return _kept(objectives, "carry_pullback", build)
+    return kept(objectives, "carry_pullback", build)
 
 
 def staged_gradients(records: Sequence[StageRecord], design: Mapping, objectives: Callable,
