@@ -72,10 +72,13 @@ def node_areas(mesh: Mesh, nodes: np.ndarray):
 _C = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
 
 
-def _shape(xi):
+def _shape(xi, xp=jnp):
+    """Bilinear shape functions N (..., 4) and their derivatives dN (..., 4, 2) at xi (...,
+    2); ``xp``: jax.numpy (traced) or numpy (the host's closest-point search, where eager
+    JAX dispatched each operation: a quarter of a contact run's time)."""
     N = 0.25 * (1 + xi[..., None, 0] * _C[:, 0]) * (1 + xi[..., None, 1] * _C[:, 1])
-    dN = jnp.stack([0.25 * _C[:, 0] * (1 + xi[..., None, 1] * _C[:, 1]),
-                    0.25 * _C[:, 1] * (1 + xi[..., None, 0] * _C[:, 0])], -1)
+    dN = xp.stack([0.25 * _C[:, 0] * (1 + xi[..., None, 1] * _C[:, 1]),
+                   0.25 * _C[:, 1] * (1 + xi[..., None, 0] * _C[:, 0])], -1)
     return N, dN
 
 
@@ -92,7 +95,7 @@ def project_to_quads(x, quads_x, cand, iters=25):
         xf = quads_x[f]
         xi = np.zeros((n, 2))
         for _ in range(iters):
-            N, dN = (np.asarray(a) for a in _shape(xi))
+            N, dN = _shape(xi, np)
             p = np.einsum("na,nai->ni", N, xf)
             t = np.einsum("nak,nai->nki", dN, xf)  # (n, 2, 3)
             r = x - p
@@ -102,7 +105,7 @@ def project_to_quads(x, quads_x, cand, iters=25):
             xi = np.clip(xi + step, -1.0, 1.0)
             if np.abs(step).max() < 1e-12:
                 break
-        N, _ = (np.asarray(a) for a in _shape(xi))
+        N, _ = _shape(xi, np)
         dist = np.linalg.norm(x - np.einsum("na,nai->ni", N, xf), axis=1)
         better = dist < best[2]
         best[0][better], best[1][better], best[2][better] = f[better], xi[better], dist[better]
