@@ -5,6 +5,8 @@ imports JAX nor changes its configuration; see docs/api.md):
 
 - ``simulate(case, design=None, *, mesh=None)``: outcomes of a rigid-buckle surgery case,
   differentiable in the design under jax.grad / jax.jacrev / jax.jit (eyefem.api).
+- ``Simulation(case, *, mesh=None)``: one surgery case on one mesh level held by the
+  caller; ``sim(design)`` is simulate's outcomes, and it keeps its own warm starts.
 - ``load_case(path)``: read and validate a case file (eyefem.io.casefile.Case).
 - ``DESIGN_VARIABLES``, ``OUTCOMES``: name -> description (units) of the design variables
   and outcomes simulate() takes and returns.
@@ -19,6 +21,7 @@ imports JAX nor changes its configuration; see docs/api.md):
 
 _PUBLIC = {  # name -> (module, attribute; None: the module itself)
     "simulate": ("eyefem.api", "simulate"),
+    "Simulation": ("eyefem.api", "Simulation"),
     "load_case": ("eyefem.api", "load_case"),
     "DESIGN_VARIABLES": ("eyefem.eye.variables", "DESIGN_VARIABLES"),
     "OUTCOMES": ("eyefem.eye.variables", "OUTCOMES"),
@@ -35,6 +38,7 @@ __all__ = [
     "OUTCOMES",
     "Mesh",
     "NewtonOptions",
+    "Simulation",
     "Stage",
     "__version__",
     "load_case",

@@ -21,9 +21,18 @@ solves; ``jax.jacrev`` one backward pass per outcome. Forward-mode (``jax.jvp``,
 is one adjoint per load step (eyefem.eye.simulators.TimelineSimulator). A call without
 traced values runs the host solve directly and returns floats.
 
-One SurgerySimulator is kept per (case, mesh) - keyed by the parsed case's contents, so a
-case-file path and the Case read from it share one - so repeated calls start from the
-last converged states, and the converged states of recent designs are remembered.
+A :class:`Simulation` is one case on one mesh level, ready for designs: its simulator
+(the pressurised eye solved, the kernels compiled) and the converged states of its recent
+designs (each new design starts from the last). Hold one to decide what is kept and for
+how long::
+
+    sim = eyefem.Simulation("cases/surgery/case1.toml", mesh="coarse")
+    sim({"suture_width": 9.0})["iop_mmhg"]
+    jax.grad(lambda d: sim(d)["iop_mmhg"])({"suture_width": 9.0})
+
+``simulate(path_or_case, ...)`` is the one-line form: it keeps the CACHED_SIMULATORS
+Simulations it used last, keyed by the parsed case's contents (a case-file path and the
+Case read from it share one); ``simulate(sim, design)`` runs a Simulation you hold.
 """
 
 from __future__ import annotations
@@ -49,13 +58,14 @@ from eyefem.io.casefile import Case
 log = logging.getLogger(__name__)
 
 CACHED_SIMULATORS = 4
-"""How many (case, mesh) simulators simulate() keeps (least recently used dropped)."""
+"""How many (case, mesh) Simulations simulate() keeps for the cases given by path or Case
+(least recently used dropped); a Simulation you hold is yours."""
 REMEMBERED_DESIGNS = 8
 """How many converged designs each simulator remembers (their states, and the gradients of
 single outcomes computed there)."""
 
-_simulators: collections.OrderedDict = collections.OrderedDict()
-_simulators_lock = threading.Lock()
+_recent: collections.OrderedDict = collections.OrderedDict()  # key -> Simulation
+_recent_lock = threading.Lock()
 
 
 def load_case(path: str | Path) -> Case:
@@ -78,24 +88,28 @@ def with_material_preset(case: Case, preset: str) -> Case:
 
 
 def clear_cache() -> None:
-    """Forget every simulator simulate() has built (and their warm-start states)."""
-    with _simulators_lock:
-        _simulators.clear()
+    """Forget the Simulations simulate() has kept for cases given by path or Case (those
+    you hold are untouched)."""
+    with _recent_lock:
+        _recent.clear()
 
 
-def simulate(case: str | Path | Case, design: dict | None = None, *,
+def simulate(case: str | Path | Case | Simulation, design: dict | None = None, *,
              mesh: str | None = None) -> dict:
     """Outcomes of a surgery case at a design; differentiable in the design.
 
     Args:
-      case: a case-file path (relative to the current directory) or a parsed Case
-        (load_case); its ``[case] problem`` must be "surgery", with a rigid buckle
-        (SurgerySimulator) or a deformable band or tire (RingSimulator: the design
-        variables its stages take as params, RingSimulator.variables).
+      case: a case-file path (relative to the current directory), a parsed Case
+        (load_case) or a :class:`Simulation`; the case's ``[case] problem`` must be
+        "surgery", with a rigid buckle (SurgerySimulator) or a deformable band or tire
+        (RingSimulator: the design variables its stages take as params,
+        RingSimulator.variables). A path or Case runs on the Simulation simulate() keeps
+        for it (CACHED_SIMULATORS), built on first use.
       design: design-variable name -> value (eyefem.eye.variables.DESIGN_VARIABLES: mm,
         degrees, N, MPa, mm^3 as documented there), overriding the case; scalars, Python
         floats or JAX values (traced under jax.grad / jax.jit).
-      mesh: eye mesh level overriding the case's ``[parameters] mesh`` ("coarse", ...).
+      mesh: eye mesh level overriding the case's ``[parameters] mesh`` ("coarse", ...);
+        with a Simulation, None or its own level.
 
     Returns:
       outcome name (OUTCOMES: iop_mmhg, indentation_mm, axial_length_change_mm,
@@ -114,20 +128,21 @@ def simulate(case: str | Path | Case, design: dict | None = None, *,
     ``jax.config.update("jax_enable_x64", True)`` first: switching it inside a traced
     function would not change the types already traced).
     """
+    _check_x64()
+    _check_design(dict(design or {}))  # before a simulator is built for a misspelt name
+    if isinstance(case, Simulation):
+        if mesh is not None and mesh != case.mesh:
+            raise ValueError(f"simulate: mesh = {mesh!r} for a Simulation on the {case.mesh!r} "
+                             "mesh; build eyefem.Simulation(case, mesh=...) for another level")
+        return case(design)
+    return _kept(case, mesh)(design)
+
+
+def _check_x64() -> None:
     if not jax.config.jax_enable_x64:
         raise RuntimeError("eyefem.simulate needs 64-bit floats: call "
                            "jax.config.update('jax_enable_x64', True) before any JAX work "
                            "(the Newton solve and its adjoint lose accuracy in float32)")
-    design = dict(design or {})
-    _check_design(design)
-    host = _host(case, mesh)
-    if not any(isinstance(v, jax.core.Tracer) for v in design.values()):
-        values = host.outcomes({k: float(v) for k, v in design.items()})
-        return {k: float(v) for k, v in zip(host.names, values)}
-    names = tuple(design)
-    x = jnp.stack([jnp.asarray(design[k], dtype=jnp.float64) for k in names])
-    y = host.differentiable(names)(x)
-    return {k: y[i] for i, k in enumerate(host.names)}
 
 
 def _check_design(design: dict) -> None:
@@ -151,25 +166,23 @@ def _parsed(case) -> Case:
                     "(str or pathlib.Path) or a Case from eyefem.load_case")
 
 
-def _host(case, mesh: str | None) -> _Host:
-    """The cached simulator of (case, mesh), built on first use. The key is the parsed
-    case's contents (its path resolved), so a path and the Case read from it share one."""
+def _kept(case, mesh: str | None) -> Simulation:
+    """The Simulation simulate() keeps for (case, mesh), built on first use. The key is the
+    parsed case's contents (its path resolved), so a path and the Case read from it share
+    one."""
     parsed = _parsed(case)
     contents = repr(dataclasses.replace(parsed, path=Path(parsed.path).resolve()))
     key = (hashlib.sha256(contents.encode()).hexdigest(), mesh)
-    with _simulators_lock:
-        if key in _simulators:
-            _simulators.move_to_end(key)
-            return _simulators[key]
-    params = _surgery_parameters(parsed, mesh)
-    log.info("simulate: building the simulator of %s on the %s mesh", parsed.path, params["mesh"])
-    simulator = SurgerySimulator if params.get("buckle_body", "rigid") == "rigid" else RingSimulator
-    host = _Host(simulator(params, parsed.materials, parsed.solver))
-    with _simulators_lock:
-        _simulators[key] = host
-        while len(_simulators) > CACHED_SIMULATORS:
-            _simulators.popitem(last=False)
-    return host
+    with _recent_lock:
+        if key in _recent:
+            _recent.move_to_end(key)
+            return _recent[key]
+    sim = Simulation(parsed, mesh=mesh)
+    with _recent_lock:
+        _recent[key] = sim
+        while len(_recent) > CACHED_SIMULATORS:
+            _recent.popitem(last=False)
+    return sim
 
 
 def _surgery_parameters(case: Case, mesh: str | None) -> dict:
@@ -194,15 +207,77 @@ def _surgery_parameters(case: Case, mesh: str | None) -> dict:
     return params
 
 
-class _Host:
-    """One SurgerySimulator with a memory of recent designs (their converged states)."""
+class Simulation:
+    """One surgery case on one mesh level, ready to simulate designs; calling it gives the
+    outcomes of a design (as :func:`simulate`), differentiable in the design.
 
-    def __init__(self, sim: SurgerySimulator):
-        self.sim = sim
-        self.names = tuple(getattr(sim, "outcome_names", OUTCOMES))  # the outcomes, in order
+    Building it reads the case, builds its simulator (SurgerySimulator for a rigid buckle,
+    RingSimulator for a deformable band or tire; on the mirror half where the case says
+    so) and solves the pressurised pre-operative eye and the case's design: tens of
+    seconds on the coarse mesh. Each later design is a continuation of the design solved
+    last; the converged states of the last ``remembered`` designs are kept, so a repeated
+    or jitted design is not solved again. Its case, mesh level and outcome names do not
+    change; :meth:`forget` drops the remembered designs.
+
+    Args:
+      case: a case-file path or a parsed Case (load_case), ``problem = "surgery"``.
+      mesh: eye mesh level overriding the case's ``[parameters] mesh``.
+      remembered: how many converged designs to keep (>= 1).
+
+    Raises ValueError for a case simulate cannot run or an unknown mesh level.
+    """
+
+    def __init__(self, case: str | Path | Case, *, mesh: str | None = None,
+                 remembered: int = REMEMBERED_DESIGNS):
+        if int(remembered) < 1:
+            raise ValueError(f"Simulation: remembered = {remembered}; keep at least 1 design "
+                             "(the warm start of the next)")
+        parsed = _parsed(case)
+        params = _surgery_parameters(parsed, mesh)
+        log.info("simulate: building the simulator of %s on the %s mesh", parsed.path,
+                 params["mesh"])
+        simulator = (SurgerySimulator if params.get("buckle_body", "rigid") == "rigid"
+                     else RingSimulator)
+        self._case, self._mesh, self._remembered = parsed, str(params["mesh"]), int(remembered)
+        self.sim = simulator(params, parsed.materials, parsed.solver)
+        self.names = tuple(getattr(self.sim, "outcome_names", OUTCOMES))  # outcomes, in order
         self.lock = threading.RLock()
         self.memo: collections.OrderedDict = collections.OrderedDict()
         self.functions: dict = {}
+
+    @property
+    def case(self) -> Case:
+        """The parsed case."""
+        return self._case
+
+    @property
+    def mesh(self) -> str:
+        """The eye mesh level it runs on."""
+        return self._mesh
+
+    def __repr__(self) -> str:
+        return (f"Simulation({str(self._case.path)!r}, mesh={self._mesh!r}: "
+                f"{len(self.memo)} of {self._remembered} designs remembered)")
+
+    def __call__(self, design: dict | None = None) -> dict:
+        """Outcomes of ``design`` (name -> value, missing: the case's): floats, or 0-d
+        arrays when the design is traced (jax.grad, jax.jacrev, jax.jit)."""
+        _check_x64()
+        design = dict(design or {})
+        _check_design(design)
+        if not any(isinstance(v, jax.core.Tracer) for v in design.values()):
+            values = self.outcomes({k: float(v) for k, v in design.items()})
+            return {k: float(v) for k, v in zip(self.names, values)}
+        names = tuple(design)
+        x = jnp.stack([jnp.asarray(design[k], dtype=jnp.float64) for k in names])
+        y = self.differentiable(names)(x)
+        return {k: y[i] for i, k in enumerate(self.names)}
+
+    def forget(self) -> None:
+        """Drop the remembered designs (the next design is solved along the full load path
+        from the pre-operative eye)."""
+        with self.lock:
+            self.memo.clear()
 
     def _entry(self, design: dict) -> dict:
         full = {**self.sim.design0(), **design}
@@ -211,7 +286,7 @@ class _Host:
             if key not in self.memo:  # warm started from the design used last
                 last = next(reversed(self.memo.values()))["result"] if self.memo else None
                 self.memo[key] = {"result": self.sim.run(design, start=last)}
-                while len(self.memo) > REMEMBERED_DESIGNS:
+                while len(self.memo) > self._remembered:
                     self.memo.popitem(last=False)
             self.memo.move_to_end(key)
             return self.memo[key]

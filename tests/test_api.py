@@ -107,6 +107,37 @@ def test_the_docs_quick_start_runs(base, monkeypatch, capsys):
     assert "d IOP / d suture width" in capsys.readouterr().out
 
 
+def test_a_held_simulation_is_the_one_simulate_kept(base):
+    """simulate(path) runs on a Simulation it keeps; simulate(sim) and sim() run on the one
+    given, the same outcomes; after forget() the design is solved along the full load path
+    again (path independence: the same outcomes to the Newton tolerance)."""
+    from eyefem import api
+
+    sim = api._kept(CASE1, "coarse")
+    assert isinstance(sim, eyefem.Simulation) and sim.mesh == "coarse"
+    assert sim.case.problem == "surgery" and sim.names == tuple(OUTCOMES)
+    assert eyefem.simulate(sim) == sim() == base
+    assert "designs remembered" in repr(sim)
+    with pytest.raises(ValueError, match="for a Simulation on the 'coarse' mesh"):
+        eyefem.simulate(sim, mesh="fine")
+    with pytest.raises(AttributeError):
+        sim.mesh = "fine"  # a Simulation's case and level are fixed
+    design = {"suture_width": 8.5}
+    warm = sim(design)
+    sim.forget()
+    assert "0 of 8 designs" in repr(sim)
+    cold = sim(design)
+    for k in RECORDED:
+        assert cold[k] == pytest.approx(warm[k], rel=1e-6), k
+
+
+def test_a_simulation_refuses_bad_settings_before_building():
+    with pytest.raises(ValueError, match="remembered = 0"):
+        eyefem.Simulation(CASE1, mesh="coarse", remembered=0)
+    with pytest.raises(ValueError, match=r"\[case\] problem = 'uniaxial'"):
+        eyefem.Simulation(str(ROOT / "cases" / "verification" / "uniaxial.toml"))
+
+
 @pytest.mark.slow
 def test_plain_call_matches_the_surgery_simulator(base):
     """What `eyefem run` of the case computes: the same simulator, built directly."""
