@@ -90,7 +90,8 @@ class PlanResult:
     violated: tuple[str, ...] = ()
     outcomes_used: tuple[str, ...] = ()
     last: object = None
-    """The last simulation's result (states, no factorisation): ``start`` of a later plan."""
+    """The last simulation's result (its states only, eyefem.eye.simulators.states_only):
+    ``start`` of a later plan."""
 
 
 class _Stop(Exception):
@@ -170,7 +171,6 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
         design = {**d0, **{n: float(lo[i] + z[i] * (hi[i] - lo[i])) for i, n in enumerate(names)}}
         tic = time.perf_counter()
         res = sim.run(design, start=last.get("result"))
-        last["result"] = res
         out = res.outcomes
 
         # d fn / d z of the objective and every constraint from one block adjoint of the
@@ -179,6 +179,7 @@ def plan(sim, objective_terms, names, *, constraints=(), bounds=None, iterations
         used = sorted({k for w in w_all for k, v in w.items() if v} | set(gradient_outcomes))
         g_out = sim.gradients(res, used) if used else {}
         used_ever.update(used)
+        last["result"] = _start_only(res)
 
         def gradient(w):
             return np.array([sum(w[k] * g_out[k][n] for k in used) for n in names]) * (hi - lo)
@@ -253,6 +254,22 @@ class _StartedAt:
 
     def __getattr__(self, name):
         return getattr(self._sim, name)
+
+
+def _start_only(res):
+    """``res`` as the next simulation's start, its gradients taken: its states without
+    their assemblers (eyefem.eye.simulators.states_only), and the linear solver's analyses
+    of its sparsity patterns freed (the next design's bites lie on other faces, so other
+    patterns): the plan on ``fine`` peaked 0.3 GB higher keeping both
+    (docs/performance.md, "Planner")."""
+    from eyefem.eye.simulators import states_only
+    from eyefem.solve.linsolve import free_shared_patterns
+
+    free_shared_patterns()
+    if isinstance(res, _CorrectedResult):
+        return dataclasses.replace(res, raw=_start_only(res.raw))
+    # a result without stages (a caller's own simulator's) as it is
+    return states_only(res) if hasattr(res, "stages") else res
 
 
 @dataclasses.dataclass

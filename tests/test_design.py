@@ -176,7 +176,11 @@ def test_a_result_holds_no_factorisation_and_its_gradients_survive_later_designs
 def test_a_run_does_not_depend_on_the_designs_solved_before(base):
     """The simulator keeps no state between runs: a design of other material constants
     (its own pre-operative eye) leaves the case's pre-operative eye in place, and the
-    case's design solved after it gives the same outcomes, to the last digit, as before."""
+    case's design solved after it gives the same outcomes, to the last digit, as before,
+    from the start result's states alone (states_only: a planner's start); such a result's
+    gradients are refused."""
+    from eyefem.eye.simulators import states_only
+
     sim, res, _ = base
     pre = sim.preop
     design = {**res.design, "tightening": res.design["tightening"] + 0.1}
@@ -184,9 +188,14 @@ def test_a_run_does_not_depend_on_the_designs_solved_before(base):
     stiffer = sim.run({**design, "c10_sclera": 1.05 * design["c10_sclera"]}, start=first)
     assert stiffer.preop is not pre and stiffer.outcomes["iop_mmhg"] > first.outcomes["iop_mmhg"]
     assert sim.preop is pre
-    again = sim.run(design, start=res)
+    lean = states_only(res)
+    assert lean.outcomes == res.outcomes and res.sol2.assembler is not None
+    assert lean.sol2.assembler is None and lean.sol3.assembler is None
+    again = sim.run(design, start=lean)
     assert again.preop is pre
     assert again.outcomes == first.outcomes
+    with pytest.raises(ValueError, match="keeps its state only"):
+        sim.gradients(lean, ["iop_mmhg"])
 
 
 def test_a_start_that_is_not_this_simulators_result_is_refused(base):

@@ -644,6 +644,33 @@ def test_pardiso_evicts_the_least_recently_used_pattern(monkeypatch):
 
 
 @pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
+def test_freeing_the_shared_patterns_keeps_kept_factorisations_and_old_ones_solve(monkeypatch):
+    """free_shared_patterns (a planner between designs) frees every shared instance; a kept
+    factorisation keeps its own, and an old shared one is analysed and factorised again
+    when it solves, to the same answer."""
+    from eyefem.solve import linsolve
+
+    rng = np.random.default_rng(11)
+
+    def spd(n):
+        A = sp.random(n, n, density=0.05, random_state=rng)
+        return (A @ A.T + n * sp.identity(n)).tocsr()
+
+    monkeypatch.setattr(linsolve, "_PARDISO_BY_PATTERN", {})
+    A0, A1 = spd(40), spd(41)
+    f0, kept = linsolve.factorize(A0, "pardiso"), linsolve.factorize(A1, "pardiso")
+    kept.keep()
+    assert linsolve.free_shared_patterns() == 1  # A0's; A1's moved into its own instance
+    assert linsolve._PARDISO_BY_PATTERN == {} and f0.entry["freed"]
+    assert not kept.entry["freed"]
+    b = rng.standard_normal(40)
+    assert np.allclose(A0 @ f0.solve(b), b, rtol=1e-10, atol=1e-10)
+    assert list(linsolve._PARDISO_BY_PATTERN) == [f0.key]  # analysed again
+    assert np.allclose(A1 @ kept.solve(np.append(b, 1.0)), np.append(b, 1.0), rtol=1e-10,
+                       atol=1e-10)
+
+
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="pypardiso not installed")
 def test_a_kept_pardiso_factorisation_is_not_overwritten_by_its_pattern():
     """The stages of a surgery share one sparsity pattern; a factorisation kept for an
     adjoint (``keep``) moves into its own instance: a later factorisation of the same

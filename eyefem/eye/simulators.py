@@ -998,6 +998,19 @@ def _carries(records) -> dict:
     return jax.tree_util.tree_map(jnp.asarray, out)
 
 
+def states_only(res):
+    """A result (:class:`Result`, :class:`RingResult`, :class:`TimelineResult`) keeping its
+    stages' states, not their assemblers (the tangent's sparsity and scatter maps: about
+    50 MB a stage on ``fine``): what the next design starts from (``run(design,
+    start=...)``), when its own gradients are taken already. Its gradients cannot be taken
+    (Solution.factorised says so); the pre-operative stage's solution is the simulator's
+    and keeps its assembler."""
+    stages = tuple(rec if i == 0 else dataclasses.replace(
+        rec, solution=dataclasses.replace(rec.solution, assembler=None))
+        for i, rec in enumerate(res.stages))
+    return dataclasses.replace(res, stages=stages)
+
+
 def _lean(sol: Solution) -> Solution:
     """``sol`` without its last factorisation (freed once nothing else holds it): a
     design's gradients factorise each stage's tangent again at its converged state

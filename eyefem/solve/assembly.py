@@ -95,7 +95,7 @@ def _pattern_of(rds, n):
     slots = []
     for rd in rds:
         k = rd.shape[1]
-        out = np.empty(len(rd) * k * k, np.int64)
+        out = np.empty(len(rd) * k * k, itype)  # int32 halves the kept slot maps
         for lo in range(0, len(rd), PATTERN_CHUNK):
             key = _chunk_keys(rd, lo, lo + PATTERN_CHUNK, n)
             s = np.searchsorted(uniq, key)

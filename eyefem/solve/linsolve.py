@@ -114,6 +114,17 @@ def _free_pattern(key) -> None:
     old["freed"], old["owner"] = True, None
 
 
+def free_shared_patterns() -> int:
+    """Free every shared pattern's Pardiso instance (its symbolic analysis and factors; kept
+    factorisations stay): for a caller whose next solves use other patterns (a planner's
+    next design, its bites on other faces). A pattern used again is analysed again.
+    Returns how many held an analysis."""
+    n = sum(not e["freed"] for e in _PARDISO_BY_PATTERN.values())
+    for key in list(_PARDISO_BY_PATTERN):
+        _free_pattern(key)
+    return n
+
+
 RELEASE_OTHER_FACTORS = True
 """Before a pattern's instance factorises, the other patterns' shared instances free their
 numeric factors (Pardiso phase 0) and keep only their symbolic analysis: at most one set of

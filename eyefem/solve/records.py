@@ -106,6 +106,10 @@ class Solution:
         """This solution with a factorisation of the tangent (for adjoints) if it has none."""
         if self.solver is not None:
             return self
+        if self.assembler is None:
+            raise ValueError("this solution keeps its state only (a warm start's, "
+                             "eyefem.eye.simulators.states_only): solve the design again for "
+                             "its tangent or its gradients")
         asm = self.assembler  # shared by the stages: assemble this solution's own model
         r, K, B, D, lr = asm.assemble(self.q, self.theta, self.active, model=self.model)
         return dataclasses.replace(self, solver=asm.solver(K, B, D, lr))
