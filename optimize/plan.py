@@ -260,8 +260,8 @@ def _start_only(res):
     """``res`` as the next simulation's start, its gradients taken: its states without
     their assemblers (eyefem.eye.simulators.states_only), and the linear solver's analyses
     of its sparsity patterns freed (the next design's bites lie on other faces, so other
-    patterns): the plan on ``fine`` peaked 0.3 GB higher keeping both
-    (docs/performance.md, "Planner")."""
+    patterns): the plan on ``fine`` peaked 0.19 GB higher keeping both
+    (docs/performance.md, "Planner and other runs")."""
     from eyefem.eye.simulators import states_only
     from eyefem.solve.linsolve import free_shared_patterns
 

@@ -149,6 +149,7 @@ def lookahead(model, asm, q, theta, active, solver, rf, rm, x, y, rounds=4, end_
             members[t.name] = new
         if not changed:
             break
+        la_solver = None  # the last round's update freed before this round's is built
         gx = np.zeros(model.n_dof)
         n_nodes = sum(int(np.sum(m)) for m in members.values())
         sparse = 3 * 8.0 * len(asm.free_primal) * n_nodes > LOOKAHEAD_DENSE_BYTES
