@@ -213,9 +213,9 @@ class Simulation:
 
     Building it reads the case, builds its simulator (SurgerySimulator for a rigid buckle,
     RingSimulator for a deformable band or tire; on the mirror half where the case says
-    so) and solves the pressurised pre-operative eye and the case's design: tens of
-    seconds on the coarse mesh. Each later design is a continuation of the design solved
-    last; the converged states of the last ``remembered`` designs are kept, so a repeated
+    so), which solves the pressurised pre-operative eye; the first call solves its design
+    along the case's load path (together tens of seconds on the coarse mesh). Each later
+    design is a continuation of the design solved last; the converged states of the last ``remembered`` designs are kept, so a repeated
     or jitted design is not solved again. Its case, mesh level and outcome names do not
     change; :meth:`forget` drops the remembered designs.
 
