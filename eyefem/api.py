@@ -215,9 +215,10 @@ class Simulation:
     RingSimulator for a deformable band or tire; on the mirror half where the case says
     so), which solves the pressurised pre-operative eye; the first call solves its design
     along the case's load path (together tens of seconds on the coarse mesh). Each later
-    design is a continuation of the design solved last; the converged states of the last ``remembered`` designs are kept, so a repeated
-    or jitted design is not solved again. Its case, mesh level and outcome names do not
-    change; :meth:`forget` drops the remembered designs.
+    design is a continuation of the design solved last; the converged states of the last
+    ``remembered`` designs are kept, so a repeated or jitted design is not solved again.
+    Its case, mesh level and outcome names do not change; :meth:`forget` drops the
+    remembered designs.
 
     Args:
       case: a case-file path or a parsed Case (load_case), ``problem = "surgery"``.
