@@ -266,10 +266,10 @@ def _start_only(res):
     from eyefem.solve.linsolve import free_shared_patterns
 
     free_shared_patterns()
-    if isinstance(res, _CorrectedResult):
-        return dataclasses.replace(res, raw=_start_only(res.raw))
+    raw = res.raw if isinstance(res, _CorrectedResult) else res
     # a result without stages (a caller's own simulator's) as it is
-    return states_only(res) if hasattr(res, "stages") else res
+    lean = states_only(raw) if hasattr(raw, "stages") else raw
+    return dataclasses.replace(res, raw=lean) if raw is not res else lean
 
 
 @dataclasses.dataclass
